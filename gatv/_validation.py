@@ -1,0 +1,133 @@
+"""Input validation shared by every public entry point.
+
+Each validator takes the argument's *name* so that error messages can say
+which argument is wrong and how to fix it, before any numba code runs.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+__all__ = [
+    "as_points",
+    "as_vectors",
+    "check_positive",
+    "check_finite_array",
+    "check_memory",
+    "DEFAULT_MEMORY_BUDGET",
+]
+
+#: Default budget (bytes) for the largest array one call may allocate.
+#: Override per call with ``memory_budget=`` or globally with the environment
+#: variable ``GATV_MEMORY_BUDGET`` (bytes, e.g. ``8e9``).
+DEFAULT_MEMORY_BUDGET = 4 * 1024**3
+
+
+def _memory_budget(budget: float | None) -> float:
+    import os
+
+    if budget is not None:
+        return float(budget)
+    env = os.environ.get("GATV_MEMORY_BUDGET")
+    if env:
+        try:
+            return float(env)
+        except ValueError as exc:  # pragma: no cover - defensive
+            msg = f"GATV_MEMORY_BUDGET must be a number of bytes, got {env!r}."
+            raise ValueError(msg) from exc
+    return float(DEFAULT_MEMORY_BUDGET)
+
+
+def check_memory(nbytes: float, what: str, budget: float | None = None) -> None:
+    """Raise ``MemoryError``-like ``ValueError`` when ``nbytes`` exceeds the budget.
+
+    Parameters
+    ----------
+    nbytes : float
+        Bytes the operation would allocate.
+    what : str
+        Human description of the allocation (e.g. "1.2e8 candidate pairs").
+    budget : float, optional
+        Budget in bytes; default :data:`DEFAULT_MEMORY_BUDGET` or the
+        ``GATV_MEMORY_BUDGET`` environment variable.
+    """
+    limit = _memory_budget(budget)
+    if nbytes > limit:
+        msg = (
+            f"{what} would need about {nbytes / 1024**3:.2f} GiB, over the memory "
+            f"budget of {limit / 1024**3:.2f} GiB. Reduce the input (downsample, "
+            "prune candidate pairs) or raise the budget with `memory_budget=` "
+            "or the GATV_MEMORY_BUDGET environment variable (bytes)."
+        )
+        raise ValueError(msg)
+
+
+def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarray:
+    """Return ``obj`` as a C-contiguous float64 ``(N, dim)`` array.
+
+    Accepts array-likes and anything with a ``.points`` attribute (PyVista
+    meshes and point clouds).
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, too few rows, or non-finite values; the message names
+        the argument.
+    """
+    if obj is None:
+        msg = f"Expected `{name}` to be an (N, {dim}) array of points, got None."
+        raise ValueError(msg)
+    if hasattr(obj, "points") and not isinstance(obj, np.ndarray):
+        obj = obj.points
+    try:
+        arr = np.asarray(obj, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        msg = f"Expected `{name}` to be an (N, {dim}) array of numbers: {exc}."
+        raise ValueError(msg) from exc
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}."
+        raise ValueError(msg)
+    if arr.shape[0] < min_points:
+        msg = (
+            f"Expected `{name}` to have at least {min_points} point"
+            f"{'s' if min_points != 1 else ''}, got {arr.shape[0]}."
+        )
+        raise ValueError(msg)
+    check_finite_array(arr, name)
+    return np.ascontiguousarray(arr)
+
+
+def as_vectors(obj, name: str, n: int) -> np.ndarray:
+    """Return ``obj`` as a float64 ``(n, 3)`` array matching ``n`` rows."""
+    arr = as_points(obj, name, min_points=0)
+    if arr.shape[0] != n:
+        msg = f"Expected `{name}` to have {n} rows to match the tokens, got {arr.shape[0]}."
+        raise ValueError(msg)
+    return arr
+
+
+def check_finite_array(arr: np.ndarray, name: str) -> None:
+    """Raise ``ValueError`` if ``arr`` holds NaN or inf."""
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        msg = (
+            f"`{name}` contains {bad} NaN or infinite value{'s' if bad != 1 else ''}; "
+            "remove or replace them before calling."
+        )
+        raise ValueError(msg)
+
+
+def check_positive(value, name: str, *, allow_none: bool = False) -> float | None:
+    """Return ``value`` as a finite positive float, or raise ``ValueError``."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        msg = f"Expected `{name}` to be a positive number, got {value!r}."
+        raise ValueError(msg)
+    value = float(value)
+    if not np.isfinite(value) or value <= 0:
+        msg = f"Expected `{name}` to be a finite number > 0, got {value!r}."
+        raise ValueError(msg)
+    return value

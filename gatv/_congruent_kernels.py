@@ -1,0 +1,264 @@
+"""Numba kernels for trial rotations from congruent point triples.
+
+Side lengths of a triangle survive any rigid motion, so three true
+matches ``(a, b, c) <-> (k, l, m)`` are found by looking up target pairs
+of the same length.  The kernels here are pure: arrays and scalars in,
+arrays out.  :mod:`gatv.congruent` validates input and drives them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True)
+def pair_table(points):
+    """All pairs ``i < j`` of ``points`` sorted by length.
+
+    Returns ``(lengths, i, j)`` with ``lengths`` ascending.
+    """
+    n = points.shape[0]
+    m = n * (n - 1) // 2
+    lengths = np.empty(m)
+    pi = np.empty(m, np.int32)
+    pj = np.empty(m, np.int32)
+    k = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx = points[i, 0] - points[j, 0]
+            dy = points[i, 1] - points[j, 1]
+            dz = points[i, 2] - points[j, 2]
+            lengths[k] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            pi[k] = i
+            pj[k] = j
+            k += 1
+    order = np.argsort(lengths, kind="mergesort")
+    return lengths[order], pi[order], pj[order]
+
+
+@njit(cache=True, parallel=True)
+def sorted_neighbours(points):
+    """For each point, the other points sorted by distance.
+
+    Returns ``(dist, idx)``, both (n, n - 1), rows ascending in distance.
+    """
+    n = points.shape[0]
+    dist = np.empty((n, n - 1))
+    idx = np.empty((n, n - 1), np.int32)
+    for i in prange(n):
+        d = np.empty(n - 1)
+        ix = np.empty(n - 1, np.int32)
+        c = 0
+        for j in range(n):
+            if j == i:
+                continue
+            dx = points[i, 0] - points[j, 0]
+            dy = points[i, 1] - points[j, 1]
+            dz = points[i, 2] - points[j, 2]
+            d[c] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            ix[c] = j
+            c += 1
+        o = np.argsort(d)
+        for c in range(n - 1):
+            dist[i, c] = d[o[c]]
+            idx[i, c] = ix[o[c]]
+    return dist, idx
+
+
+@njit(cache=True)
+def _lower_bound(a, x):
+    lo, hi = 0, a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def _dist(p, i, q, j):
+    dx = p[i, 0] - q[j, 0]
+    dy = p[i, 1] - q[j, 1]
+    dz = p[i, 2] - q[j, 2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True)
+def kabsch3(src, dst):
+    """Least-squares rotation and translation with ``dst ≈ R src + t``."""
+    cs = np.zeros(3)
+    cd = np.zeros(3)
+    n = src.shape[0]
+    for i in range(n):
+        for k in range(3):
+            cs[k] += src[i, k]
+            cd[k] += dst[i, k]
+    cs /= n
+    cd /= n
+    H = np.zeros((3, 3))
+    for i in range(n):
+        for r in range(3):
+            for c in range(3):
+                H[r, c] += (src[i, r] - cs[r]) * (dst[i, c] - cd[c])
+    U, S, Vt = np.linalg.svd(H)
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0:
+        for r in range(3):
+            Vt[2, r] = -Vt[2, r]
+        R = Vt.T @ U.T
+    t = cd - R @ cs
+    return R, t
+
+
+# ------------------------------------------------------------------ grid
+@njit(cache=True)
+def build_grid(points, origin, cell, dims):
+    """Counting-sort ``points`` into a dense grid of ``dims`` cells of size ``cell``.
+
+    Returns ``(start, order)``: points of cell ``c`` are
+    ``order[start[c]:start[c + 1]]``.
+    """
+    n = points.shape[0]
+    ncell = dims[0] * dims[1] * dims[2]
+    key = np.empty(n, np.int64)
+    count = np.zeros(ncell + 1, np.int64)
+    for i in range(n):
+        cx = min(max(int((points[i, 0] - origin[0]) / cell), 0), dims[0] - 1)
+        cy = min(max(int((points[i, 1] - origin[1]) / cell), 0), dims[1] - 1)
+        cz = min(max(int((points[i, 2] - origin[2]) / cell), 0), dims[2] - 1)
+        key[i] = (cx * dims[1] + cy) * dims[2] + cz
+        count[key[i] + 1] += 1
+    for c in range(ncell):
+        count[c + 1] += count[c]
+    order = np.empty(n, np.int64)
+    fill = count[:-1].copy()
+    for i in range(n):
+        order[fill[key[i]]] = i
+        fill[key[i]] += 1
+    return count, order
+
+
+@njit(cache=True)
+def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
+    """Index of the nearest target point within ``radius`` of ``p`` (or -1)."""
+    cx = int(np.floor((p[0] - origin[0]) / cell))
+    cy = int(np.floor((p[1] - origin[1]) / cell))
+    cz = int(np.floor((p[2] - origin[2]) / cell))
+    best = -1
+    bd = radius * radius
+    for ix in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+        for iy in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+            for iz in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                c = (ix * dims[1] + iy) * dims[2] + iz
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    dx = target[j, 0] - p[0]
+                    dy = target[j, 1] - p[1]
+                    dz = target[j, 2] - p[2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 <= bd:
+                        bd = d2
+                        best = j
+    return best
+
+
+@njit(cache=True)
+def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius):
+    """Number of source points whose moved position has a target within ``radius``."""
+    n = 0
+    p = np.empty(3)
+    for i in range(source.shape[0]):
+        for r in range(3):
+            p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
+        if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
+            n += 1
+    return n
+
+
+# ------------------------------------------------------------ hypotheses
+@njit(cache=True, parallel=True)
+def triple_hypotheses(
+    source,
+    target,
+    triples,
+    plen,
+    pi,
+    pj,
+    ndist,
+    nidx,
+    eps,
+    start,
+    order,
+    origin,
+    cell,
+    dims,
+    radius,
+    max_matches,
+):
+    """Best congruent match of each source triple, scored by inlier count.
+
+    For source triple ``(a, b, c)`` every target triple ``(k, l, m)`` with
+    ``| |ab| - |kl| |, | |ac| - |km| |, | |bc| - |lm| | <= eps`` gives a
+    motion (Kabsch on the three pairs) whose support is the number of
+    source points landing within ``radius`` of a target point.  At most
+    ``max_matches`` congruent triples are scored per source triple.
+
+    Returns ``(score, R, t, n_matches)`` per triple; ``score = -1`` when no
+    congruent triple exists.
+    """
+    nt = triples.shape[0]
+    scores = np.full(nt, -1, np.int64)
+    rots = np.zeros((nt, 3, 3))
+    trans = np.zeros((nt, 3))
+    nmatch = np.zeros(nt, np.int64)
+    for q in prange(nt):
+        a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
+        dab = _dist(source, a, source, b)
+        dac = _dist(source, a, source, c)
+        dbc = _dist(source, b, source, c)
+        src = np.empty((3, 3))
+        dst = np.empty((3, 3))
+        for r in range(3):
+            src[0, r] = source[a, r]
+            src[1, r] = source[b, r]
+            src[2, r] = source[c, r]
+        lo = _lower_bound(plen, dab - eps)
+        hi = _lower_bound(plen, dab + eps)
+        found = 0
+        for s in range(lo, hi):
+            if found >= max_matches:
+                break
+            for orient in range(2):
+                if orient == 0:
+                    k, l = pi[s], pj[s]
+                else:
+                    k, l = pj[s], pi[s]
+                row = ndist[k]
+                m0 = _lower_bound(row, dac - eps)
+                m1 = _lower_bound(row, dac + eps)
+                for u in range(m0, m1):
+                    m = nidx[k, u]
+                    if m == l:
+                        continue
+                    if abs(_dist(target, l, target, m) - dbc) > eps:
+                        continue
+                    found += 1
+                    for r in range(3):
+                        dst[0, r] = target[k, r]
+                        dst[1, r] = target[l, r]
+                        dst[2, r] = target[m, r]
+                    R, t = kabsch3(src, dst)
+                    sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius)
+                    if sc > scores[q]:
+                        scores[q] = sc
+                        rots[q] = R
+                        trans[q] = t
+                    if found >= max_matches:
+                        break
+                if found >= max_matches:
+                    break
+        nmatch[q] = found
+    return scores, rots, trans, nmatch

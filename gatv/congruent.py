@@ -1,0 +1,216 @@
+"""Trial rotations from congruent point triples (replacing Algorithm 1's grid).
+
+Algorithm 1 of the paper rotates the source by every trial rotation of a
+grid until the plane in the ``{dx, dy, dz}`` joint space becomes dense
+enough for tensor voting to find it. At 90% outliers the plane is found
+only when the remaining rotation is within a few degrees, so a grid needs
+tens of thousands of voting passes.  Here the number of trials collapses:
+a trial rotation is generated only from three source points and three
+target points with the same side lengths (side lengths survive any rigid
+motion).  A trial built from three true matches leaves a residual rotation
+near zero, and the true pairs then form the dense pure-translation cluster
+of section 3.4.  Each trial is scored by a cheap density test (how many
+source points the trial motion brings onto a target point, a grid lookup),
+and only the best trials go on to tensor voting, which stays the judge
+that extracts the correspondences.
+
+The number of source triples to draw follows the RANSAC bound: with an
+inlier share ``w`` of the source, a triple is all-inlier with probability
+``w**3``, so ``log(1 - confidence) / log(1 - w**3)`` triples find one with
+the requested confidence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import poisson
+
+from . import _congruent_kernels as _k
+from ._validation import check_memory
+
+__all__ = ["TargetIndex", "TrialMotions", "trial_motions", "n_triples_needed", "chance_support"]
+
+
+def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
+    """Source triples to draw so one is all-inlier with ``confidence``."""
+    w3 = float(inlier_share) ** 3
+    if w3 >= 1.0:
+        return 1
+    return int(np.ceil(np.log1p(-confidence) / np.log1p(-w3)))
+
+
+def chance_support(n_source: int, n_target: int, volume: float, radius: float,
+                   n_tests: float = 1.0, alpha: float = 1e-6) -> int:
+    """Support a wrong motion reaches by chance, with family-wise level ``alpha``.
+
+    Under a wrong motion a moved source point lands within ``radius`` of
+    one of ``n_target`` points spread over ``volume`` with probability
+    ``p = min(1, n_target * 4/3 π radius³ / volume)``; the count over
+    ``n_source`` points is about Poisson(``n_source p``).  Returns the
+    smallest count exceeded with probability below ``alpha / n_tests``.
+    The three points that generated a trial always match, hence ``+ 3``.
+    """
+    p = min(1.0, n_target * (4.0 / 3.0) * np.pi * radius**3 / max(volume, 1e-300))
+    lam = n_source * p
+    return int(poisson.isf(alpha / max(n_tests, 1.0), lam)) + 3
+
+
+class TargetIndex:
+    """Pair-length table, sorted neighbour lists and a grid of the target."""
+
+    def __init__(self, target: np.ndarray, radius: float, *, memory_budget=None):
+        n = target.shape[0]
+        # pair table (n²/2 × 16 bytes) + neighbour lists (n² × 12 bytes)
+        check_memory(20.0 * n * n, f"the congruent-triple index of {n} target points", memory_budget)
+        self.target = target
+        self.plen, self.pi, self.pj = _k.pair_table(target)
+        self.ndist, self.nidx = _k.sorted_neighbours(target)
+        self.set_radius(radius)
+
+    def set_radius(self, radius: float) -> None:
+        """Rebuild the scoring grid for a match radius."""
+        target = self.target
+        lo = target.min(axis=0)
+        hi = target.max(axis=0)
+        ext = np.maximum(hi - lo, 1e-12)
+        # Cells no smaller than the radius, at most ~64 cells a side.
+        cell = max(float(radius), float(ext.max()) / 64.0)
+        dims = np.maximum(np.ceil(ext / cell).astype(np.int64), 1)
+        self.radius = float(radius)
+        self.origin = lo.astype(np.float64)
+        self.cell = cell
+        self.dims = dims
+        self.start, self.order = _k.build_grid(target, self.origin, cell, dims)
+        self.volume = float(np.prod(ext + 2 * radius))
+
+    def nearest(self, points: np.ndarray, radius: float | None = None) -> np.ndarray:
+        """Index of the nearest target within ``radius`` of each point, or -1."""
+        r = self.radius if radius is None else float(radius)
+        out = np.empty(points.shape[0], np.int64)
+        for i in range(points.shape[0]):
+            out[i] = _k.nearest_in_grid(points[i], self.target, self.start, self.order,
+                                        self.origin, self.cell, self.dims, r)
+        return out
+
+
+@dataclass(frozen=True)
+class TrialMotions:
+    """Trial motions ranked by support, best first."""
+
+    rotations: np.ndarray  # (K, 3, 3)
+    translations: np.ndarray  # (K, 3)
+    support: np.ndarray  # (K,)
+    threshold: int
+    n_triples: int
+    n_congruent: int
+
+    def __len__(self) -> int:
+        return int(self.support.shape[0])
+
+
+def _sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    t = np.empty((count, 3), np.int64)
+    t[:, 0] = rng.integers(0, n, count)
+    t[:, 1] = rng.integers(0, n - 1, count)
+    t[:, 1] += t[:, 1] >= t[:, 0]
+    lo = np.minimum(t[:, 0], t[:, 1])
+    hi = np.maximum(t[:, 0], t[:, 1])
+    c = rng.integers(0, n - 2, count)
+    c += c >= lo
+    c += c >= hi
+    t[:, 2] = c
+    return t
+
+
+def trial_motions(
+    source: np.ndarray,
+    index: TargetIndex,
+    *,
+    eps: float,
+    max_triples: int,
+    rng: np.random.Generator,
+    min_side: float = 0.0,
+    batch: int = 512,
+    keep: int = 8,
+    max_matches: int = 64,
+    accept: int | None = None,
+    progress=None,
+) -> TrialMotions:
+    """Draw source triples, match them congruently, score the motions.
+
+    Stops early once a trial's support reaches ``accept`` (default: the
+    chance level of :func:`chance_support`), after finishing its batch.
+
+    Parameters
+    ----------
+    source : (N, 3) ndarray
+    index : TargetIndex
+    eps : float
+        Side-length tolerance of congruence (data units).
+    max_triples : int
+        Upper bound on source triples drawn.
+    min_side : float
+        Triples with a side shorter than this are redrawn (short sides make
+        the rotation sensitive to noise).
+    keep : int
+        Number of best distinct trials returned.
+    """
+    n = source.shape[0]
+    threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
+                               n_tests=max_triples * max_matches)
+    if accept is None:
+        accept = threshold
+    best_s = []
+    best_R = []
+    best_t = []
+    drawn = 0
+    n_congruent = 0
+    while drawn < max_triples:
+        m = min(batch, max_triples - drawn)
+        tri = _sample_triples(n, m * 2 if min_side > 0 else m, rng)
+        if min_side > 0:
+            p = source
+            s1 = np.linalg.norm(p[tri[:, 0]] - p[tri[:, 1]], axis=1)
+            s2 = np.linalg.norm(p[tri[:, 0]] - p[tri[:, 2]], axis=1)
+            s3 = np.linalg.norm(p[tri[:, 1]] - p[tri[:, 2]], axis=1)
+            tri = tri[np.minimum(np.minimum(s1, s2), s3) >= min_side][:m]
+            if tri.shape[0] == 0:
+                tri = _sample_triples(n, m, rng)
+        drawn += tri.shape[0]
+        scores, R, t, nm = _k.triple_hypotheses(
+            source, index.target, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx,
+            float(eps), index.start, index.order, index.origin, index.cell, index.dims,
+            index.radius, int(max_matches),
+        )
+        n_congruent += int(nm.sum())
+        good = np.flatnonzero(scores >= 3)
+        if good.size:
+            top = good[np.argsort(-scores[good], kind="stable")[: 4 * keep]]
+            best_s.extend(scores[top].tolist())
+            best_R.extend(R[top])
+            best_t.extend(t[top])
+        if progress is not None:
+            progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support "
+                     f"{max(best_s) if best_s else 0}")
+        if best_s and max(best_s) >= accept:
+            break
+    if not best_s:
+        return TrialMotions(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
+                            threshold, drawn, n_congruent)
+    s = np.asarray(best_s)
+    order = np.argsort(-s, kind="stable")
+    Rs = np.asarray(best_R)[order]
+    ts = np.asarray(best_t)[order]
+    s = s[order]
+    # keep distinct motions only
+    kept = []
+    for i in range(len(s)):
+        if all(np.linalg.norm(Rs[i] - Rs[j]) > 1e-3 or np.linalg.norm(ts[i] - ts[j]) > index.radius
+               for j in kept):
+            kept.append(i)
+        if len(kept) >= keep:
+            break
+    kept = np.asarray(kept)
+    return TrialMotions(Rs[kept], ts[kept], s[kept], threshold, drawn, n_congruent)

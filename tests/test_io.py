@@ -1,0 +1,147 @@
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from gatv.io import PointFileError, atomic_path, read_points, write_json, write_points
+
+
+@pytest.fixture
+def points():
+    return np.random.default_rng(0).uniform(-5, 5, size=(30, 3))
+
+
+@pytest.mark.parametrize("ext", [".xyz", ".txt", ".csv", ".pts", ".npy", ".vtk", ".vtp"])
+def test_round_trip_exact(tmp_path, points, ext):
+    path = tmp_path / f"cloud{ext}"
+    write_points(path, points)
+    back = read_points(path)
+    assert back.dtype == np.float64 and back.flags.c_contiguous
+    np.testing.assert_array_equal(back, points)
+
+
+def test_round_trip_ply_float32(tmp_path, points):
+    path = tmp_path / "cloud.ply"
+    write_points(path, points)
+    np.testing.assert_allclose(read_points(path), points, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("ext", [".stl", ".obj"])
+def test_read_mesh_formats(tmp_path, ext):
+    pv = pytest.importorskip("pyvista")
+    mesh = pv.Cube().triangulate()
+    path = tmp_path / f"cube{ext}"
+    mesh.save(path)
+    got = read_points(path)
+    assert got.shape[1] == 3 and len(got) >= 8
+    # every cube corner is present
+    corners = np.unique(np.asarray(mesh.points), axis=0)
+    d = np.min(np.linalg.norm(got[:, None] - corners[None], axis=2), axis=0)
+    assert d.max() < 1e-6
+
+
+def test_text_variants(tmp_path):
+    path = tmp_path / "pts.csv"
+    path.write_text("x,y,z,intensity\n1,2,3,9\n4,5,6,9\n# comment\n\n7, 8, 9, 9\n")
+    np.testing.assert_array_equal(read_points(path), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    path = tmp_path / "pts.xyz"
+    path.write_text("1\t2 3\n4 5 6\n")
+    np.testing.assert_array_equal(read_points(path), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_npy_extra_columns_and_single_point(tmp_path):
+    path = tmp_path / "a.npy"
+    np.save(path, np.arange(12.0).reshape(3, 4))
+    np.testing.assert_array_equal(read_points(path), np.arange(12.0).reshape(3, 4)[:, :3])
+    np.save(path, np.array([1.0, 2.0, 3.0]))
+    assert read_points(path).shape == (1, 3)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "match"),
+    [
+        ("two.xyz", "1 2\n3 4\n", "at least 3 columns"),
+        ("nan.xyz", "1 2 3\nnan 1 1\n", "NaN or infinite"),
+        ("inf.csv", "1,2,3\n1,inf,1\n", "NaN or infinite"),
+        ("empty.xyz", "# nothing\n", "no points"),
+        ("ragged.txt", "1 2 3\n4 5\n", "line 2 has 2 columns"),
+        ("words.txt", "1 2 3\na b c\n", "line 2 is not a row of numbers"),
+        ("bad.ply", "this is not a ply file\n", "no points|cannot be read"),
+        ("bad.vtk", "garbage", "no points|cannot be read"),
+        ("bad.npy", "garbage", "cannot be read as .npy"),
+        ("points.png", "x", "unknown point-file format"),
+        ("noext", "1 2 3\n", "unknown point-file format"),
+    ],
+)
+def test_bad_files_name_the_path(tmp_path, name, content, match):
+    path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(PointFileError, match=match) as info:
+        read_points(path)
+    assert str(path) in str(info.value)
+    assert isinstance(info.value, ValueError)
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(ValueError, match="no such file") as info:
+        read_points(tmp_path / "missing.ply")
+    assert str(tmp_path / "missing.ply") in str(info.value)
+    with pytest.raises(ValueError, match="is a folder"):
+        read_points(tmp_path)
+
+
+def test_npy_wrong_shape(tmp_path):
+    path = tmp_path / "flat.npy"
+    np.save(path, np.zeros((2, 2, 3)))
+    with pytest.raises(PointFileError, match="shape"):
+        read_points(path)
+
+
+def test_write_rejects_bad_input_without_writing(tmp_path, points):
+    bad = points.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        write_points(tmp_path / "out.xyz", bad)
+    with pytest.raises(PointFileError, match="cannot write points"):
+        write_points(tmp_path / "out.stl", points)
+    with pytest.raises(PointFileError, match="does not exist"):
+        write_points(tmp_path / "nofolder" / "out.xyz", points)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_failure_leaves_nothing(tmp_path):
+    dest = tmp_path / "out.json"
+    with pytest.raises(RuntimeError):
+        with atomic_path(dest) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_failure_keeps_old_file(tmp_path, monkeypatch):
+    dest = tmp_path / "out.json"
+    write_json(dest, {"a": 1})
+
+    def broken_dumps(*args, **kwargs):
+        raise OSError("disk full")
+
+    with pytest.raises(ValueError):
+        with atomic_path(dest) as tmp:
+            tmp.write_text("partial")
+            raise ValueError("disk full")
+    monkeypatch.setattr(np, "savetxt", broken_dumps)
+    with pytest.raises(OSError, match="disk full"):
+        write_points(tmp_path / "out.xyz", np.zeros((2, 3)))
+    assert json.loads(dest.read_text()) == {"a": 1}
+    assert sorted(os.listdir(tmp_path)) == ["out.json"]
+
+
+def test_write_json_numpy_and_nan(tmp_path):
+    dest = tmp_path / "r.json"
+    write_json(dest, {"m": np.eye(2), "x": np.float32(1.5), "n": np.int64(3), "nan": float("nan"), "p": tmp_path})
+    data = json.loads(dest.read_text())
+    assert data == {"m": [[1.0, 0.0], [0.0, 1.0]], "x": 1.5, "n": 3, "nan": None, "p": str(tmp_path)}
+    assert "NaN" not in dest.read_text()

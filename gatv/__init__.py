@@ -1,0 +1,30 @@
+"""gatv: correspondences and motions between 3D point sets with Geometric
+Algebra + Tensor Voting (Reyes, Medioni & Bayro, IJCV 75(3), 2007).
+
+Main entry points
+-----------------
+register
+    Rigid registration with no initial guess (Algorithm 1, sections 2–3).
+Rotor
+    Rotors of G(3,0,0) (section 2).
+gatv.voting
+    Sparse 3D tensor voting (section 3).
+"""
+
+from __future__ import annotations
+
+from .ga import Rotor
+from .motion import RigidMotion, fit_rigid
+
+__version__ = "0.1.0"
+
+__all__ = ["Rotor", "RigidMotion", "fit_rigid", "register", "__version__"]
+
+
+def __getattr__(name):
+    # Heavy modules (numba kernels) load on first use.
+    if name == "register":
+        from .registration import register
+
+        return register
+    raise AttributeError(f"module 'gatv' has no attribute {name!r}")

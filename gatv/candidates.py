@@ -1,0 +1,113 @@
+"""Candidate pairs (tokens) and the one-to-one selection.
+
+A candidate pair ``(i, j)`` matches source point ``i`` with target point
+``j``; its token in the ``{dx, dy, dz}`` joint space of eq. 30 is
+``d = target[j] - source[i]`` (after the source is rotated by a trial
+rotation, when there is one).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._validation import check_memory
+
+__all__ = [
+    "all_pairs",
+    "pairs_within",
+    "bounded_pairs",
+    "one_to_one",
+    "median_spacing",
+]
+
+#: Bytes one candidate pair costs downstream (indices, token, votes, eigen).
+BYTES_PER_TOKEN = 2 * 8 + 3 * 8 + 9 * 8 + 12 * 8
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """Median distance from each point to its nearest neighbour (> 0)."""
+    if points.shape[0] < 2:
+        return 1.0
+    d, _ = cKDTree(points).query(points, k=2)
+    nn = d[:, 1]
+    pos = nn[nn > 0]
+    if pos.size == 0:
+        return 1.0
+    return float(np.median(pos))
+
+
+def all_pairs(n_source: int, n_target: int, *, memory_budget=None) -> np.ndarray:
+    """Every pair ``(i, j)``, the paper's default matching scheme (section 3.4)."""
+    check_memory(float(n_source) * n_target * BYTES_PER_TOKEN,
+                 f"{n_source} x {n_target} = {n_source * n_target} candidate pairs", memory_budget)
+    i, j = np.meshgrid(np.arange(n_source), np.arange(n_target), indexing="ij")
+    return np.stack([i.ravel(), j.ravel()], axis=1)
+
+
+def _flatten(lists, memory_budget=None) -> np.ndarray:
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    total = int(counts.sum())
+    check_memory(total * BYTES_PER_TOKEN, f"{total} candidate pairs", memory_budget)
+    i = np.repeat(np.arange(len(lists)), counts)
+    j = np.fromiter((v for x in lists for v in x), dtype=np.int64, count=total)
+    return np.stack([i, j], axis=1)
+
+
+def pairs_within(moved_source: np.ndarray, target: np.ndarray, radius, *,
+                 tree: cKDTree | None = None, memory_budget=None) -> np.ndarray:
+    """Pairs ``(i, j)`` with ``|target[j] - moved_source[i]| <= radius``.
+
+    ``radius`` may be a scalar or one radius per source point.
+    """
+    tree = cKDTree(target) if tree is None else tree
+    r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (moved_source.shape[0],))
+    # Estimate before materialising: expected count from the mean density.
+    lists = tree.query_ball_point(moved_source, r)
+    return _flatten(lists, memory_budget)
+
+
+def bounded_pairs(source: np.ndarray, target: np.ndarray, max_angle: float,
+                  max_translation: float | None, *, memory_budget=None) -> np.ndarray:
+    """Pairs a bounded motion allows (the paper's small-motion "optimised version").
+
+    A motion ``x' = R x + t`` with rotation angle at most ``max_angle``
+    (radians, about the coordinate origin) and ``|t| <= max_translation``
+    moves ``x`` by at most ``max_translation + 2 sin(max_angle / 2) |x|``,
+    so only target points within that radius of ``x`` are candidates.
+    With ``max_translation=None`` the translation is unbounded and the
+    bound is applied after removing the centroid difference.
+    """
+    if max_translation is None:
+        shift = target.mean(axis=0) - source.mean(axis=0)
+        moved = source + shift
+        # Unknown translation: the centroid shift absorbs it up to the
+        # rotation of the centroid and the outliers' imbalance; allow the
+        # spread of the sets as slack.
+        slack = float(np.linalg.norm(target.std(axis=0)) + np.linalg.norm(source.std(axis=0)))
+        radius = 2.0 * np.sin(max_angle / 2.0) * np.linalg.norm(source - source.mean(axis=0), axis=1) + slack
+        return pairs_within(moved, target, radius, memory_budget=memory_budget)
+    radius = max_translation + 2.0 * np.sin(max_angle / 2.0) * np.linalg.norm(source, axis=1)
+    return pairs_within(source, target, radius, memory_budget=memory_budget)
+
+
+def one_to_one(pairs: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Greedy one-to-one subset of ``pairs``, cheapest first.
+
+    Each source index and each target index is used at most once; ties go
+    to the earlier pair.  Returns the kept rows' indices into ``pairs``.
+    """
+    if pairs.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    order = np.argsort(cost, kind="stable")
+    used_s = set()
+    used_t = set()
+    keep = []
+    for k in order:
+        i, j = int(pairs[k, 0]), int(pairs[k, 1])
+        if i in used_s or j in used_t:
+            continue
+        used_s.add(i)
+        used_t.add(j)
+        keep.append(k)
+    return np.asarray(keep, dtype=np.int64)

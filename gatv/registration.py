@@ -206,6 +206,29 @@ def _refine(P: _Problem, R, t, gate, iterations=10):
     return R, t, kept
 
 
+def _grow_tolerance(P: _Problem, R, t, kept, levels, level):
+    """Move up the tolerance schedule while the support grows beyond chance.
+
+    A motion accepted at a tolerance below the data's noise explains only
+    the luckiest pairs; re-gating it at the next tolerance brings in the
+    rest.  Stop when the gain is no larger than what the wider gate would
+    collect from random points (Poisson, level 1e-3).
+    """
+    from scipy.stats import poisson
+
+    while level + 1 < len(levels):
+        gate = _gate(levels[level + 1])
+        R2, t2, kept2 = _refine(P, R, t, gate)
+        if kept2 is None:
+            break
+        p = min(1.0, P.Y.shape[0] * 4.0 / 3.0 * np.pi * gate**3 / P.volume)
+        lam = P.X.shape[0] * p
+        if kept2.shape[0] - kept.shape[0] <= max(2.0, poisson.isf(1e-3, lam)):
+            break
+        R, t, kept, level = R2, t2, kept2, level + 1
+    return R, t, kept, level
+
+
 def _result(P, R, t, pairs, info, score=None) -> RigidMotion:
     order = np.argsort(pairs[:, 0], kind="stable")
     pairs = pairs[order]
@@ -248,6 +271,9 @@ def _bounded(P, max_angle, max_translation, levels, sigma, refine, memory_budget
         if kept.shape[0] >= P.chance(gate):
             if refine:
                 R, t, kept = _refine(P, R, t, gate)
+            if len(levels) > 1:
+                R, t, kept, grown = _grow_tolerance(P, R, t, kept, levels, levels.index(tol))
+                tol = levels[grown]
             info.update(tolerance=tol, sigma=float(surf.sigma))
             return _result(P, R, t, kept, info, score=float(np.mean(surf.surfaceness)))
     return None
@@ -400,6 +426,9 @@ def register(
                 continue
             if refine:
                 R, t, kept = _refine(P, R, t, gate)
+            if noise is None:
+                R, t, kept, grown = _grow_tolerance(P, R, t, kept, levels, level)
+                tol = levels[grown]
             info.update(tolerance=tol, sigma=sig, n_tokens=n_tokens, trials=tried,
                         trial_support=int(trials.support[k]), chance_support=threshold,
                         time_s=time.perf_counter() - t_start)

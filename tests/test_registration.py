@@ -1,0 +1,143 @@
+"""Rigid registration without initialization: gatv.register."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv import RigidMotion, Rotor, register
+from gatv.datasets import correspondence_stats, rotation_error_deg, table1_trial, table2_trial
+
+
+def _scene(angle_deg, axis=(1.0, 2.0, -0.5), t=(3.0, -7.0, 2.0), n=40, n_out=40, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-5, 5, (n, 3))
+    R = Rotor.from_axis_angle(axis, np.radians(angle_deg))
+    y = (R >> x) + np.asarray(t)
+    src = np.vstack([x, rng.uniform(-5, 5, (n_out, 3))])
+    tgt = np.vstack([y, rng.uniform(y.min(0), y.max(0), (n_out, 3))])
+    ps, pt = rng.permutation(len(src)), rng.permutation(len(tgt))
+    true = np.stack([np.argsort(ps)[:n], np.argsort(pt)[:n]], axis=1)
+    return src[ps], tgt[pt], R.as_matrix(), np.asarray(t), true
+
+
+def _pairs_set(m):
+    return set(map(tuple, m.correspondences.tolist()))
+
+
+@pytest.mark.parametrize("angle", [0.0, 3.0, 90.0, 170.0, 179.5])
+def test_recovers_known_motion_exactly(angle):
+    src, tgt, R, t, true = _scene(angle)
+    m = register(src, tgt)
+    assert isinstance(m, RigidMotion) and m
+    np.testing.assert_allclose(m.rotation, R, atol=1e-6)
+    np.testing.assert_allclose(m.translation, t, atol=1e-6)
+    assert _pairs_set(m) == set(map(tuple, true.tolist()))
+    np.testing.assert_allclose(m.transform(src[true[:, 0]]), tgt[true[:, 1]], atol=1e-6)
+
+
+def test_output_is_one_to_one():
+    src, tgt, *_ = _scene(120.0, n_out=120)
+    c = register(src, tgt).correspondences
+    assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
+
+
+def test_swapping_source_and_target_gives_inverse():
+    src, tgt, R, t, _ = _scene(135.0, seed=3)
+    fwd = register(src, tgt)
+    back = register(tgt, src)
+    inv = fwd.inverse()
+    np.testing.assert_allclose(back.rotation, inv.rotation, atol=1e-6)
+    np.testing.assert_allclose(back.translation, inv.translation, atol=1e-6)
+    assert _pairs_set(back) == _pairs_set(inv)
+
+
+@settings(max_examples=5, deadline=None)
+@given(shift=st.tuples(*[st.floats(-1e3, 1e3, allow_nan=False)] * 3))
+def test_shifting_both_sets_changes_only_translation(shift):
+    src, tgt, R, t, _ = _scene(60.0, seed=4)
+    base = register(src, tgt)
+    v = np.asarray(shift)
+    moved = register(src + v, tgt + v)
+    np.testing.assert_allclose(moved.rotation, base.rotation, atol=1e-6)
+    # x' = R x + t  =>  (x' + v) = R (x + v) + (t + v - R v)
+    np.testing.assert_allclose(moved.translation, base.translation + v - base.rotation @ v, atol=1e-5)
+    assert _pairs_set(moved) == _pairs_set(base)
+
+
+def test_same_seed_same_result():
+    src, tgt, *_ = _scene(75.0, n_out=150, seed=5)
+    a, b = register(src, tgt, seed=7), register(src, tgt, seed=7)
+    np.testing.assert_array_equal(a.rotation, b.rotation)
+    np.testing.assert_array_equal(a.correspondences, b.correspondences)
+
+
+def test_accepts_pyvista_meshes():
+    pv = pytest.importorskip("pyvista")
+    src, tgt, R, t, _ = _scene(45.0, seed=6)
+    m = register(pv.PolyData(src), pv.PolyData(tgt))
+    np.testing.assert_allclose(m.rotation, R, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_table2_trials_at_75_percent_outliers(seed):
+    tr = table2_trial(0.75, seed=seed)
+    m = register(tr.source, tr.target, seed=seed)
+    precision, recall = correspondence_stats(m.correspondences, tr.true_pairs)
+    assert precision == 1.0 and recall == 1.0
+    assert rotation_error_deg(m.rotation, tr.rotation) < 1e-6
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_small_motion_mode_table1(seed):
+    tr = table1_trial(0.83, seed=seed)
+    m = register(tr.source, tr.target, max_angle=5.0, max_translation=1.5 * np.sqrt(3))
+    precision, recall = correspondence_stats(m.correspondences, tr.true_pairs)
+    assert precision == 1.0 and recall == 1.0
+    assert m.info["mode"] == "bounded"
+
+
+def test_noisy_data_recovered_within_noise():
+    rng = np.random.default_rng(11)
+    src, tgt, R, t, true = _scene(100.0, n=60, n_out=30, seed=11)
+    tgt = tgt + rng.normal(scale=0.01, size=tgt.shape)
+    m = register(src, tgt)
+    assert rotation_error_deg(m.rotation, R) < 0.5
+    precision, recall = correspondence_stats(m.correspondences, true)
+    assert precision >= 0.95 and recall >= 0.9
+
+
+def test_only_outliers_gives_falsy_result():
+    rng = np.random.default_rng(2)
+    m = register(rng.uniform(0, 10, (30, 3)), rng.uniform(0, 10, (30, 3)), max_triples=2000)
+    assert not m
+    assert "reason" in m.info
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "match"),
+    [
+        (np.zeros((2, 3)), np.zeros((5, 3)), "at least 3"),
+        (np.ones((5, 2)), np.ones((5, 3)), r"shape \(N, 3\)"),
+        (np.full((5, 3), np.nan), np.ones((5, 3)), "NaN"),
+        (np.ones((5, 3)), np.ones((5, 3)), "identical"),
+        (np.outer(np.arange(6.0), [1, 2, 3]), np.random.default_rng(0).normal(size=(6, 3)), "collinear"),
+    ],
+)
+def test_bad_input(source, target, match):
+    with pytest.raises(ValueError, match=match):
+        register(source, target)
+
+
+def test_bad_options():
+    src, tgt, *_ = _scene(10.0)
+    with pytest.raises(ValueError, match="noise"):
+        register(src, tgt, noise=-1.0)
+    with pytest.raises(ValueError, match="max_angle"):
+        register(src, tgt, max_angle=400.0)
+    with pytest.raises(ValueError, match="max_translation"):
+        register(src, tgt, max_translation=1.0)
+    with pytest.raises(ValueError, match="budget"):
+        register(src, tgt, memory_budget=10.0)

@@ -158,6 +158,7 @@ def synthetic_trial(
     angle_range_deg: tuple[float, float] = (0.0, 360.0),
     max_translation: float = 10.0,
     cube_size: float = 10.0,
+    inliers=None,
     seed=None,
 ) -> Trial:
     """A trial of the paper's synthetic protocol with chosen motion ranges.
@@ -177,6 +178,10 @@ def synthetic_trial(
         ``[-max_translation, max_translation]``.
     cube_size : float, default: 10
         Edge of the cube, centred at the origin, holding the inliers.
+    inliers : (K, 3) array_like, optional
+        Use these points (e.g. a real mesh's vertices) as the source inliers
+        instead of drawing ``n_inliers`` points in the cube; ``n_inliers``
+        and ``cube_size`` are then ignored.
     seed : int, numpy.random.Generator or SeedSequence
         Everything is drawn from ``numpy.random.default_rng(seed)``; the same
         seed gives the same trial.
@@ -186,6 +191,11 @@ def synthetic_trial(
     Trial
     """
     f = _check_fraction(outlier_fraction)
+    if inliers is not None:
+        from ._validation import as_points
+
+        given = as_points(inliers, "inliers", min_points=3)
+        n_inliers = given.shape[0]
     n = _check_count(n_inliers, "n_inliers", 3)
     if seed is None:
         msg = "Pass `seed` (an int or a numpy Generator) so that the trial is reproducible."
@@ -196,7 +206,10 @@ def synthetic_trial(
 
     rotation = random_rotation(rng, angle_range_deg)
     translation = rng.uniform(-max_translation, max_translation, size=3)
-    inliers = rng.uniform(-half, half, size=(n, 3))
+    if inliers is None:
+        inliers = rng.uniform(-half, half, size=(n, 3))
+    else:
+        inliers = given
     moved = inliers @ rotation.T + translation
 
     def outliers(points):

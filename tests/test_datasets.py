@@ -13,6 +13,7 @@ from gatv.datasets import (
     outlier_count,
     paper_success,
     rotation_error_deg,
+    synthetic_trial,
     table1_trial,
     table2_trial,
     translation_error,
@@ -158,3 +159,12 @@ def test_bunny_ground_truth_aligns_overlap(target, source):
     assert np.median(d[overlap]) < 0.001  # metres: ~1 mm
     with pytest.raises(FileNotFoundError, match="bun999"):
         load_bunny_pair("bun999", source, data_dir=DATA)
+
+
+def test_synthetic_trial_with_given_inliers():
+    mesh = demo_mesh("nut")
+    trial = synthetic_trial(0.5, inliers=mesh, max_translation=2.0, seed=0)
+    assert trial.n_inliers == len(mesh) and trial.n_outliers == len(mesh)
+    np.testing.assert_array_equal(trial.source[trial.true_pairs[:, 0]], mesh)
+    s = trial.source[trial.true_pairs[:, 0]] @ trial.rotation.T + trial.translation
+    np.testing.assert_allclose(s, trial.target[trial.true_pairs[:, 1]], atol=1e-12)

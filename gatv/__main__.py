@@ -1,0 +1,9 @@
+"""``python -m gatv``: the ``gatv`` command line (see :mod:`gatv.cli`)."""
+
+from __future__ import annotations
+
+import sys
+
+from gatv.cli import main
+
+sys.exit(main())

@@ -1,0 +1,228 @@
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gatv import cli
+from gatv.datasets import correspondence_stats, table2_trial
+from gatv.io import read_points, write_points
+from gatv.motion import RigidMotion
+
+try:
+    import gatv.registration  # noqa: F401
+
+    HAVE_REGISTRATION = True
+except ImportError:
+    HAVE_REGISTRATION = False
+
+
+@pytest.fixture
+def trial():
+    return table2_trial(0.5, seed=4)
+
+
+@pytest.fixture
+def files(tmp_path, trial):
+    src, tgt = tmp_path / "source.xyz", tmp_path / "target.npy"
+    write_points(src, trial.source)
+    write_points(tgt, trial.target)
+    return src, tgt
+
+
+@pytest.fixture
+def fake(monkeypatch, trial):
+    """Replace gatv.register by a fake returning the true motion."""
+    calls = []
+
+    def register(source, target, *, seed=0, progress=None, **options):
+        calls.append({"seed": seed, "options": options, "progress": progress, "n": len(source)})
+        if progress is not None:
+            progress(0.5, "halfway")
+            progress(1.0, "done")
+        return RigidMotion(
+            trial.rotation, trial.translation, trial.true_pairs, score=1.0, rms=0.0,
+            info={"mode": "fake", "array": np.arange(3)},
+        )
+
+    monkeypatch.setattr(cli, "_load_register", lambda: register)
+    return calls
+
+
+def _listing(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+def test_register_end_to_end(tmp_path, files, fake, trial, capsys):
+    src, tgt = files
+    out, aligned = tmp_path / "result.json", tmp_path / "aligned.npy"
+    rc = cli.main([
+        "register", str(src), str(tgt), "--out", str(out), "--aligned", str(aligned),
+        "--seed", "3", "--max-angle", "5", "--max-translation", "2.5",
+    ])
+    assert rc == 0
+    stdout = capsys.readouterr().out
+    assert f"rotation:        {trial.angle_deg:.4f} deg" in stdout
+    assert "correspondences: 50" in stdout and "rms:" in stdout and "time:" in stdout
+    assert fake == [{"seed": 3, "options": {"max_angle": 5.0, "max_translation": 2.5}, "progress": None, "n": 100}]
+    data = json.loads(out.read_text())
+    assert data["source"] == str(src) and data["target"] == str(tgt)
+    assert data["seed"] == 3 and data["success"] is True and data["support"] == 50
+    np.testing.assert_allclose(data["rotation"], trial.rotation)
+    np.testing.assert_allclose(data["translation"], trial.translation)
+    assert data["correspondences"] == trial.true_pairs.tolist()
+    assert data["info"] == {"mode": "fake", "array": [0, 1, 2]}
+    moved = read_points(aligned)
+    pairs = trial.true_pairs
+    np.testing.assert_allclose(moved[pairs[:, 0]], trial.target[pairs[:, 1]], atol=1e-9)
+    assert _listing(tmp_path) == ["aligned.npy", "result.json", "source.xyz", "target.npy"]
+
+
+def test_quiet_and_progress(files, fake, capsys):
+    src, tgt = files
+    assert cli.main(["register", str(src), str(tgt), "--quiet", "--progress"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert "[ 50.0%] halfway" in captured.err and "[100.0%] done" in captured.err
+    assert callable(fake[0]["progress"])
+
+
+def test_render_writes_picture(tmp_path, files, fake):
+    src, tgt = files
+    png = tmp_path / "picture.png"
+    assert cli.main(["register", str(src), str(tgt), "--render", str(png), "-q"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _assert_one_error_line(capsys, *fragments):
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith("gatv: error: ")
+    assert "Traceback" not in captured.err
+    for fragment in fragments:
+        assert fragment in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [
+        (None, "no such file"),
+        ("1 2\n3 4\n5 6\n", "at least 3 columns"),
+        ("1 2 3\nnan 0 0\n4 5 6\n", "NaN"),
+        ("1 2 3\n4 5 6\n", "at least 3 points"),
+        ("x y z\n", "no points"),
+    ],
+)
+def test_bad_input_one_line_exit_2_nothing_written(tmp_path, files, fake, capsys, content, fragment):
+    src, _ = files
+    bad = tmp_path / "bad.xyz"
+    if content is not None:
+        bad.write_text(content)
+    before = _listing(tmp_path)
+    rc = cli.main([
+        "register", str(src), str(bad), "--out", str(tmp_path / "r.json"),
+        "--aligned", str(tmp_path / "a.ply"), "--render", str(tmp_path / "p.png"),
+    ])
+    assert rc == 2
+    _assert_one_error_line(capsys, str(bad), fragment)
+    assert _listing(tmp_path) == before
+    assert fake == []
+
+
+def test_register_value_error_is_one_line(tmp_path, files, monkeypatch, capsys):
+    src, tgt = files
+
+    def register(source, target, **kwargs):
+        raise ValueError("Expected `max_angle` in degrees,\nat most 180, got 500.0.")
+
+    monkeypatch.setattr(cli, "_load_register", lambda: register)
+    before = _listing(tmp_path)
+    rc = cli.main(["register", str(src), str(tgt), "--max-angle", "500", "--out", str(tmp_path / "r.json")])
+    assert rc == 2
+    _assert_one_error_line(capsys, "max_angle", "at most 180")
+    assert _listing(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    ("option", "name", "fragment"),
+    [
+        ("--aligned", "aligned.stl", "cannot write aligned points"),
+        ("--render", "picture.ply", "cannot write a picture"),
+        ("--out", "missing_folder/r.json", "does not exist"),
+    ],
+)
+def test_bad_output_fails_before_work(tmp_path, files, fake, capsys, option, name, fragment):
+    src, tgt = files
+    rc = cli.main(["register", str(src), str(tgt), option, str(tmp_path / name)])
+    assert rc == 2
+    _assert_one_error_line(capsys, fragment)
+    assert fake == []
+
+
+def test_failure_in_last_output_leaves_no_output(tmp_path, files, fake, monkeypatch, capsys):
+    src, tgt = files
+
+    def broken(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(cli, "_render", broken)
+    before = _listing(tmp_path)
+    rc = cli.main([
+        "register", str(src), str(tgt), "--out", str(tmp_path / "r.json"),
+        "--aligned", str(tmp_path / "a.xyz"), "--render", str(tmp_path / "p.png"), "-q",
+    ])
+    assert rc == 2
+    _assert_one_error_line(capsys, "disk full")
+    assert _listing(tmp_path) == before
+
+
+def test_no_motion_found_exit_1_json_only(tmp_path, files, monkeypatch, capsys):
+    src, tgt = files
+    failed = RigidMotion(np.eye(3), np.zeros(3), info={"reason": "no plane above chance"})
+    monkeypatch.setattr(cli, "_load_register", lambda: lambda s, t, **kw: failed)
+    out = tmp_path / "r.json"
+    rc = cli.main(["register", str(src), str(tgt), "--out", str(out), "--aligned", str(tmp_path / "a.xyz")])
+    assert rc == 1
+    assert "registration failed: no plane above chance" in capsys.readouterr().err
+    data = json.loads(out.read_text())
+    assert data["success"] is False and data["support"] == 0 and data["rms"] is None
+    assert not (tmp_path / "a.xyz").exists()
+
+
+def test_usage_errors(capsys):
+    assert cli.main(["register", "only-one.xyz"]) == 2
+    _assert_one_error_line(capsys, "required")
+    assert cli.main(["register", "a.xyz", "b.xyz", "--seed", "x"]) == 2
+    _assert_one_error_line(capsys, "--seed")
+    assert cli.main(["--help"]) == 0
+    assert cli.main([]) == 2
+
+
+def test_missing_registration_module(files, monkeypatch, capsys):
+    src, tgt = files
+    monkeypatch.setitem(sys.modules, "gatv.registration", None)  # import fails
+    assert cli.main(["register", str(src), str(tgt)]) == 1
+    _assert_one_error_line(capsys, "gatv.registration cannot be imported")
+
+
+def test_python_dash_m_missing_file(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "gatv", "register", str(tmp_path / "nope.ply"), str(tmp_path / "b.ply")],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [f"gatv: error: {tmp_path / 'nope.ply'}: no such file."]
+
+
+@pytest.mark.skipif(not HAVE_REGISTRATION, reason="gatv.registration (gatv.register) cannot be imported yet")
+def test_real_register_end_to_end(tmp_path, files, trial):
+    src, tgt = files
+    out = tmp_path / "r.json"
+    assert cli.main(["register", str(src), str(tgt), "--out", str(out), "-q"]) == 0
+    data = json.loads(out.read_text())
+    precision, recall = correspondence_stats(data["correspondences"], trial.true_pairs)
+    assert recall >= 0.9 and precision >= 0.9

@@ -146,7 +146,7 @@ def write_csv(path: Path, headers: Sequence[str], rows: Iterable[Sequence]) -> P
     return path
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrialRecord:
     """What one method did on one trial."""
 

@@ -266,6 +266,8 @@ def fitzgibbon_icp(
         J[:, 3:] = u
         return J
 
+    # MINPACK's LM needs at least as many residuals as parameters
+    method = "lm" if len(src) >= 6 else "trf"
     x = np.zeros(6)
     nfev = 0
     restarts = 0
@@ -273,7 +275,7 @@ def fitzgibbon_icp(
     result = None
     for restarts in range(1, int(max_restarts) + 1):
         result = least_squares(
-            residuals, x, jac=jacobian, method="lm", xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev
+            residuals, x, jac=jacobian, method=method, xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev
         )
         nfev += int(result.nfev)
         moved = np.abs(result.x - x)
@@ -286,6 +288,7 @@ def fitzgibbon_icp(
         "method": "F-ICP",
         "loss": loss,
         "scale": c,
+        "solver": method,
         "restarts": restarts,
         "nfev": nfev,
         "cost": float(result.cost) if result is not None else float("nan"),

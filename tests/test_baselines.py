@@ -109,3 +109,34 @@ def test_bad_points():
         fitzgibbon_icp(np.zeros((5, 2)), np.zeros((5, 3)))
     with pytest.raises(ValueError, match="target"):
         icp(np.zeros((5, 3)), [[np.nan, 0, 0]] * 5)
+
+
+def _load_benchmark(name):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    spec = importlib.util.spec_from_file_location(f"_bench_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_table1_benchmark_smoke(tmp_path, capsys):
+    table1 = _load_benchmark("table1")
+    rc = table1.main(["--trials", "2", "--fractions", "0.5", "--methods", "F-ICP,ICP", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "| 0.50 | F-ICP  |" in out and "paper F-ICP %" in out
+    lines = (tmp_path / "table1.csv").read_text().splitlines()
+    assert lines[0].startswith("f,method,trials,success_pct") and len(lines) == 3
+    assert len((tmp_path / "table1_trials.csv").read_text().splitlines()) == 5
+
+
+def test_ficp_few_points():
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]])
+    motion = fitzgibbon_icp(x, x + 0.01)
+    assert motion.info["solver"] == "trf"
+    assert np.allclose(motion.translation, 0.01, atol=1e-6)

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gatv._validation import check_positive
+from gatv._validation import as_points, check_positive
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -195,8 +195,6 @@ def refine_corners(
         meets a singular system keeps its initial position.
     """
     img = read_image(image)
-    from gatv._validation import as_points
-
     q0 = as_points(corners, "corners", min_points=0, dim=2)
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1:
         msg = f"Expected `window` to be an integer >= 1, got {window!r}."

@@ -280,7 +280,7 @@ def synthetic_views(
         raise ValueError(msg)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     if camera is None:
-        camera = _default_camera(float(xi), max_angle)
+        camera = _default_camera(_real(xi, "xi", 0.0), max_angle)
     elif not isinstance(camera, UnifiedCamera):
         msg = f"Expected `camera` to be a UnifiedCamera, got {type(camera).__name__}."
         raise ValueError(msg)

@@ -153,7 +153,9 @@ class UnifiedCamera:
         Skew ``s`` in ``u = fx xd + s yd + cx`` (OpenCV's ``K[0, 1]``).
     distortion : sequence of 4 float, optional
         ``(k1, k2, p1, p2)`` radial–tangential coefficients of
-        ``cv2.omnidir``; default: no distortion. Stored as a tuple.
+        ``cv2.omnidir``; default: no distortion. Stored as a tuple of 4
+        floats (zeros for ``None``). A 5-vector with ``k3 = 0`` (OpenCV's
+        pinhole layout) is accepted; any other length raises.
     image_size : (int, int), optional
         Image ``(width, height)`` in pixels; metadata only (kept by the
         JSON round trip, used by :func:`catadioptric.synthetic_views` to

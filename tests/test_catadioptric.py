@@ -101,6 +101,47 @@ def test_shared_calibration_reproduces_sphere_points(image):
     np.testing.assert_allclose(cam.project(sphere), px, rtol=0, atol=1e-4)
 
 
+@needs_mei
+def test_projection_reproduces_opencv_reprojection_errors_mei():
+    # Posed board corners projected with the calibration: the per-image mean
+    # reprojection error must be the one OpenCV reported in each pose file.
+    cam = UnifiedCamera.from_json(MEI / "calibration_mei_opencv.json")
+    board = np.loadtxt(MEI / "board_points_m.txt")
+    for image in range(1, 11):
+        pose_file = MEI / "corners" / f"img_para_{image:03d}_board_pose_cam_from_board.txt"
+        reported = float(pose_file.read_text().splitlines()[0].split("mean reprojection")[1].split()[0])
+        T = np.loadtxt(pose_file)
+        px = np.loadtxt(MEI / "corners" / f"img_para_{image:03d}_corners_px.txt")
+        err = np.linalg.norm(cam.project(board @ T[:3, :3].T + T[:3, 3]) - px, axis=1)
+        assert err.mean() == pytest.approx(reported, abs=6e-4)
+
+
+@pytest.mark.skipif(not (DATA / "omni_opencv_ccalib_corners").is_dir(), reason="shared data absent")
+def test_projection_reproduces_opencv_rms_ccalib():
+    # Second real camera (strong tangential distortion, p1 = 0.023): our
+    # projection gives cv2.omnidir.calibrate's RMS to 1e-12 px.
+    import xml.etree.ElementTree as ET
+
+    from scipy.spatial.transform import Rotation
+
+    folder = DATA / "omni_opencv_ccalib_corners"
+    root = ET.parse(folder / "omni_calib_data.xml").getroot()
+
+    def matrices(tag, dim):
+        return [np.array(e.find("data").text.split(), float).reshape(-1, dim) for e in root.find(tag)]
+
+    obj, img = matrices("objectPoints", 3), matrices("imagePoints", 2)
+    calib = json.loads((folder / "calibration_mei_opencv_derived.json").read_text())
+    cam = UnifiedCamera.from_json(folder / "calibration_mei_opencv_derived.json")
+    sq = []
+    for k, view in enumerate(calib["views_used"]):
+        R = Rotation.from_rotvec(calib["rvecs"][k]).as_matrix()
+        proj = cam.project(obj[view] @ R.T + np.asarray(calib["tvecs"][k]))
+        sq.append(np.sum((proj - img[view]) ** 2, axis=1))
+    rms = np.sqrt(np.concatenate(sq).mean())
+    assert rms == pytest.approx(calib["rms_reprojection_px"], abs=1e-9)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [

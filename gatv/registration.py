@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._validation import as_points, check_positive
-from .candidates import bounded_pairs, median_spacing, one_to_one, pairs_within
+from .candidates import bounded_pairs, median_spacing, one_to_one
 from .congruent import TargetIndex, chance_support, n_triples_needed, trial_motions
 from .ga import eq41_residual
 from .motion import RigidMotion, fit_rigid
@@ -160,7 +160,7 @@ def _best_reference(P, pairs, Xr, saliency, normals, planar, tol, n_refs=4):
     return best
 
 
-def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, memory_budget):
+def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, max_candidates: int):
     """Tensor voting on the joint space of the trial-rotated source (section 3.4)."""
     from .voting import vote
 
@@ -169,9 +169,15 @@ def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, 
     # Spacing of false tokens near t0 in the joint space: each source point
     # contributes the target's density there.
     false_spacing = (n1 * n2 / P.volume) ** (-1.0 / 3.0)
-    sig = float(sigma) if sigma is not None else max(2.0 * gate, 0.5 * min(false_spacing, P.spacing))
+    sig = float(sigma) if sigma is not None else max(gate, 0.5 * min(false_spacing, P.spacing))
     Xr = P.X @ R0.T
-    pairs = pairs_within(Xr + t0, P.Y, 3.0 * sig, tree=P.tree, memory_budget=memory_budget)
+    # Tokens within the voting reach (2σ) of the trial translation; at most
+    # `max_candidates` per source point (the nearest), which bounds the
+    # work on dense real scans where every point has many near targets.
+    dist, j = P.tree.query(Xr + t0, k=max_candidates, distance_upper_bound=2.0 * sig)
+    dist, j = dist.reshape(len(Xr), -1), j.reshape(len(Xr), -1)
+    ii, kk = np.nonzero(np.isfinite(dist))
+    pairs = np.stack([ii, j[ii, kk]], axis=1)
     if pairs.shape[0] < 3:
         return None
     tokens = P.Y[pairs[:, 1]] - Xr[pairs[:, 0]]
@@ -293,6 +299,7 @@ def register(
     max_triples: int | None = None,
     sigma: float | None = None,
     n_judged: int = 4,
+    max_candidates: int = 8,
     memory_budget: float | None = None,
     progress=None,
 ) -> RigidMotion:
@@ -329,6 +336,10 @@ def register(
         twice the noise gate.
     n_judged : int, default: 4
         Best trial motions handed to tensor voting.
+    max_candidates : int, default: 8
+        Cap on the candidate pairs per source point in the joint space
+        voted on (the nearest targets to the trial position); bounds the
+        work on dense real scans.
     memory_budget : float, optional
         Bytes; inputs needing more fail at once (see
         :func:`gatv._validation.check_memory`).
@@ -369,6 +380,9 @@ def register(
         raise ValueError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
     if sigma is not None:
         sigma = check_positive(sigma, "sigma")
+    if int(max_candidates) < 1:
+        raise ValueError(f"Expected `max_candidates` >= 1, got {max_candidates!r}.")
+    max_candidates = int(max_candidates)
     levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
     report = progress if progress is not None else (lambda f, m: None)
     info: dict = {"n_source": int(P.X.shape[0]), "n_target": int(P.Y.shape[0]), "spacing": P.spacing}
@@ -418,7 +432,7 @@ def register(
             if trials.support[k] < trials.threshold:
                 break
             judged = _vote_judge(P, trials.rotations[k], trials.translations[k], tol, sigma,
-                                 memory_budget)
+                                 max_candidates)
             if judged is None:
                 continue
             R, t, kept, n_tokens, sig = judged

@@ -21,7 +21,8 @@ $(TSTAMP): pyproject.toml | $(PY)
 	touch $(STAMP) $@
 
 demo: $(STAMP)
-	$(PY) -m gatv.demo --out demo_out
+	mkdir -p demo_out
+	$(PY) -m gatv demo --out demo_out/result.json --render demo_out/registration.png
 
 test: $(TSTAMP)
 	$(PY) -m pytest -q
@@ -31,6 +32,8 @@ test-slow: $(TSTAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/voting.py
+	$(PY) benchmarks/table1.py
+	$(PY) benchmarks/table2.py
 
 gallery: $(STAMP)
 	$(PY) gallery/make_all.py --out gallery_out

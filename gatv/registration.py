@@ -114,40 +114,60 @@ def _fit_and_gate(P: _Problem, pairs: np.ndarray, seed_pairs: np.ndarray, gate: 
     return R, t, kept
 
 
-def _eq41_consistent(P: _Problem, pairs: np.ndarray, Xr: np.ndarray, ref: int,
-                     axis: np.ndarray | None, tau: float) -> np.ndarray:
-    """Indices of ``pairs`` consistent with the reference token by eq. 41.
+def _plane_normal(points: np.ndarray, tau: float) -> np.ndarray:
+    """Unit normal of the least-squares plane through ``points``, trimmed once at ``tau``."""
+    c = points - points.mean(axis=0)
+    n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    near = np.abs(c @ n) <= tau
+    if 3 <= near.sum() < len(points):
+        c = points[near] - points[near].mean(axis=0)
+        n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return n
 
-    ``Xr`` is the (trial-rotated) source; ``axis=None`` uses only the
-    length-preservation half ``V · Vs = 0`` (pure translation, section 3.4).
+
+def _eq41_consistent(d: np.ndarray, s: np.ndarray, pairs: np.ndarray, ref: int,
+                     tau: float) -> np.ndarray:
+    """Indices of tokens consistent with the reference token by eq. 41.
+
+    ``d``, ``s`` are the difference and sum vectors of the candidate
+    ``pairs``.  First the length-preservation half of eq. 41,
+    ``V · Vs = |Δx'|² - |Δx|² = 0``, which needs no axis; the rotation axis
+    ``A`` is then the normal of the eq.-30 plane through the tokens kept,
+    and the full constraint ``|V × (A × Vs)| / |Vs| <= tau`` (relaxed to the
+    noise level, section 4.1) decides.  A token that reuses the
+    reference's source or target point (the double match of Fig. 2 c/f)
+    is dropped.
     """
+    V = d - d[ref]
+    Vs = s - s[ref]
+    nvs = np.linalg.norm(Vs, axis=1)
+    r = np.abs(np.einsum("ij,ij->i", V, Vs)) / np.where(nvs > 0, nvs, 1.0)
+    same = (pairs[:, 0] == pairs[ref, 0]) ^ (pairs[:, 1] == pairs[ref, 1])
+    cons = np.union1d(np.flatnonzero((r <= tau) & ~same), [ref])
+    if cons.size < 4:
+        return cons
+    axis = _plane_normal(d[cons], tau)
+    r = eq41_residual(d[cons], s[cons], d[ref], s[ref], axis, normalize="length")
+    return np.union1d(cons[r <= tau], [ref])
+
+
+def _best_reference(P, pairs, Xr, saliency, tol, n_refs=4):
+    """Verify with eq. 41 against the most salient tokens; keep the best motion.
+
+    The paper tests the plane's most salient token against the rest
+    (section 3.4); trying the next few as well guards against a salient
+    false token.
+    """
+    gate = _gate(tol)
+    tau = 2.0 * gate
     xi = Xr[pairs[:, 0]]
     yj = P.Y[pairs[:, 1]]
     d, s = yj - xi, yj + xi
-    dr, sr = d[ref], s[ref]
-    if axis is None:
-        V = d - dr
-        Vs = s - sr
-        nvs = np.linalg.norm(Vs, axis=1)
-        r = np.abs(np.einsum("ij,ij->i", V, Vs)) / np.where(nvs > 0, nvs, 1.0)
-    else:
-        r = eq41_residual(d, s, dr, sr, axis, normalize="length")
-    # The pair must not reuse the reference's source or target point
-    # (the double-match case of Fig. 2 c/f).
-    same = (pairs[:, 0] == pairs[ref, 0]) ^ (pairs[:, 1] == pairs[ref, 1])
-    ok = (r <= tau) & ~same
-    return np.flatnonzero(ok)
-
-
-def _best_reference(P, pairs, Xr, saliency, normals, planar, tol, n_refs=4):
-    """Try the most salient tokens as eq.-41 references; keep the best motion."""
-    gate = _gate(tol)
-    tau = 2.0 * gate
     best = None
     for ref in np.argsort(-saliency, kind="stable")[:n_refs]:
-        axis = normals[ref] if planar[ref] else None
-        cons = _eq41_consistent(P, pairs, Xr, ref, axis, tau)
-        cons = np.union1d(cons, [ref])
+        if saliency[ref] <= 0:
+            break
+        cons = _eq41_consistent(d, s, pairs, ref, tau)
         if cons.size < 3:
             continue
         # one-to-one by saliency before fitting
@@ -182,11 +202,9 @@ def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, 
         return None
     tokens = P.Y[pairs[:, 1]] - Xr[pairs[:, 0]]
     ball = vote(tokens, sig)
-    ev = ball.eigenvalues
-    saliency = ev.sum(axis=1)
-    # A plane patch (residual rotation) shows as a dominant e1 (section 3.3).
-    planar = (ev[:, 0] - ev[:, 1]) > 0.5 * ev[:, 0]
-    best = _best_reference(P, pairs, Xr, saliency, ball.normals, planar, tol)
+    # The pure-translation cluster: large absolute saliency after the ball pass.
+    saliency = ball.eigenvalues.sum(axis=1)
+    best = _best_reference(P, pairs, Xr, saliency, tol)
     if best is None:
         return None
     return best + (int(pairs.shape[0]), sig)
@@ -258,19 +276,16 @@ def _bounded(P, max_angle, max_translation, levels, sigma, refine, memory_budget
     if pairs.shape[0] < 3:
         return None
     tokens = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
-    surf = extract_surfaces(tokens, sigma)
+    # The paper's optimised version: one ball pass and one stick pass.
+    surf = extract_surfaces(tokens, sigma, n_stick_passes=1)
     idx = np.asarray(surf.indices)
     if idx.size < 3:
         return None
     saliency = np.zeros(pairs.shape[0])
     saliency[idx] = surf.surfaceness
-    normals = np.zeros((pairs.shape[0], 3))
-    normals[idx] = surf.normals
-    planar = np.zeros(pairs.shape[0], bool)
-    planar[idx] = True
     for tol in levels:
         gate = _gate(tol)
-        best = _best_reference(P, pairs, P.X, saliency, normals, planar, tol)
+        best = _best_reference(P, pairs, P.X, saliency, tol)
         if best is None:
             continue
         R, t, kept = best

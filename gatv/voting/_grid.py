@@ -1,0 +1,153 @@
+"""Uniform-grid neighbour structure for radius searches (private).
+
+Tokens are binned into cubic cells of side ``h = radius / subdiv`` and
+counting-sorted by cell, so that every cell is a contiguous run of the sorted
+token array.  Nothing per pair is stored: a votee visits the
+``(2·subdiv + 1)³`` cells around its own and scans their runs.
+
+Two layouts share the kernels:
+
+* **dense** — cell id ``ix + nx·(iy + ny·iz)`` (x fastest) over the bounding
+  box; ``start`` has one entry per cell, and the ``2·subdiv + 1`` cells of one
+  x-row are one contiguous run.  Used while the box holds at most
+  ``max(8·N, 2²⁰)`` cells.
+* **hashed** — when the bounding box is too large for a dense cell array
+  (tokens spread over a huge box with a tiny σ), cells are hashed into a table
+  of ``2^⌈log₂ 2N⌉`` buckets.  Colliding cells share a bucket; every token
+  keeps its integer cell coordinates so a scan only accepts tokens of the
+  requested cell, hence no vote is counted twice.  Memory stays O(N).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+__all__ = ["Grid", "build_grid"]
+
+#: Largest number of cells of a dense layout, as ``max(DENSE_PER_TOKEN·N, DENSE_MIN)``.
+DENSE_PER_TOKEN = 8
+DENSE_MIN = 1 << 20
+#: Largest bounding-box extent, in cells, that integer cell coordinates can hold.
+MAX_CELLS_PER_AXIS = float(2**40)
+
+_H1 = 73856093
+_H2 = 19349663
+_H3 = 83492791
+
+
+@njit(cache=True, inline="always")
+def cell_hash(cx, cy, cz, mask):
+    """Bucket of integer cell ``(cx, cy, cz)`` in a table of ``mask + 1`` buckets."""
+    return ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
+
+
+@njit(cache=True)
+def _bin(points, lo, inv_h, nx, ny, nz, hashed, mask):
+    n = points.shape[0]
+    cix = np.empty(n, np.int64)
+    ciy = np.empty(n, np.int64)
+    ciz = np.empty(n, np.int64)
+    key = np.empty(n, np.int64)
+    for i in range(n):
+        x = int((points[i, 0] - lo[0]) * inv_h)
+        y = int((points[i, 1] - lo[1]) * inv_h)
+        z = int((points[i, 2] - lo[2]) * inv_h)
+        # guard the upper edge against rounding
+        if x >= nx:
+            x = nx - 1
+        if y >= ny:
+            y = ny - 1
+        if z >= nz:
+            z = nz - 1
+        cix[i] = x
+        ciy[i] = y
+        ciz[i] = z
+        if hashed:
+            key[i] = cell_hash(x, y, z, mask)
+        else:
+            key[i] = x + nx * (y + ny * z)
+    return cix, ciy, ciz, key
+
+
+@njit(cache=True)
+def _counting_sort(key, nkeys, points, cix, ciy, ciz):
+    """Stable counting sort by key: returns start (nkeys+1), order, sorted arrays."""
+    n = key.shape[0]
+    start = np.zeros(nkeys + 1, np.int64)
+    for i in range(n):
+        start[key[i] + 1] += 1
+    for k in range(nkeys):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        k = key[i]
+        order[fill[k]] = i
+        fill[k] += 1
+    ps = np.empty((n, 3), np.float64)
+    sx = np.empty(n, np.int64)
+    sy = np.empty(n, np.int64)
+    sz = np.empty(n, np.int64)
+    for j in range(n):
+        i = order[j]
+        ps[j, 0] = points[i, 0]
+        ps[j, 1] = points[i, 1]
+        ps[j, 2] = points[i, 2]
+        sx[j] = cix[i]
+        sy[j] = ciy[i]
+        sz[j] = ciz[i]
+    return start, order, ps, sx, sy, sz
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Tokens sorted by cell plus the cell index (all arrays in sorted order)."""
+
+    points: np.ndarray  # (N, 3) sorted tokens
+    order: np.ndarray  # (N,) sorted position -> original index
+    cix: np.ndarray
+    ciy: np.ndarray
+    ciz: np.ndarray
+    start: np.ndarray  # (ncells + 1,) dense, or (buckets + 1,) hashed
+    dims: tuple[int, int, int]
+    hashed: bool
+    mask: int
+    subdiv: int
+    radius: float
+
+    @property
+    def n(self) -> int:
+        return self.points.shape[0]
+
+
+def grid_layout(points: np.ndarray, radius: float, subdiv: int):
+    """Cell side, box corner, dims and whether the layout must be hashed."""
+    h = radius / subdiv
+    lo = points.min(axis=0)
+    ext = points.max(axis=0) - lo
+    cells = ext / h
+    if np.any(cells >= MAX_CELLS_PER_AXIS):
+        msg = (
+            f"The tokens span {float(ext.max()):.3g} units, more than {MAX_CELLS_PER_AXIS:.3g} "
+            f"voting cells of side {h:.3g}; `sigma` is too small for this extent."
+        )
+        raise ValueError(msg)
+    dims = tuple(int(c) + 1 for c in cells)
+    n = points.shape[0]
+    ncells = dims[0] * dims[1] * dims[2]  # Python int: no overflow
+    hashed = ncells > max(DENSE_PER_TOKEN * n, DENSE_MIN)
+    nkeys = (1 << max(1, math.ceil(math.log2(2 * n)))) if hashed else ncells
+    return h, lo, dims, hashed, nkeys
+
+
+def build_grid(points: np.ndarray, radius: float, subdiv: int = 2) -> Grid:
+    """Bin and counting-sort ``points`` (C-contiguous float64) by cell."""
+    h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv)
+    mask = nkeys - 1 if hashed else 0
+    cix, ciy, ciz, key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)
+    start, order, ps, sx, sy, sz = _counting_sort(key, nkeys, points, cix, ciy, ciz)
+    return Grid(ps, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius)

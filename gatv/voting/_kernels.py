@@ -1,0 +1,453 @@
+"""Numba kernels for sparse tensor voting (private).
+
+Arrays and scalars in, arrays out; float64 throughout; no Python objects.
+Tensors are stored as 6 components ``(xx, xy, xz, yy, yz, zz)``.
+
+Every kernel is ``@njit(cache=True)``; only the outer loops over votees or
+tokens are ``prange``.  Voting uses the *gather* formulation: each votee sums
+the votes of the tokens in the grid cells around it, so the parallel loop
+writes only to its own row and the result does not depend on the number of
+threads (the order of the sums is fixed).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_TWO_PI_3 = 2.0 * math.pi / 3.0
+
+# ---------------------------------------------------------------------------
+# 3x3 symmetric eigen-solver (closed form, robust for repeated eigenvalues).
+# Eberly, "A Robust Eigensolver for 3 × 3 Symmetric Matrices" (Geometric Tools,
+# 2014): trigonometric eigenvalues, eigenvectors by cross products of the rows
+# of A − λI for the well-separated eigenvalue and a 2×2 problem in its
+# orthogonal complement for the next one.
+# ---------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _evec_single(a00, a01, a02, a11, a12, a22, lam):
+    """Unit eigenvector for an eigenvalue of multiplicity one (max cross product)."""
+    r00 = a00 - lam
+    r11 = a11 - lam
+    r22 = a22 - lam
+    # rows: (r00, a01, a02), (a01, r11, a12), (a02, a12, r22)
+    c0x = a01 * a12 - a02 * r11
+    c0y = a02 * a01 - r00 * a12
+    c0z = r00 * r11 - a01 * a01
+    c1x = a01 * r22 - a02 * a12
+    c1y = a02 * a02 - r00 * r22
+    c1z = r00 * a12 - a01 * a02
+    c2x = r11 * r22 - a12 * a12
+    c2y = a12 * a02 - a01 * r22
+    c2z = a01 * a12 - r11 * a02
+    d0 = c0x * c0x + c0y * c0y + c0z * c0z
+    d1 = c1x * c1x + c1y * c1y + c1z * c1z
+    d2 = c2x * c2x + c2y * c2y + c2z * c2z
+    if d0 >= d1 and d0 >= d2:
+        s = 1.0 / math.sqrt(d0)
+        return c0x * s, c0y * s, c0z * s
+    if d1 >= d2:
+        s = 1.0 / math.sqrt(d1)
+        return c1x * s, c1y * s, c1z * s
+    s = 1.0 / math.sqrt(d2)
+    return c2x * s, c2y * s, c2z * s
+
+
+@njit(cache=True, inline="always")
+def _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
+    """Unit eigenvector for ``lam`` orthogonal to the unit eigenvector ``w``."""
+    if abs(wx) > abs(wy):
+        s = 1.0 / math.sqrt(wx * wx + wz * wz)
+        ux, uy, uz = -wz * s, 0.0, wx * s
+    else:
+        s = 1.0 / math.sqrt(wy * wy + wz * wz)
+        ux, uy, uz = 0.0, wz * s, -wy * s
+    vx = wy * uz - wz * uy
+    vy = wz * ux - wx * uz
+    vz = wx * uy - wy * ux
+    aux = a00 * ux + a01 * uy + a02 * uz
+    auy = a01 * ux + a11 * uy + a12 * uz
+    auz = a02 * ux + a12 * uy + a22 * uz
+    avx = a00 * vx + a01 * vy + a02 * vz
+    avy = a01 * vx + a11 * vy + a12 * vz
+    avz = a02 * vx + a12 * vy + a22 * vz
+    m00 = ux * aux + uy * auy + uz * auz - lam
+    m01 = vx * aux + vy * auy + vz * auz
+    m11 = vx * avx + vy * avy + vz * avz - lam
+    b00 = abs(m00)
+    b01 = abs(m01)
+    b11 = abs(m11)
+    if b00 >= b11:
+        if max(b00, b01) > 0.0:
+            if b00 >= b01:
+                m01 /= m00
+                m00 = 1.0 / math.sqrt(1.0 + m01 * m01)
+                m01 *= m00
+            else:
+                m00 /= m01
+                m01 = 1.0 / math.sqrt(1.0 + m00 * m00)
+                m00 *= m01
+            return m01 * ux - m00 * vx, m01 * uy - m00 * vy, m01 * uz - m00 * vz
+        return ux, uy, uz
+    if max(b11, b01) > 0.0:
+        if b11 >= b01:
+            m01 /= m11
+            m11 = 1.0 / math.sqrt(1.0 + m01 * m01)
+            m01 *= m11
+        else:
+            m11 /= m01
+            m01 = 1.0 / math.sqrt(1.0 + m11 * m11)
+            m11 *= m01
+        return m11 * ux - m01 * vx, m11 * uy - m01 * vy, m11 * uz - m01 * vz
+    return ux, uy, uz
+
+
+@njit(cache=True, inline="always")
+def _eigvals(a00, a01, a02, a11, a12, a22):
+    """Scaled eigen-setup: returns (scale, l1, l2, l3, half_det, degenerate) on scaled A."""
+    mx = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
+    if mx == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, True
+    inv = 1.0 / mx
+    a00 *= inv
+    a01 *= inv
+    a02 *= inv
+    a11 *= inv
+    a12 *= inv
+    a22 *= inv
+    q = (a00 + a11 + a22) / 3.0
+    b00 = a00 - q
+    b11 = a11 - q
+    b22 = a22 - q
+    off = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off) / 6.0
+    if off == 0.0 and b00 == 0.0 and b11 == 0.0 and b22 == 0.0:
+        return mx, q, q, q, 0.0, True
+    p = math.sqrt(p2)
+    c00 = b11 * b22 - a12 * a12
+    c01 = a01 * b22 - a12 * a02
+    c02 = a01 * a12 - b11 * a02
+    hd = 0.5 * (b00 * c00 - a01 * c01 + a02 * c02) / (p * p2)
+    hd = min(max(hd, -1.0), 1.0)
+    ang = math.acos(hd) / 3.0
+    beta2 = 2.0 * math.cos(ang)
+    beta0 = 2.0 * math.cos(ang + _TWO_PI_3)
+    beta1 = min(max(-(beta0 + beta2), beta0), beta2)  # keep the order under rounding
+    return mx, q + p * beta2, q + p * beta1, q + p * beta0, hd, False
+
+
+@njit(cache=True, inline="always")
+def eig3_top(a00, a01, a02, a11, a12, a22):
+    """Eigenvalues (descending) and unit e1 of a symmetric 3×3 tensor.
+
+    Returns ``(l1, l2, l3, e1x, e1y, e1z)``.
+    """
+    mx, l1, l2, l3, hd, degen = _eigvals(a00, a01, a02, a11, a12, a22)
+    if degen:
+        return l1 * mx, l2 * mx, l3 * mx, 1.0, 0.0, 0.0
+    inv = 1.0 / mx
+    a00 *= inv
+    a01 *= inv
+    a02 *= inv
+    a11 *= inv
+    a12 *= inv
+    a22 *= inv
+    if hd >= 0.0:
+        ex, ey, ez = _evec_single(a00, a01, a02, a11, a12, a22, l1)
+    else:
+        wx, wy, wz = _evec_single(a00, a01, a02, a11, a12, a22, l3)
+        ex, ey, ez = _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, l1)
+    return l1 * mx, l2 * mx, l3 * mx, ex, ey, ez
+
+
+@njit(cache=True, inline="always")
+def _eig3_full_one(a00, a01, a02, a11, a12, a22, vals, vecs, i):
+    mx, l1, l2, l3, hd, degen = _eigvals(a00, a01, a02, a11, a12, a22)
+    vals[i, 0] = l1 * mx
+    vals[i, 1] = l2 * mx
+    vals[i, 2] = l3 * mx
+    if degen:
+        for r in range(3):
+            for c in range(3):
+                vecs[i, r, c] = 1.0 if r == c else 0.0
+        return
+    inv = 1.0 / mx
+    a00 *= inv
+    a01 *= inv
+    a02 *= inv
+    a11 *= inv
+    a12 *= inv
+    a22 *= inv
+    if hd >= 0.0:
+        ax, ay, az = _evec_single(a00, a01, a02, a11, a12, a22, l1)
+        bx, by, bz = _evec_complement(a00, a01, a02, a11, a12, a22, ax, ay, az, l2)
+        cx = ay * bz - az * by
+        cy = az * bx - ax * bz
+        cz = ax * by - ay * bx
+    else:
+        cx, cy, cz = _evec_single(a00, a01, a02, a11, a12, a22, l3)
+        bx, by, bz = _evec_complement(a00, a01, a02, a11, a12, a22, cx, cy, cz, l2)
+        ax = by * cz - bz * cy
+        ay = bz * cx - bx * cz
+        az = bx * cy - by * cx
+    # columns are eigenvectors (numpy.linalg.eigh convention), descending order
+    vecs[i, 0, 0] = ax
+    vecs[i, 1, 0] = ay
+    vecs[i, 2, 0] = az
+    vecs[i, 0, 1] = bx
+    vecs[i, 1, 1] = by
+    vecs[i, 2, 1] = bz
+    vecs[i, 0, 2] = cx
+    vecs[i, 1, 2] = cy
+    vecs[i, 2, 2] = cz
+
+
+@njit(cache=True, parallel=True)
+def eig3_batch(t6, vals, vecs):
+    """Eigen-decomposition of ``(N, 6)`` tensors into ``vals (N,3)``, ``vecs (N,3,3)``.
+
+    Eigenvalues descending; ``vecs[i, :, k]`` is the unit eigenvector of
+    ``vals[i, k]``; right-handed.
+    """
+    for i in prange(t6.shape[0]):
+        _eig3_full_one(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5], vals, vecs, i)
+
+
+@njit(cache=True, parallel=True)
+def eig3_top_batch(t6, vals, e1):
+    """Eigenvalues (descending) and e1 of ``(N, 6)`` tensors (unfused variant)."""
+    for i in prange(t6.shape[0]):
+        l1, l2, l3, ex, ey, ez = eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
+        vals[i, 0] = l1
+        vals[i, 1] = l2
+        vals[i, 2] = l3
+        e1[i, 0] = ex
+        e1[i, 1] = ey
+        e1[i, 2] = ez
+
+
+# ---------------------------------------------------------------------------
+# Sparse voting (gather).  ``ps`` are the tokens sorted by grid cell, ``cix,
+# ciy, ciz`` their integer cells and ``start`` the run of each cell (dense) or
+# hash bucket (hashed); see ``_grid.py``.  Outputs are in sorted order.
+# ---------------------------------------------------------------------------
+
+_H1 = 73856093
+_H2 = 19349663
+_H3 = 83492791
+BLOCK = 256
+
+
+@njit(cache=True, inline="always")
+def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx):
+    """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz)."""
+    if hashed:
+        cx = ix - m + kx
+        b = ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
+        return start[b], start[b + 1], cx
+    x0 = max(ix - m, 0)
+    x1 = min(ix + m, nx - 1)
+    base = nx * (cy + ny * cz)
+    return start[base + x0], start[base + x1 + 1], -1
+
+
+@njit(cache=True, inline="always")
+def _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1):
+    t6[i, 0] = a00
+    t6[i, 1] = a01
+    t6[i, 2] = a02
+    t6[i, 3] = a11
+    t6[i, 4] = a12
+    t6[i, 5] = a22
+    l1, l2, l3, ex, ey, ez = eig3_top(a00, a01, a02, a11, a12, a22)
+    vals[i, 0] = l1
+    vals[i, 1] = l2
+    vals[i, 2] = l3
+    e1[i, 0] = ex
+    e1[i, 1] = ey
+    e1[i, 2] = ez
+
+
+@njit(cache=True, parallel=True)
+def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2, inv_s2,
+              tab_a, tab_b, tscale, stride, t6, vals, e1, counts):
+    """Sparse ball voting with eigen-analysis fused at the end of each votee.
+
+    Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
+    is included, so a lone token ends with the identity.
+    """
+    n = ps.shape[0]
+    nb = (n + BLOCK - 1) // BLOCK
+    nruns = 2 * m + 1 if hashed else 1
+    for t in prange(nb):
+        blk = (t * stride) % nb  # interleave blocks across threads (load balance)
+        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
+            xi = ps[i, 0]
+            yi = ps[i, 1]
+            zi = ps[i, 2]
+            ix = cix[i]
+            iy = ciy[i]
+            iz = ciz[i]
+            a00 = 0.0
+            a01 = 0.0
+            a02 = 0.0
+            a11 = 0.0
+            a12 = 0.0
+            a22 = 0.0
+            cnt = 0
+            for dz in range(-m, m + 1):
+                cz = iz + dz
+                if not hashed and (cz < 0 or cz >= nz):
+                    continue
+                for dy in range(-m, m + 1):
+                    cy = iy + dy
+                    if not hashed and (cy < 0 or cy >= ny):
+                        continue
+                    for kx in range(nruns):
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx)
+                        for j in range(j0, j1):
+                            if hashed and (cix[j] != cx or ciy[j] != cy or ciz[j] != cz):
+                                continue
+                            dx = ps[j, 0] - xi
+                            dy_ = ps[j, 1] - yi
+                            dz_ = ps[j, 2] - zi
+                            d2 = dx * dx + dy_ * dy_ + dz_ * dz_
+                            if d2 >= r2:
+                                continue
+                            cnt += 1
+                            if d2 == 0.0:
+                                a00 += 1.0
+                                a11 += 1.0
+                                a22 += 1.0
+                                continue
+                            q = d2 * tscale
+                            k = int(q)
+                            f = q - k
+                            a = tab_a[k] + (tab_a[k + 1] - tab_a[k]) * f
+                            b = tab_b[k] + (tab_b[k + 1] - tab_b[k]) * f
+                            c = (a - b) / d2
+                            a00 += b + c * dx * dx
+                            a01 += c * dx * dy_
+                            a02 += c * dx * dz_
+                            a11 += b + c * dy_ * dy_
+                            a12 += c * dy_ * dz_
+                            a22 += b + c * dz_ * dz_
+            counts[i] = cnt
+            _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
+
+
+@njit(cache=True, inline="always")
+def arcsin_ratio2(t):
+    """``(asin(√t)/√t)² = (θ/sin θ)²`` for ``t = sin²θ ∈ [0, 1/2]``.
+
+    Degree-16 polynomial in ``x = 4t − 1`` (Chebyshev fit, max error 3e-15 on
+    [0, 1/2]); replaces a ``sqrt``, an ``asin`` and a division per vote.
+    """
+    x = 4.0 * t - 1.0
+    p = 4.1044578648793166e-10
+    p = p * x + 1.3053246796434555e-09
+    p = p * x + 2.55834384061086e-09
+    p = p * x + 8.71749458263692e-09
+    p = p * x + 3.244813103299451e-08
+    p = p * x + 1.0982521186436823e-07
+    p = p * x + 3.739019978974341e-07
+    p = p * x + 1.3003728142575214e-06
+    p = p * x + 4.59633842594097e-06
+    p = p * x + 1.6567610831680862e-05
+    p = p * x + 6.125736394522079e-05
+    p = p * x + 0.00023423067685740802
+    p = p * x + 0.0009380950980537155
+    p = p * x + 0.004021191635587047
+    p = p * x + 0.019223205716590357
+    p = p * x + 0.1125768649239618
+    p = p * x + 1.096622711232152
+    return p
+
+
+@njit(cache=True, parallel=True)
+def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2, inv_s2,
+               gamma4, lmin2, stride, t6, vals, e1, counts):
+    """Sparse stick voting (eq. 44) with eigen-analysis fused per votee.
+
+    Voter ``j`` votes with unit normal ``ns[j]`` and weight ``ws[j]``
+    (``ws[j] == 0``: no vote).  The votee's own stick ``ws[i]·nᵢnᵢᵀ`` (self
+    vote, l = 0) is included.  ``gamma4 = 4γ`` and ``lmin2 = (l_min/σ)²``.
+    """
+    n = ps.shape[0]
+    nb = (n + BLOCK - 1) // BLOCK
+    nruns = 2 * m + 1 if hashed else 1
+    for t in prange(nb):
+        blk = (t * stride) % nb
+        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
+            xi = ps[i, 0]
+            yi = ps[i, 1]
+            zi = ps[i, 2]
+            ix = cix[i]
+            iy = ciy[i]
+            iz = ciz[i]
+            a00 = 0.0
+            a01 = 0.0
+            a02 = 0.0
+            a11 = 0.0
+            a12 = 0.0
+            a22 = 0.0
+            cnt = 0
+            for dz in range(-m, m + 1):
+                cz = iz + dz
+                if not hashed and (cz < 0 or cz >= nz):
+                    continue
+                for dy in range(-m, m + 1):
+                    cy = iy + dy
+                    if not hashed and (cy < 0 or cy >= ny):
+                        continue
+                    for kx in range(nruns):
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx)
+                        for j in range(j0, j1):
+                            w = ws[j]
+                            if w == 0.0:
+                                continue
+                            if hashed and (cix[j] != cx or ciy[j] != cy or ciz[j] != cz):
+                                continue
+                            # v = x - p = votee - voter
+                            dx = xi - ps[j, 0]
+                            dy_ = yi - ps[j, 1]
+                            dz_ = zi - ps[j, 2]
+                            d2 = dx * dx + dy_ * dy_ + dz_ * dz_
+                            if d2 >= r2:
+                                continue
+                            nx_ = ns[j, 0]
+                            ny_ = ns[j, 1]
+                            nz_ = ns[j, 2]
+                            cnt += 1
+                            if d2 == 0.0:
+                                a00 += w * nx_ * nx_
+                                a01 += w * nx_ * ny_
+                                a02 += w * nx_ * nz_
+                                a11 += w * ny_ * ny_
+                                a12 += w * ny_ * nz_
+                                a22 += w * nz_ * nz_
+                                continue
+                            u = nx_ * dx + ny_ * dy_ + nz_ * dz_
+                            u2 = u * u
+                            if u2 + u2 > d2:  # θ > 45°
+                                continue
+                            rho2 = d2 * inv_s2
+                            s2 = u2 / d2
+                            ex = rho2 * arcsin_ratio2(s2) + gamma4 * s2 / max(rho2, lmin2)
+                            df = w * math.exp(-ex)
+                            k = 2.0 * u / d2
+                            mx = nx_ - k * dx
+                            my = ny_ - k * dy_
+                            mz = nz_ - k * dz_
+                            a00 += df * mx * mx
+                            a01 += df * mx * my
+                            a02 += df * mx * mz
+                            a11 += df * my * my
+                            a12 += df * my * mz
+                            a22 += df * mz * mz
+            counts[i] = cnt
+            _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)

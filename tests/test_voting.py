@@ -1,0 +1,424 @@
+"""Sparse tensor voting (section 3 of the paper): fields, kernels, detection."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import rankdata
+
+from gatv.voting import (
+    RADIUS_FACTOR,
+    SurfaceResult,
+    TensorVotes,
+    default_sigma,
+    extract_surfaces,
+    stick_vote,
+    vote,
+)
+from gatv.voting import _fields, _reference
+from gatv.voting._kernels import eig3_batch
+
+seeds = st.integers(0, 2**32 - 1)
+
+
+# ---------------------------------------------------------------------------
+# helpers and fixtures
+# ---------------------------------------------------------------------------
+
+
+def _auc(scores, positive):
+    """ROC AUC from ranks (Mann–Whitney U)."""
+    r = rankdata(scores)
+    n_pos = int(positive.sum())
+    n_neg = positive.size - n_pos
+    return (r[positive].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg)
+
+
+def _angle_deg(a, b):
+    """Angle between unoriented directions (rows), degrees."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    c = np.abs(np.sum(a * b, axis=-1))
+    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+
+
+def _plane_in_noise(n_plane, ratio, seed, thickness=0.0):
+    """A tilted plane through the unit cube's centre plus ``ratio``× uniform noise.
+
+    The first ``n_plane`` rows are the plane tokens.
+    """
+    rng = np.random.default_rng(seed)
+    normal = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
+    a = np.cross(normal, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    uv = rng.uniform(-0.5, 0.5, (n_plane, 2))
+    plane = uv[:, :1] * a + uv[:, 1:] * b + rng.normal(0.0, thickness, (n_plane, 1)) * normal
+    noise = rng.uniform(-0.5, 0.5, (ratio * n_plane, 3))
+    return np.vstack([plane, noise]), normal
+
+
+@pytest.fixture(scope="module")
+def plane_noise():
+    pts, normal = _plane_in_noise(2000, 10, seed=7)
+    return pts, normal, 2000
+
+
+# ---------------------------------------------------------------------------
+# the stick vote and the ball field
+# ---------------------------------------------------------------------------
+
+
+def test_single_stick_vote_matches_hand_computation():
+    # Voter at the origin with normal z, votee at x = (1, 0, 0.5), σ = 1.
+    # l = √1.25, sin θ = 0.5/√1.25, θ = 0.4636476090008061 rad (26.57°),
+    # s = θ l / sin θ = 1.1591190225020154, κ = 2 sin θ / l = 0.8,
+    # γ = 16 ln10 (5 − 1)/(π² 5⁴) = 0.023889986258878376,
+    # DF = exp(−(s² + γκ²)) = exp(−1.3588464995317098) = 0.2569570060973456,
+    # voted normal m = n − 2(n·v̂)v̂ = (−0.8, 0, 0.6).
+    df = 0.2569570060973456
+    expected = df * np.array([[0.64, 0.0, -0.48], [0.0, 0.0, 0.0], [-0.48, 0.0, 0.36]])
+    np.testing.assert_allclose(_fields.GAMMA, 0.023889986258878376, rtol=1e-15)
+    np.testing.assert_allclose(stick_vote([0, 0, 1], [1.0, 0, 0.5], 1.0), expected, atol=1e-15)
+    # the same vote through the numba kernel: token 1 does not vote (saliency 0)
+    tv = vote([[0, 0, 0], [1.0, 0, 0.5]], 1.0, [[0, 0, 1], [0, 0, 1]], saliency=[1.0, 0.0])
+    np.testing.assert_allclose(tv.tensors[1], expected, atol=1e-14)
+    assert tv.n_votes.tolist() == [1, 1]
+
+
+def test_stick_vote_cone_and_symmetries():
+    n = np.array([0.0, 0.0, 1.0])
+    # beyond 45° from the tangent plane: no vote; at l = 0: n nᵀ
+    assert np.all(stick_vote(n, [1.0, 0.0, 1.01], 1.0) == 0.0)
+    assert np.trace(stick_vote(n, [1.0, 0.0, 0.99], 1.0)) > 0.0
+    np.testing.assert_allclose(stick_vote(n, [0, 0, 0], 1.0), np.outer(n, n))
+    # in the tangent plane the vote is n nᵀ exp(−(l/σ)²); sign of n irrelevant
+    np.testing.assert_allclose(stick_vote(-n, [0.7, 0.0, 0.0], 0.5), np.outer(n, n) * np.exp(-1.96))
+    # dimensionless: scaling offsets and σ together leaves the vote unchanged
+    v = np.array([0.3, -0.2, 0.1])
+    np.testing.assert_allclose(stick_vote(n, v, 0.4), stick_vote(n, 1e3 * v, 400.0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("rho", [0.05, 0.3, 0.8, 1.4, 1.9])
+def test_ball_table_matches_monte_carlo(rho):
+    rng = np.random.default_rng(int(rho * 100))
+    m = 200_000
+    n = rng.normal(size=(m, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    sigma = 0.7
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    v = rho * sigma * d
+    samples = stick_vote(n, v[None, :], sigma)  # (m, 3, 3)
+    mc = samples.mean(axis=0)
+    se = samples.std(axis=0) / math.sqrt(m)
+    A, B, Z = _fields.ball_table()
+    q = np.linspace(0.0, RADIUS_FACTOR**2, _fields.BALL_TABLE_SIZE + 1)
+    a = np.interp(rho**2, q, A[:-1]) * Z
+    b = np.interp(rho**2, q, B[:-1]) * Z
+    table = a * np.outer(d, d) + b * (np.eye(3) - np.outer(d, d))
+    assert np.all(np.abs(table - mc) <= 5.0 * se + 1e-12), (table, mc, se)
+    # and the normalised ball vote of the engine is table / Z
+    np.testing.assert_allclose(_fields.ball_vote(v, sigma), table / Z, rtol=1e-12, atol=1e-15)
+
+
+def test_ball_vote_is_identity_at_zero_and_vanishes_at_radius():
+    np.testing.assert_allclose(_fields.ball_vote([0.0, 0, 0], 1.0), np.eye(3))
+    assert np.all(_fields.ball_vote([2.0, 0, 0], 1.0) == 0.0)
+    # votes point away from the line joining the tokens: e1 ⟂ v̂
+    t = _fields.ball_vote([0.5, 0.0, 0.0], 1.0)
+    assert t[1, 1] > t[0, 0] > 0 and t[2, 2] == pytest.approx(t[1, 1])
+
+
+# ---------------------------------------------------------------------------
+# kernels against the brute-force reference
+# ---------------------------------------------------------------------------
+
+
+def _random_cloud(seed, n):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(0.0, 1.0, (n, 3))
+    p[: n // 10] = p[n // 10 : 2 * (n // 10)]  # coincident pairs
+    return p, rng
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=seeds, n=st.integers(2, 250), sigma=st.floats(0.02, 0.6))
+def test_ball_kernel_matches_reference(seed, n, sigma):
+    p, _ = _random_cloud(seed, n)
+    tv = vote(p, sigma)
+    ref = _reference.ball_pass(p, sigma)
+    np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * max(1.0, np.abs(ref).max()))
+    w = np.linalg.eigvalsh(ref)[:, ::-1]
+    np.testing.assert_allclose(tv.eigenvalues, w, rtol=0, atol=1e-7 * np.abs(ref).max())
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=seeds, n=st.integers(2, 250), sigma=st.floats(0.02, 0.6))
+def test_stick_kernel_matches_reference(seed, n, sigma):
+    p, rng = _random_cloud(seed, n)
+    normals = rng.normal(size=(n, 3))
+    sal = rng.uniform(0.0, 2.0, n)
+    sal[rng.uniform(size=n) < 0.2] = 0.0
+    tv = vote(p, sigma, normals, saliency=sal)
+    ref = _reference.stick_pass(p, normals, sal, sigma)
+    np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * max(1.0, np.abs(ref).max()))
+
+
+def test_hashed_grid_for_huge_box_matches_reference():
+    # two tight clusters 1e9 apart with σ = 1e-3: a dense grid would need ~1e36
+    # cells; the hashed layout keeps O(N) memory and gives the same votes.
+    rng = np.random.default_rng(5)
+    p = np.vstack([rng.uniform(0, 0.01, (150, 3)), 1e9 + rng.uniform(0, 0.01, (150, 3))])
+    normals = rng.normal(size=p.shape)
+    from gatv.voting._grid import build_grid
+
+    g = build_grid(p, RADIUS_FACTOR * 1e-3, 2)
+    assert g.hashed and g.start.size <= 4 * p.shape[0] + 2
+    tv = vote(p, 1e-3)
+    ref = _reference.ball_pass(p, 1e-3)
+    np.testing.assert_allclose(tv.tensors, ref, atol=1e-10 * np.abs(ref).max())
+    tv = vote(p, 1e-3, normals)
+    ref = _reference.stick_pass(p, normals, np.ones(len(p)), 1e-3)
+    np.testing.assert_allclose(tv.tensors, ref, atol=1e-10 * np.abs(ref).max())
+
+
+def test_results_are_identical_across_runs(plane_noise):
+    pts, _, _ = plane_noise
+    a = vote(pts)
+    b = vote(pts)
+    assert a.sigma == b.sigma
+    np.testing.assert_array_equal(a.components, b.components)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    sa = vote(pts, a.sigma, a.normals, saliency=a.surfaceness)
+    sb = vote(pts, b.sigma, b.normals, saliency=b.surfaceness)
+    np.testing.assert_array_equal(sa.components, sb.components)
+
+
+# ---------------------------------------------------------------------------
+# eigen-solver
+# ---------------------------------------------------------------------------
+
+
+def _comp(a):
+    return np.ascontiguousarray(a[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=seeds, pattern=st.sampled_from(["distinct", "double_top", "double_bottom", "triple", "rank1"]))
+def test_eigensolver_matches_numpy(seed, pattern):
+    rng = np.random.default_rng(seed)
+    n = 200
+    q, _ = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    d = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(-3, 3, (n, 1))
+    if pattern == "double_top":
+        d[:, 1] = d[:, 0] = np.abs(d[:, 0])
+    elif pattern == "double_bottom":
+        d[:, 2] = d[:, 1] = -np.abs(d[:, 1])
+    elif pattern == "triple":
+        d[:] = d[:, :1]
+    elif pattern == "rank1":
+        d[:, 1:] = 0.0
+    a = np.einsum("nij,nj,nkj->nik", q, d, q)
+    a = 0.5 * (a + a.transpose(0, 2, 1))
+    vals = np.empty((n, 3))
+    vecs = np.empty((n, 3, 3))
+    eig3_batch(_comp(a), vals, vecs)
+    scale = np.abs(a).max(axis=(1, 2))[:, None]
+    w = np.linalg.eigvalsh(a)[:, ::-1]
+    assert np.all(np.diff(vals, axis=1) <= 0)
+    # closed-form eigenvalues are accurate to ~1e-15 relative when distinct and
+    # to ~sqrt(eps) for (near-)repeated ones (acos near ±1)
+    tol = 1e-12 if pattern == "distinct" else 1e-7
+    assert np.all(np.abs(vals - w) <= tol * scale)
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", vecs, vecs), np.broadcast_to(np.eye(3), a.shape), atol=1e-12)
+    rec = np.einsum("nij,nj,nkj->nik", vecs, vals, vecs)
+    assert np.all(np.abs(rec - a).max(axis=2) <= 10 * tol * scale)
+
+
+def test_eigensolver_zero_and_near_degenerate():
+    a = np.zeros((3, 3, 3))
+    a[1] = np.diag([1.0, 1.0 + 1e-9, 1.0])
+    a[2] = np.diag([3.0, 2.0, 1.0])
+    vals = np.empty((3, 3))
+    vecs = np.empty((3, 3, 3))
+    eig3_batch(_comp(a), vals, vecs)
+    np.testing.assert_array_equal(vals[0], 0.0)
+    np.testing.assert_allclose(vals[1], [1 + 1e-9, 1, 1], atol=1e-7)
+    np.testing.assert_allclose(vals[2], [3, 2, 1], atol=1e-14)
+    np.testing.assert_allclose(np.abs(vecs[2]), np.eye(3), atol=1e-14)
+
+
+# ---------------------------------------------------------------------------
+# geometry: planes, spheres, detection
+# ---------------------------------------------------------------------------
+
+
+def test_plane_in_noise_normals_and_ranking(plane_noise):
+    pts, normal, n_plane = plane_noise
+    ball = vote(pts)
+    stick = vote(pts, ball.sigma, ball.normals, saliency=ball.surfaceness / ball.surfaceness.max())
+    on_plane = np.zeros(len(pts), bool)
+    on_plane[:n_plane] = True
+    assert _auc(stick.surfaceness, on_plane) >= 0.99
+    assert _auc(ball.surfaceness, on_plane) >= 0.95
+    # a second stick pass at 1.5σ refines the normals (section 3.3's growing σ)
+    w = (stick.surfaceness / stick.surfaceness.max()) ** 2
+    again = vote(pts, 1.5 * ball.sigma, stick.normals, saliency=w)
+    ang = _angle_deg(again.normals[:n_plane], normal)
+    assert np.median(ang) < 1.5 and np.percentile(ang, 85) < 3.0, np.percentile(ang, [50, 85, 99])
+
+
+def test_sphere_normals_are_radial():
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(8000, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    ball = vote(x)
+    stick = vote(x, ball.sigma, ball.normals, saliency=ball.surfaceness)
+    for tv in (ball, stick):
+        ang = _angle_deg(tv.normals, x)
+        assert ang.max() < 5.0, np.percentile(ang, [50, 99, 100])
+
+
+def test_extract_surfaces_keeps_plane_and_drops_noise():
+    pts, normal = _plane_in_noise(1500, 10, seed=3, thickness=0.002)
+    res = extract_surfaces(pts)
+    assert isinstance(res, SurfaceResult) and res
+    assert isinstance(res.ball, TensorVotes) and len(res.ball) == len(pts)
+    kept_plane = np.count_nonzero(res.indices < 1500)
+    kept_noise = np.count_nonzero(res.indices >= 1500)
+    assert kept_plane >= 0.9 * 1500
+    assert kept_noise <= 0.05 * 15000
+    assert np.all(np.diff(res.indices) > 0)
+    assert np.median(_angle_deg(res.normals[res.indices < 1500], normal)) < 2.0
+    assert res.sigma == pytest.approx(res.ball.sigma * 1.5**2)
+    assert len(res.n_surviving) == 3 and res.n_surviving[0] >= res.n_surviving[-1]
+
+
+def test_coincident_cluster_has_large_ball_saliency():
+    # section 3.4: a pure translation makes the true matches coincide in the joint
+    # space; after the ball pass they carry a large absolute saliency (λ1).
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-1, 1, (5000, 3))
+    pts[:60] = [0.1, 0.2, 0.3]
+    ball = vote(pts)
+    assert ball.eigenvalues[:60, 0].min() > 3 * np.percentile(ball.eigenvalues[60:, 0], 99)
+
+
+def test_default_sigma_gives_about_k_neighbours():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0, 1, (30000, 3))
+    s = default_sigma(pts, k=40)
+    tv = vote(pts, s)
+    interior = np.all((pts > 0.2) & (pts < 0.8), axis=1)
+    assert 35 <= np.median(tv.n_votes[interior] - 1) <= 45
+    # σ follows the data's units
+    assert default_sigma(pts * 1000.0) == pytest.approx(1000.0 * s)
+
+
+# ---------------------------------------------------------------------------
+# bad input, memory, cache
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"tokens": np.zeros((5, 2))}, "tokens"),
+        ({"tokens": np.zeros((0, 3))}, "tokens"),
+        ({"tokens": [[0, 0, np.nan]] * 3}, "tokens"),
+        ({"tokens": [[0, 0, np.inf]] * 3}, "tokens"),
+        ({"sigma": 0.0}, "sigma"),
+        ({"sigma": -1.0}, "sigma"),
+        ({"sigma": float("nan")}, "sigma"),
+        ({"normals": np.ones((4, 3))}, "normals"),
+        ({"normals": np.ones((5, 2))}, "normals"),
+        ({"normals": np.zeros((5, 3))}, "normals"),
+        ({"normals": np.ones((5, 3)), "saliency": np.ones(4)}, "saliency"),
+        ({"normals": np.ones((5, 3)), "saliency": -np.ones(5)}, "saliency"),
+        ({"normals": np.ones((5, 3)), "saliency": [1, 1, np.nan, 1, 1]}, "saliency"),
+    ],
+)
+def test_vote_rejects_bad_input(kwargs, match, monkeypatch):
+    from gatv.voting import _kernels
+
+    def boom(*args, **kw):  # pragma: no cover - must not be reached
+        raise AssertionError("numba kernel ran on bad input")
+
+    monkeypatch.setattr(_kernels, "ball_pass", boom)
+    monkeypatch.setattr(_kernels, "stick_pass", boom)
+    args = {"tokens": np.random.default_rng(0).uniform(size=(5, 3)), "sigma": 0.5}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        vote(**args)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"n_stick_passes": 0}, "n_stick_passes"),
+        ({"sigma_growth": 0.5}, "sigma_growth"),
+        ({"threshold": 1.5}, "threshold"),
+        ({"threshold": (0.1, 0.2, 0.3)}, "threshold"),
+        ({"sigma": 0}, "sigma"),
+    ],
+)
+def test_extract_surfaces_rejects_bad_input(kwargs, match):
+    pts = np.random.default_rng(0).uniform(size=(50, 3))
+    with pytest.raises(ValueError, match=match):
+        extract_surfaces(pts, **kwargs)
+
+
+def test_memory_budget_is_enforced(monkeypatch):
+    pts = np.random.default_rng(0).uniform(size=(10000, 3))
+    with pytest.raises(ValueError, match="memory_budget"):
+        vote(pts, 0.05, memory_budget=1e5)
+    monkeypatch.setenv("GATV_MEMORY_BUDGET", "1e5")
+    with pytest.raises(ValueError, match="GATV_MEMORY_BUDGET"):
+        vote(pts, 0.05)
+    monkeypatch.setenv("GATV_MEMORY_BUDGET", "1e10")
+    assert len(vote(pts, 0.05)) == 10000
+
+
+def test_single_token_needs_sigma():
+    with pytest.raises(ValueError, match="sigma"):
+        vote([[0.0, 0.0, 0.0]])
+    tv = vote([[0.0, 0.0, 0.0]], 1.0)
+    np.testing.assert_allclose(tv.tensors[0], np.eye(3))
+
+
+_CACHE_SCRIPT = textwrap.dedent(
+    """
+    import json, numpy as np
+    from gatv.voting import vote, extract_surfaces
+    from gatv.voting import _kernels, _grid
+    pts = np.random.default_rng(0).uniform(size=(10000, 3))
+    b = vote(pts)
+    vote(pts, b.sigma, b.normals, saliency=b.surfaceness)
+    stats = {}
+    for name, f in [("ball_pass", _kernels.ball_pass), ("stick_pass", _kernels.stick_pass),
+                    ("bin", _grid._bin), ("sort", _grid._counting_sort)]:
+        stats[name] = [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
+    print(json.dumps(stats))
+    """
+)
+
+
+def test_second_process_hits_the_numba_cache():
+    env = dict(os.environ)
+    out = None
+    for _ in range(2):  # the first run may have to fill the cache
+        proc = subprocess.run([sys.executable, "-c", _CACHE_SCRIPT], capture_output=True, text=True,
+                              env=env, timeout=300, check=True)
+        out = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name, (hits, misses) in out.items():
+        assert misses == 0 and hits >= 1, (name, out)

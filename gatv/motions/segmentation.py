@@ -1,0 +1,619 @@
+"""Several overlapping rigid motions at once (paper section 5, Fig. 12).
+
+Every rigid motion present among the candidate pairs is its own plane in
+the ``{dx, dy, dz}`` joint space (eq. 30).  :func:`segment` finds all of
+them, however many there are, and gives each point to at most one.
+
+How it works
+------------
+1. **One trial search** (:mod:`gatv.congruent`): source triples matched to
+   congruent target triples; *every* trial motion whose support beats
+   chance and brings points no earlier trial explains is kept, not only
+   the best one.  Triples are drawn from the unexplained source points
+   only, so the pool shrinks as motions are found; the search stops by
+   the RANSAC bound for the smallest motion wanted.
+2. **One voting run per new surface.** Trials are taken best first; a
+   trial whose inliers are already explained by an earlier hypothesis is
+   skipped, the others are judged by tensor voting in the joint space of
+   the trial-rotated source and eq. 41 (:func:`gatv.registration._vote_judge`),
+   so voting is never redone for a motion already found.
+3. **Surfaces.** Hypotheses whose tokens lie on one eq.-30 plane (same
+   axis and same translation along it) share one salient surface in
+   ``{dx, dy, dz}`` — the ambiguity the paper points out in section 5.
+4. **Eq. 41 inside each surface, as a graph** (``grouping="graph"``):
+   tokens are nodes, eq.-41-consistent token pairs (with the surface's
+   axis; no shared source or target point) are edges.  The tokens of one
+   motion form a clique; two motions sharing axis and translation are not
+   linked, since eq. 41 also demands that the pair distance be kept
+   (Fig. 2 b/e).  Motions are read off as dense components: the
+   ``k``-core (``k`` = support threshold − 1) is peeled from its
+   highest-degree node's dense neighbourhood.
+5. **Split by eqs. 27–29 and resolve conflicts.** Every token is given to
+   the motion whose four joint-space planes (eqs. 27–30) it lies closest
+   to.  For two motions on one shared eq.-30 plane the eq.-30 residuals
+   are equal and the planes of eqs. 27–29, which differ through ``q0``,
+   decide.  The four plane residuals of a token, squared and summed,
+   equal its squared Euclidean residual ``|x' - R x - t|²``, so "closest
+   planes" is "smaller residual".  Each motion's correspondences are made
+   one-to-one, it is refitted, and a motion left with less support than a
+   random motion would collect is dropped.
+
+``grouping="greedy"`` replaces steps 3–4 by taking each judged
+hypothesis's own correspondences (the alternative measured in
+``benchmarks/motions.py``).
+
+The support threshold comes from the data: the count a wrong motion
+reaches by chance (:func:`gatv.congruent.chance_support`), at the
+family-wise level over all hypotheses judged.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._validation import check_positive
+from ..candidates import one_to_one
+from ..congruent import TargetIndex, n_triples_needed, trial_motions
+from ..ga import Rotor, eq41_residual, joint_space_coordinates, joint_space_planes
+from ..motion import RigidMotion, fit_rigid
+from ..registration import (
+    NOISE_SCHEDULE,
+    _fit_and_gate,
+    _gate,
+    _grow_tolerance,
+    _Problem,
+    _refine,
+    _vote_judge,
+)
+
+__all__ = ["Segmentation", "segment", "joint_space_residuals"]
+
+GROUPINGS = ("graph", "greedy")
+
+
+def _frozen(a, dtype) -> np.ndarray:
+    a = np.array(a, dtype=dtype)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """Rigid motions found between two point sets, and who belongs to which.
+
+    Attributes
+    ----------
+    motions : tuple of RigidMotion
+        Largest support first; each with its own one-to-one
+        ``correspondences``.  No source or target point is in two motions.
+    source_labels, target_labels : (N,) ndarray of int
+        Index into ``motions`` of each point's motion, ``-1`` when no
+        motion explains it.
+    tokens : (T, 2) ndarray of int
+        Candidate pairs ``(source, target)`` that voted: every pair within
+        the residual gate of a hypothesis, multiple matches included.
+    token_labels : (T,) ndarray of int
+        Motion (plane) each token was given to, ``-1`` for none.  A
+        motion's ``correspondences`` are a one-to-one subset of its tokens.
+    info : dict
+        Diagnostics: tolerance, support threshold, trials, hypotheses,
+        surfaces and which of them were split, timings.  Not compared.
+    """
+
+    motions: tuple
+    source_labels: np.ndarray
+    target_labels: np.ndarray
+    tokens: np.ndarray
+    token_labels: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "motions", tuple(self.motions))
+        for name in ("source_labels", "target_labels", "token_labels"):
+            object.__setattr__(self, name, _frozen(getattr(self, name), np.int64))
+        object.__setattr__(self, "tokens", _frozen(np.asarray(self.tokens).reshape(-1, 2), np.int64))
+
+    def __len__(self) -> int:
+        return len(self.motions)
+
+    def __bool__(self) -> bool:
+        return len(self.motions) > 0
+
+    def __iter__(self):
+        return iter(self.motions)
+
+    def __getitem__(self, k) -> RigidMotion:
+        return self.motions[k]
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dictionary."""
+        return {
+            "n_motions": len(self.motions),
+            "motions": [m.to_dict() for m in self.motions],
+            "source_labels": self.source_labels.tolist(),
+            "target_labels": self.target_labels.tolist(),
+            "tokens": self.tokens.tolist(),
+            "token_labels": self.token_labels.tolist(),
+        }
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{m.angle_deg:.2f} deg/{m.support}" for m in self.motions)
+        return f"Segmentation({len(self.motions)} motions: [{inner}])"
+
+
+# ------------------------------------------------------------------ helpers
+def joint_space_residuals(source, target, pairs, rotation, translation) -> np.ndarray:
+    """Residuals of candidate pairs to a motion's four joint-space planes.
+
+    Parameters
+    ----------
+    source, target : (N, 3) ndarray
+    pairs : (T, 2) ndarray of int
+    rotation : (3, 3) ndarray
+    translation : (3,) ndarray
+
+    Returns
+    -------
+    (T, 4) ndarray
+        Column ``k`` is ``n · u + c`` for the plane of eq. ``27 + k``
+        (:func:`gatv.ga.joint_space_planes`) at the pair's coordinates
+        ``u`` in that joint space.  With a unit rotor the row norm is the
+        Euclidean residual ``|x' - R x - t|``; motions with one axis and
+        one translation have equal eq.-30 residuals and differ in eqs. 27–29.
+    """
+    planes = joint_space_planes(Rotor.from_matrix(rotation), translation)
+    u = joint_space_coordinates(source[pairs[:, 0]], target[pairs[:, 1]])
+    return np.einsum("kj,ktj->tk", planes[:, :3], u) + planes[:, 3]
+
+
+def _residual(P, pairs, R, t) -> np.ndarray:
+    return np.linalg.norm(P.Y[pairs[:, 1]] - (P.X[pairs[:, 0]] @ R.T + t), axis=1)
+
+
+def _gated_pairs(P, R, t, gate) -> np.ndarray:
+    """Every pair ``(i, j)`` with ``|y_j - R x_i - t| <= gate`` (multiple matches too)."""
+    lists = P.tree.query_ball_point(P.X @ R.T + t, gate)
+    counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    i = np.repeat(np.arange(len(lists)), counts)
+    j = np.fromiter((v for x in lists for v in x), np.int64, int(counts.sum()))
+    return np.stack([i, j], axis=1)
+
+
+def _axis(R) -> np.ndarray | None:
+    """Unit rotation axis, ``None`` for (nearly) pure translation."""
+    rv = Rotor.from_matrix(R)
+    if rv.angle < 1e-6:
+        return None
+    return np.asarray(rv.axis, dtype=np.float64)
+
+
+class _Hypothesis:
+    __slots__ = ("R", "t", "kept", "gated", "axis")
+
+    def __init__(self, P, R, t, kept, gate):
+        self.R, self.t, self.kept = R, t, kept
+        self.gated = _gated_pairs(P, R, t, gate)
+        self.axis = _axis(R)
+
+    def on_plane(self, P, pairs, tau) -> np.ndarray:
+        """Which ``pairs`` lie on this hypothesis's eq.-30 plane ``A · (d - t) = 0``."""
+        d = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
+        if self.axis is None:  # pure translation: the "plane" is the cluster at t
+            return np.linalg.norm(d - self.t, axis=1) <= tau
+        return np.abs((d - self.t) @ self.axis) <= tau
+
+
+# ------------------------------------------------------------ trial stage
+def _trial_search(P, index, tol, rng, threshold, opts, log):
+    """One trial search that keeps every distinct trial motion beating chance.
+
+    Triples are drawn in chunks from the source points no trial has
+    explained yet, so the pool shrinks as motions are found and the share
+    of the motions still hidden grows.  The search stops when, since the
+    last new motion, enough triples were drawn to hit a motion of
+    ``opts["min_points"]`` points in the pool with ``opts["confidence"]``
+    (the RANSAC bound), or at ``opts["max_triples"]``.
+    """
+    gate = _gate(tol)
+    n1 = P.X.shape[0]
+    explained = np.zeros(n1, bool)
+    found = []
+    drawn = since_new = n_congruent = 0
+    beat = 0
+    while drawn < opts["max_triples"]:
+        pool = np.flatnonzero(~explained)
+        if pool.size < max(3, threshold):
+            break
+        need = n_triples_needed(min(1.0, opts["min_points"] / pool.size), opts["confidence"])
+        if since_new >= need:
+            break
+        chunk = int(min(opts["chunk"], opts["max_triples"] - drawn, need - since_new))
+        trials = trial_motions(P.X[pool], index, eps=2.0 * gate, max_triples=max(chunk, 1), rng=rng,
+                               keep=opts["max_trials"], accept=np.iinfo(np.int64).max)
+        drawn += trials.n_triples
+        since_new += trials.n_triples
+        n_congruent += trials.n_congruent
+        for k in range(len(trials)):
+            if trials.support[k] < trials.threshold:
+                break
+            beat += 1
+            R0, t0 = trials.rotations[k], trials.translations[k]
+            d, _ = P.tree.query(P.X @ R0.T + t0, k=1, distance_upper_bound=gate)
+            inl = np.isfinite(d)
+            if np.count_nonzero(inl & ~explained) < threshold:
+                continue  # nothing new: a trial already kept explains it
+            explained |= inl
+            found.append((R0, t0, int(np.count_nonzero(inl))))
+            since_new = 0
+    log.append({"tolerance": tol, "triples": drawn, "congruent": n_congruent, "beat_chance": beat,
+                "kept": len(found)})
+    return found
+
+
+def _hypotheses(P, trials, tol, threshold, opts):
+    """Judge each kept trial by tensor voting and eq. 41 (one voting run each)."""
+    gate = _gate(tol)
+    out = []
+    explained = np.zeros(P.X.shape[0], bool)
+    for R0, t0, _ in sorted(trials, key=lambda x: -x[2])[: opts["max_judged"]]:
+        judged = _vote_judge(P, R0, t0, tol, opts["sigma"], opts["max_candidates"])
+        if judged is None:
+            continue
+        R, t, kept = judged[:3]
+        if opts["refine"]:
+            R2, t2, kept2 = _refine(P, R, t, gate)
+            if kept2 is not None and kept2.shape[0] >= kept.shape[0]:
+                R, t, kept = R2, t2, kept2
+        if np.count_nonzero(~explained[kept[:, 0]]) < threshold:
+            continue
+        explained[kept[:, 0]] = True
+        out.append(_Hypothesis(P, R, t, kept, gate))
+    return out
+
+
+# --------------------------------------------------------- grouping stage
+def _surfaces(P, hyps, gate) -> list[list[int]]:
+    """Group hypotheses whose tokens lie on one eq.-30 plane (union-find)."""
+    parent = list(range(len(hyps)))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    tau = 2.0 * gate
+    for a in range(len(hyps)):
+        for b in range(a + 1, len(hyps)):
+            ha, hb = hyps[a], hyps[b]
+            if (ha.axis is None) != (hb.axis is None):
+                continue
+            if np.mean(ha.on_plane(P, hb.kept, tau)) >= 0.9 and np.mean(hb.on_plane(P, ha.kept, tau)) >= 0.9:
+                parent[find(b)] = find(a)
+    groups: dict[int, list[int]] = {}
+    for a in range(len(hyps)):
+        groups.setdefault(find(a), []).append(a)
+    return list(groups.values())
+
+
+def _eq41_graph(P, pairs, axis, tau):
+    """Tokens as nodes, eq.-41-consistent token pairs as edges (networkx)."""
+    import networkx as nx
+
+    d = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
+    s = P.Y[pairs[:, 1]] + P.X[pairs[:, 0]]
+    T = pairs.shape[0]
+    G = nx.Graph()
+    G.add_nodes_from(range(T))
+    for a in range(T - 1):
+        db, sb = d[a + 1:], s[a + 1:]
+        if axis is None:  # pure translation: length preservation V · Vs = 0
+            V, Vs = db - d[a], sb - s[a]
+            nvs = np.linalg.norm(Vs, axis=1)
+            r = np.abs(np.einsum("ij,ij->i", V, Vs)) / np.where(nvs > 0, nvs, 1.0)
+        else:
+            r = eq41_residual(db, sb, d[a], s[a], axis, normalize="length")
+        shared = (pairs[a + 1:, 0] == pairs[a, 0]) | (pairs[a + 1:, 1] == pairs[a, 1])
+        nb = np.flatnonzero((r <= tau) & ~shared) + a + 1
+        G.add_edges_from((a, int(b)) for b in nb)
+    return G
+
+
+def _dense_components(P, G, pairs, threshold, gate):
+    """Motions as dense components: peel the k-core from its densest node."""
+    import networkx as nx
+
+    found = []
+    G = G.copy()
+    k = max(int(threshold) - 1, 1)
+    while G.number_of_nodes() >= threshold:
+        core = nx.k_core(G, k)
+        if core.number_of_nodes() < threshold:
+            break
+        v = max(core.degree, key=lambda nd: (nd[1], -nd[0]))[0]
+        C = list(core[v]) + [v]
+        sub = core.subgraph(C)
+        need = 0.5 * (len(C) - 1)
+        C = np.asarray(sorted(u for u in C if sub.degree(u) >= need), np.int64)
+        fit = _fit_and_gate(P, pairs, pairs[C], gate) if C.size >= 3 else None
+        if fit is None or fit[2].shape[0] < threshold:
+            G.remove_nodes_from(C.tolist())
+            continue
+        R, t, kept = fit
+        found.append((R, t, kept))
+        used_s, used_t = set(kept[:, 0].tolist()), set(kept[:, 1].tolist())
+        G.remove_nodes_from([u for u in list(G.nodes) if int(pairs[u, 0]) in used_s
+                             or int(pairs[u, 1]) in used_t])
+    return found
+
+
+def _resolve(P, motions, tokens, threshold, gate, rounds=3):
+    """Each token to the motion whose joint-space planes it lies closest to; one-to-one; refit.
+
+    Returns the surviving ``(R, t, kept)`` and the token labels.
+    """
+    motions = list(motions)
+    labels = np.full(tokens.shape[0], -1, np.int64)
+    for _ in range(rounds):
+        if not motions or tokens.shape[0] == 0:
+            return [], np.full(tokens.shape[0], -1, np.int64)
+        # (M, T) residual via the four joint-space planes (eqs. 27-30)
+        res = np.stack([np.linalg.norm(joint_space_residuals(P.X, P.Y, tokens, R, t), axis=1)
+                        for R, t, _ in motions])
+        best = np.argmin(res, axis=0)
+        rbest = res[best, np.arange(tokens.shape[0])]
+        labels = np.where(rbest <= gate, best, -1)
+        # a point belongs to at most one motion: the one explaining it best
+        cost = np.where(labels >= 0, rbest, np.inf)
+        keep_tok = one_to_one(tokens, cost)
+        keep_tok = keep_tok[np.isfinite(cost[keep_tok])]
+        new = []
+        for m in range(len(motions)):
+            sel = keep_tok[labels[keep_tok] == m]
+            if sel.size < max(threshold, 3):
+                continue
+            pm = tokens[sel]
+            R, t = fit_rigid(P.X[pm[:, 0]], P.Y[pm[:, 1]])
+            new.append((R, t, pm))
+        changed = len(new) != len(motions) or any(
+            a[2].shape != b[2].shape or not np.array_equal(a[2], b[2]) for a, b in zip(new, motions))
+        motions = new
+        if not changed:
+            break
+    if not motions:
+        return [], np.full(tokens.shape[0], -1, np.int64)
+    res = np.stack([_residual(P, tokens, R, t) for R, t, _ in motions])
+    best = np.argmin(res, axis=0)
+    labels = np.where(res[best, np.arange(tokens.shape[0])] <= gate, best, -1)
+    return motions, labels
+
+
+# ------------------------------------------------------------------ entry
+def _check_count(value, name: str, minimum: int):
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
+    if int(value) < minimum:
+        raise ValueError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
+    return int(value)
+
+
+def segment(
+    source,
+    target,
+    *,
+    max_motions: int | None = None,
+    min_support: int | None = None,
+    seed: int = 0,
+    noise: float | None = None,
+    grouping: str = "graph",
+    refine: bool = True,
+    min_inlier_share: float = 0.03,
+    confidence: float = 0.999,
+    max_triples: int | None = None,
+    max_judged: int = 32,
+    sigma: float | None = None,
+    max_candidates: int = 8,
+    memory_budget: float | None = None,
+    progress=None,
+) -> Segmentation:
+    """Find every rigid motion between ``source`` and ``target`` (section 5).
+
+    Parameters
+    ----------
+    source, target : (N, 3) array_like or object with ``.points``
+        The two point sets; any share of either may be outliers.
+    max_motions : int, optional
+        Cap on the number of motions returned (largest first). The number
+        of motions is found from the data; this only caps it.
+    min_support : int, optional
+        Smallest number of correspondences a motion needs.  Default from
+        the data: the support a random motion reaches by chance
+        (:func:`gatv.congruent.chance_support`), at least 3.
+    seed : int, default: 0
+        Seed of the random triple sampling; same seed, same result.
+    noise : float, optional
+        Standard deviation of the point noise (data units).  Default: the
+        schedule of :func:`gatv.register`, from exact to a fifth of the
+        point spacing.
+    grouping : {"graph", "greedy"}, default: "graph"
+        How tokens are grouped into motions: dense components of the
+        eq.-41 graph inside each salient surface, or each judged
+        hypothesis's own correspondences.
+    refine : bool, default: True
+        ICP polish of each hypothesis inside the noise gate.
+    min_inlier_share : float, default: 0.03
+        Smallest motion to be found, as a share of the source points: the
+        trial search stops once, since its last new motion, it drew enough
+        triples from the unexplained points to hit such a motion with
+        ``confidence``.
+    confidence : float, default: 0.999
+    max_triples : int, optional
+        Hard cap on the triples drawn per tolerance level (default 2e6).
+    max_judged : int, default: 32
+        Cap on the trial motions judged by tensor voting per search.
+    sigma : float, optional
+        Tensor-voting scale; default as in :func:`gatv.register`.
+    max_candidates : int, default: 8
+        Cap on candidate pairs per source point in a voting run.
+    memory_budget : float, optional
+        Bytes; inputs needing more fail at once.
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Segmentation
+        Falsy (no motions) when no motion beats the chance level.
+
+    Raises
+    ------
+    ValueError
+        Bad points (as :func:`gatv.register`), ``max_motions < 1``,
+        ``min_support < 3`` or other bad options.
+
+    References
+    ----------
+    Reyes, Medioni & Bayro, IJCV 75(3) 2007: eqs. 27–30 (joint spaces),
+    eq. 41 (the geometric constraint), section 5 (multiple motions).
+
+    Examples
+    --------
+    >>> from gatv.motions import fig12_scene, segment
+    >>> scene = fig12_scene(seed=0)
+    >>> seg = segment(scene.source, scene.target)
+    >>> len(seg), sorted(m.support for m in seg)
+    (3, [40, 40, 40])
+    """
+    t_start = time.perf_counter()
+    P = _Problem(source, target)
+    max_motions = _check_count(max_motions, "max_motions", 1)
+    min_support = _check_count(min_support, "min_support", 3)
+    noise = check_positive(noise, "noise", allow_none=True)
+    if grouping not in GROUPINGS:
+        raise ValueError(f"Expected `grouping` to be one of {GROUPINGS}, got {grouping!r}.")
+    if not (0.0 < float(min_inlier_share) <= 1.0):
+        raise ValueError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
+    if not (0.0 < float(confidence) < 1.0):
+        raise ValueError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
+    max_judged = _check_count(max_judged, "max_judged", 1)
+    max_candidates = _check_count(max_candidates, "max_candidates", 1)
+    if sigma is not None:
+        sigma = check_positive(sigma, "sigma")
+    report = progress if progress is not None else (lambda f, m: None)
+    levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
+    n1 = P.X.shape[0]
+    max_triples = _check_count(max_triples, "max_triples", 1) or 2_000_000
+    opts = {"sigma": sigma, "max_candidates": max_candidates, "refine": bool(refine),
+            "max_trials": 16, "max_judged": max_judged, "chunk": 8192, "confidence": float(confidence),
+            "max_triples": max_triples, "min_points": max(3.0, float(min_inlier_share) * n1)}
+    rng = np.random.default_rng(seed)
+    info: dict = {"n_source": n1, "n_target": int(P.Y.shape[0]), "spacing": P.spacing,
+                  "grouping": grouping}
+    log: list = []
+    index = None
+
+    def threshold_fn(gate, n_tests=max_judged):
+        if min_support is not None:
+            return min_support
+        return max(3, P.chance(gate, n_tests=n_tests))
+
+    hyps: list = []
+    level = 0
+    tol = levels[0]
+    for level, tol in enumerate(levels):
+        gate = _gate(tol)
+        if index is None:
+            index = TargetIndex(P.Y, gate, memory_budget=memory_budget)
+        else:
+            index.set_radius(gate)
+        report(level / len(levels), f"tolerance {tol:.3g}: trial search")
+        trials = _trial_search(P, index, tol, rng, threshold_fn(gate), opts, log)
+        if trials:
+            hyps = _hypotheses(P, trials, tol, threshold_fn(gate), opts)
+        if hyps:
+            break
+    gate = _gate(tol)
+    threshold = threshold_fn(gate)
+    info.update(tolerance=tol, support_threshold=threshold, trials=log)
+    if not hyps:
+        info.update(reason="no trial motion beat the chance level", time_s=time.perf_counter() - t_start)
+        return _empty(P, info)
+
+    report(0.8, f"{len(hyps)} hypotheses: grouping")
+    motions, tokens, labels, extra = _group(P, hyps, grouping, threshold, gate)
+    info.update(n_hypotheses=len(hyps), **extra)
+
+    # grow each motion's tolerance while its support grows beyond chance
+    if noise is None and len(levels) > 1 and motions:
+        grown = []
+        top = level
+        for R, t, kept in motions:
+            R, t, kept, lv = _grow_tolerance(P, R, t, kept, levels, level)
+            grown.append((R, t, kept))
+            top = max(top, lv)
+        if top > level:
+            gate = _gate(levels[top])
+            info["tolerance"] = levels[top]
+            tokens = np.unique(np.vstack([tokens] + [_gated_pairs(P, R, t, gate) for R, t, _ in grown]), axis=0)
+            motions, labels = _resolve(P, grown, tokens, threshold, gate)
+
+    order = sorted(range(len(motions)), key=lambda m: (-motions[m][2].shape[0], m))
+    if max_motions is not None:
+        order = order[:max_motions]
+    remap = np.full(len(motions) + 1, -1, np.int64)
+    remap[np.asarray(order, np.int64)] = np.arange(len(order))
+    labels = remap[labels]
+    src_lab = np.full(n1, -1, np.int64)
+    tgt_lab = np.full(P.Y.shape[0], -1, np.int64)
+    out = []
+    for new, m in enumerate(order):
+        R, t, kept = motions[m]
+        kept = kept[np.argsort(kept[:, 0], kind="stable")]
+        src_lab[kept[:, 0]] = new
+        tgt_lab[kept[:, 1]] = new
+        res = _residual(P, kept, R, t)
+        out.append(RigidMotion(rotation=R, translation=t, correspondences=kept,
+                               score=float(kept.shape[0]), rms=float(np.sqrt(np.mean(res**2))),
+                               info={"label": new}))
+    info["time_s"] = time.perf_counter() - t_start
+    report(1.0, f"found {len(out)} motions")
+    return Segmentation(tuple(out), src_lab, tgt_lab, tokens, labels, info)
+
+
+def _empty(P, info) -> Segmentation:
+    return Segmentation((), np.full(P.X.shape[0], -1), np.full(P.Y.shape[0], -1),
+                        np.empty((0, 2), np.int64), np.empty(0, np.int64), info)
+
+
+def _group(P, hyps, grouping, threshold, gate):
+    """Hypotheses → motions (``(R, t, kept)`` list), tokens and token labels."""
+    tokens = np.unique(np.vstack([h.gated for h in hyps] + [h.kept for h in hyps]), axis=0)
+    extra: dict = {}
+    if grouping == "greedy":
+        cands = [(h.R, h.t, h.kept) for h in sorted(hyps, key=lambda h: -h.kept.shape[0])]
+        motions, labels = _resolve(P, cands, tokens, threshold, gate)
+        return motions, tokens, labels, extra
+    surfaces = _surfaces(P, hyps, gate)
+    cands = []
+    split = []
+    n_edges = 0
+    for members in surfaces:
+        big = max(members, key=lambda a: hyps[a].kept.shape[0])
+        axis = hyps[big].axis
+        pairs = np.unique(np.vstack([hyps[a].gated for a in members]), axis=0)
+        G = _eq41_graph(P, pairs, axis, 2.0 * gate)
+        n_edges += G.number_of_edges()
+        found = _dense_components(P, G, pairs, threshold, gate)
+        if len(found) > 1:
+            split.append({"hypotheses": len(members), "motions": len(found),
+                          "angles_deg": [float(np.degrees(Rotor.from_matrix(R).angle)) for R, _, _ in found]})
+        cands.extend(found)
+    cands.sort(key=lambda c: -c[2].shape[0])
+    motions, labels = _resolve(P, cands, tokens, threshold, gate)
+    extra.update(n_surfaces=len(surfaces), shared_surfaces=split, graph_edges=n_edges)
+    return motions, tokens, labels, extra

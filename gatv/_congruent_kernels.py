@@ -179,6 +179,31 @@ def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius
 
 
 # ------------------------------------------------------------ hypotheses
+@njit(cache=True)
+def _pair_features(p, i, j, normals):
+    """Rigid invariants of an unoriented-normal pair: |n_i·u|, |n_j·u|, |n_i·n_j|."""
+    ux = p[j, 0] - p[i, 0]
+    uy = p[j, 1] - p[i, 1]
+    uz = p[j, 2] - p[i, 2]
+    nu = np.sqrt(ux * ux + uy * uy + uz * uz)
+    if nu > 0:
+        ux /= nu
+        uy /= nu
+        uz /= nu
+    f1 = abs(normals[i, 0] * ux + normals[i, 1] * uy + normals[i, 2] * uz)
+    f2 = abs(normals[j, 0] * ux + normals[j, 1] * uy + normals[j, 2] * uz)
+    f3 = abs(normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2])
+    return f1, f2, f3
+
+
+@njit(cache=True)
+def _features_agree(src, i, j, sn, tgt, k, l, tn, tol):
+    """Do the pair (i, j) of the source and (k, l) of the target look alike?"""
+    a1, a2, a3 = _pair_features(src, i, j, sn)
+    b1, b2, b3 = _pair_features(tgt, k, l, tn)
+    return abs(a1 - b1) <= tol and abs(a2 - b2) <= tol and abs(a3 - b3) <= tol
+
+
 @njit(cache=True, parallel=True)
 def triple_hypotheses(
     source,
@@ -197,12 +222,16 @@ def triple_hypotheses(
     dims,
     radius,
     max_matches,
+    src_normals,
+    tgt_normals,
+    feature_tol,
 ):
     """Best congruent match of each source triple, scored by inlier count.
 
     For source triple ``(a, b, c)`` every target triple ``(k, l, m)`` with
-    ``| |ab| - |kl| |, | |ac| - |km| |, | |bc| - |lm| | <= eps`` gives a
-    motion (Kabsch on the three pairs) whose support is the number of
+    ``| |ab| - |kl| |, | |ac| - |km| |, | |bc| - |lm| | <= eps`` (and, when
+    normals are given, the invariants of :func:`_pair_features` of all
+    three sides within ``feature_tol``) gives a motion (Kabsch on the three pairs) whose support is the number of
     source points landing within ``radius`` of a target point.  At most
     ``max_matches`` congruent triples are scored per source triple.
 
@@ -214,6 +243,7 @@ def triple_hypotheses(
     rots = np.zeros((nt, 3, 3))
     trans = np.zeros((nt, 3))
     nmatch = np.zeros(nt, np.int64)
+    use_normals = src_normals.shape[0] == source.shape[0] and tgt_normals.shape[0] == target.shape[0]
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
         dab = _dist(source, a, source, b)
@@ -236,6 +266,9 @@ def triple_hypotheses(
                     k, l = pi[s], pj[s]
                 else:
                     k, l = pj[s], pi[s]
+                if use_normals and not _features_agree(source, a, b, src_normals, target, k, l,
+                                                       tgt_normals, feature_tol):
+                    continue
                 row = ndist[k]
                 m0 = _lower_bound(row, dac - eps)
                 m1 = _lower_bound(row, dac + eps)
@@ -244,6 +277,11 @@ def triple_hypotheses(
                     if m == l:
                         continue
                     if abs(_dist(target, l, target, m) - dbc) > eps:
+                        continue
+                    if use_normals and not (
+                        _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
+                        and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
+                    ):
                         continue
                     found += 1
                     for r in range(3):

@@ -9,6 +9,7 @@ rotation, when there is one).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from ._validation import check_memory
@@ -91,6 +92,24 @@ def bounded_pairs(source: np.ndarray, target: np.ndarray, max_angle: float,
     return pairs_within(source, target, radius, memory_budget=memory_budget)
 
 
+@njit(cache=True)
+def _greedy_unique(i_idx, j_idx, order, n_i, n_j):
+    used_i = np.zeros(n_i, np.bool_)
+    used_j = np.zeros(n_j, np.bool_)
+    keep = np.empty(order.shape[0], np.int64)
+    m = 0
+    for k in order:
+        i = i_idx[k]
+        j = j_idx[k]
+        if used_i[i] or used_j[j]:
+            continue
+        used_i[i] = True
+        used_j[j] = True
+        keep[m] = k
+        m += 1
+    return keep[:m]
+
+
 def one_to_one(pairs: np.ndarray, cost: np.ndarray) -> np.ndarray:
     """Greedy one-to-one subset of ``pairs``, cheapest first.
 
@@ -99,15 +118,7 @@ def one_to_one(pairs: np.ndarray, cost: np.ndarray) -> np.ndarray:
     """
     if pairs.shape[0] == 0:
         return np.zeros(0, np.int64)
-    order = np.argsort(cost, kind="stable")
-    used_s = set()
-    used_t = set()
-    keep = []
-    for k in order:
-        i, j = int(pairs[k, 0]), int(pairs[k, 1])
-        if i in used_s or j in used_t:
-            continue
-        used_s.add(i)
-        used_t.add(j)
-        keep.append(k)
-    return np.asarray(keep, dtype=np.int64)
+    pairs = np.asarray(pairs, dtype=np.int64)
+    order = np.argsort(np.asarray(cost, dtype=np.float64), kind="stable")
+    return _greedy_unique(np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]),
+                          order, int(pairs[:, 0].max()) + 1, int(pairs[:, 1].max()) + 1)

@@ -136,6 +136,9 @@ def trial_motions(
     keep: int = 8,
     max_matches: int = 64,
     accept: int | None = None,
+    source_normals: np.ndarray | None = None,
+    target_normals: np.ndarray | None = None,
+    feature_tol: float = 0.15,
     progress=None,
 ) -> TrialMotions:
     """Draw source triples, match them congruently, score the motions.
@@ -156,12 +159,27 @@ def trial_motions(
         the rotation sensitive to noise).
     keep : int
         Number of best distinct trials returned.
+    accept : int, optional
+        Stop once a trial reaches this support; ``0`` never stops early
+        (use for real scans, whose surfaces make the chance level of
+        :func:`chance_support` meaningless).
+    source_normals, target_normals : (N, 3) ndarray, optional
+        Unoriented unit normals (e.g. from a tensor-voting ball pass,
+        section 4.1). When given, matched sides must also agree in the
+        rigid invariants ``|n_i·u|, |n_j·u|, |n_i·n_j|`` within
+        ``feature_tol``, which prunes most congruent but wrong triangles
+        on real surfaces.
     """
     n = source.shape[0]
     threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
                                n_tests=max_triples * max_matches)
     if accept is None:
         accept = threshold
+    elif accept <= 0:
+        accept = np.iinfo(np.int64).max
+    no_normals = np.zeros((0, 3))
+    sn = no_normals if source_normals is None else np.ascontiguousarray(source_normals, np.float64)
+    tn = no_normals if target_normals is None else np.ascontiguousarray(target_normals, np.float64)
     best_s = []
     best_R = []
     best_t = []
@@ -182,7 +200,7 @@ def trial_motions(
         scores, R, t, nm = _k.triple_hypotheses(
             source, index.target, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
-            index.radius, int(max_matches),
+            index.radius, int(max_matches), sn, tn, float(feature_tol),
         )
         n_congruent += int(nm.sum())
         good = np.flatnonzero(scores >= 3)

@@ -87,6 +87,7 @@ class _Problem:
         self.tree = cKDTree(self.Y)
         self.spacing = 0.5 * (median_spacing(self.X) + median_spacing(self.Y))
         lo, hi = self.Y.min(axis=0), self.Y.max(axis=0)
+        self.extent = float(np.abs(self.X - self.X.mean(axis=0)).max())
         self.volume = float(np.prod(np.maximum(hi - lo, self.spacing)))
 
     def chance(self, gate: float, n_tests: float = 1.0) -> int:
@@ -211,7 +212,11 @@ def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, 
 
 
 def _refine(P: _Problem, R, t, gate, iterations=10):
-    """ICP polish: nearest target within ``gate``, one-to-one, refit."""
+    """ICP polish: nearest target within ``gate``, one-to-one, refit.
+
+    Stops when the correspondences repeat or the motion moves by less than
+    1e-9 of the point spacing.
+    """
     kept = None
     for _ in range(iterations):
         moved = P.X @ R.T + t
@@ -224,8 +229,9 @@ def _refine(P: _Problem, R, t, gate, iterations=10):
         new = pairs[keep]
         R_new, t_new = fit_rigid(P.X[new[:, 0]], P.Y[new[:, 1]])
         same = kept is not None and new.shape == kept.shape and np.array_equal(new, kept)
+        step = np.abs(R_new - R).max() * P.extent + np.abs(t_new - t).max()
         R, t, kept = R_new, t_new, new
-        if same:
+        if same or step < 1e-9 * P.spacing:
             break
     return R, t, kept
 

@@ -118,6 +118,8 @@ class Grid:
     mask: int
     subdiv: int
     radius: float
+    lo: np.ndarray  # (3,) corner of the bounding box
+    h: float  # cell side
 
     @property
     def n(self) -> int:
@@ -150,4 +152,5 @@ def build_grid(points: np.ndarray, radius: float, subdiv: int = 2) -> Grid:
     mask = nkeys - 1 if hashed else 0
     cix, ciy, ciz, key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)
     start, order, ps, sx, sy, sz = _counting_sort(key, nkeys, points, cix, ciy, ciz)
-    return Grid(ps, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius)
+    return Grid(ps, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius,
+                np.ascontiguousarray(lo, dtype=np.float64), float(h))

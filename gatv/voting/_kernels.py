@@ -243,14 +243,42 @@ BLOCK = 256
 
 
 @njit(cache=True, inline="always")
-def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx):
-    """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz)."""
+def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2):
+    """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz).
+
+    Dense layout: the row is skipped when its y–z extent is already farther
+    than the voting radius from the votee, and its x-range is trimmed to the
+    cells the radius can reach (slack of 1e-6 cell so rounding never drops a
+    token; the exact ``d² < r²`` test follows anyway).
+    """
     if hashed:
         cx = ix - m + kx
         b = ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
         return start[b], start[b + 1], cx
+    # in box-local coordinates, as the binning computed them
+    yl = yi - lo[1]
+    zl = zi - lo[2]
+    y0 = cy * h
+    z0 = cz * h
+    slack = 1e-6 * h
+    ddy = max(max(y0 - yl, yl - (y0 + h)) - slack, 0.0)
+    ddz = max(max(z0 - zl, zl - (z0 + h)) - slack, 0.0)
+    rem = r2 - ddy * ddy - ddz * ddz
+    if rem <= 0.0:
+        return 0, 0, -1
+    ext = math.sqrt(rem) + slack
+    inv_h = 1.0 / h
+    xl = xi - lo[0]
+    xa = (xl - ext) * inv_h
+    xb = (xl + ext) * inv_h
     x0 = max(ix - m, 0)
     x1 = min(ix + m, nx - 1)
+    if xa > x0:
+        x0 = int(xa)
+    if xb < x1:
+        x1 = int(xb)
+    if x1 < x0:
+        return 0, 0, -1
     base = nx * (cy + ny * cz)
     return start[base + x0], start[base + x1 + 1], -1
 
@@ -273,7 +301,7 @@ def _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1):
 
 
 @njit(cache=True, parallel=True)
-def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2, inv_s2,
+def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, inv_s2,
               tab_a, tab_b, tscale, stride, t6, vals, e1, counts):
     """Sparse ball voting with eigen-analysis fused at the end of each votee.
 
@@ -308,7 +336,7 @@ def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2, inv_s2,
                     if not hashed and (cy < 0 or cy >= ny):
                         continue
                     for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx)
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2)
                         for j in range(j0, j1):
                             if hashed and (cix[j] != cx or ciy[j] != cy or ciz[j] != cz):
                                 continue
@@ -369,7 +397,7 @@ def arcsin_ratio2(t):
 
 
 @njit(cache=True, parallel=True)
-def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2, inv_s2,
+def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, inv_s2,
                gamma4, lmin2, stride, t6, vals, e1, counts):
     """Sparse stick voting (eq. 44) with eigen-analysis fused per votee.
 
@@ -405,7 +433,7 @@ def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, r2
                     if not hashed and (cy < 0 or cy >= ny):
                         continue
                     for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx)
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2)
                         for j in range(j0, j1):
                             w = ws[j]
                             if w == 0.0:

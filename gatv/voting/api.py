@@ -192,7 +192,7 @@ class _Engine:
     def _geom(self):
         g = self.grid
         return (g.cix, g.ciy, g.ciz, g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.mask,
-                g.subdiv, self.radius**2, 1.0 / self.sigma**2)
+                g.subdiv, g.lo, g.h, self.radius**2, 1.0 / self.sigma**2)
 
     def ball(self):
         A, B, _ = _fields.ball_table()

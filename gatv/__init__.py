@@ -5,6 +5,8 @@ Main entry points
 -----------------
 register
     Rigid registration with no initial guess (Algorithm 1, sections 2–3).
+register_scans
+    The same for real, differently sampled range scans (section 4.1).
 Rotor
     Rotors of G(3,0,0) (section 2).
 gatv.voting
@@ -18,7 +20,7 @@ from .motion import RigidMotion, fit_rigid
 
 __version__ = "0.1.0"
 
-__all__ = ["Rotor", "RigidMotion", "fit_rigid", "register", "__version__"]
+__all__ = ["Rotor", "RigidMotion", "fit_rigid", "register", "register_scans", "__version__"]
 
 
 def __getattr__(name):
@@ -27,4 +29,8 @@ def __getattr__(name):
         from .registration import register
 
         return register
+    if name == "register_scans":
+        from .scans import register_scans
+
+        return register_scans
     raise AttributeError(f"module 'gatv' has no attribute {name!r}")

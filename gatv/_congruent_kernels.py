@@ -166,11 +166,18 @@ def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
 
 
 @njit(cache=True)
-def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius):
-    """Number of source points whose moved position has a target within ``radius``."""
+def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, need=0):
+    """Number of source points whose moved position has a target within ``radius``.
+
+    Gives up (returning a count below ``need``) as soon as ``need`` can no
+    longer be reached.
+    """
     n = 0
     p = np.empty(3)
-    for i in range(source.shape[0]):
+    m = source.shape[0]
+    for i in range(m):
+        if n + (m - i) < need:
+            return n
         for r in range(3):
             p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
         if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
@@ -289,7 +296,8 @@ def triple_hypotheses(
                         dst[1, r] = target[l, r]
                         dst[2, r] = target[m, r]
                     R, t = kabsch3(src, dst)
-                    sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius)
+                    sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius,
+                                       scores[q] + 1)
                     if sc > scores[q]:
                         scores[q] = sc
                         rots[q] = R

@@ -21,8 +21,8 @@ method again:
 4. **Tensor voting judges** the best trials in the ``{dx, dy, dz}`` joint
    space, eq. 41 verifies with the relaxed, voxel-sized tolerance, and a
    one-to-one least-squares fit follows (as :func:`gatv.register`).
-5. **ICP polish** at full resolution with a gate shrinking from a voxel to
-   a few point spacings.
+5. **Point-to-plane ICP polish** (with the tensor-voting normals) with a
+   gate shrinking from a voxel to a few point spacings.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
 from .motion import RigidMotion
 
-__all__ = ["register_scans", "voxel_downsample", "surface_points"]
+__all__ = ["register_scans", "voxel_downsample", "surface_points", "refine_point_to_plane"]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -96,6 +96,48 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     idx = np.asarray(surf.indices)
     order = np.argsort(idx, kind="stable")
     return pick[idx[order]], np.asarray(surf.normals)[order]
+
+
+def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
+                          iterations: int = 30, tree=None):
+    """Point-to-plane ICP (Chen & Medioni 1991) inside a distance gate.
+
+    Minimises ``sum w ((R x + t - y) · n_y)²`` over nearest pairs within
+    ``gate``, linearised in a small rotation about the pairs' centroid,
+    with Huber weights at the gate's scale (iteratively reweighted).  Two
+    different samplings of one surface have no exact point pairs; the
+    distance to the target's tangent plane has none of that sampling bias.
+
+    Returns ``(rotation, translation)``.
+    """
+    from scipy.spatial import cKDTree
+
+    from .ga import Rotor
+
+    tree = cKDTree(target) if tree is None else tree
+    R = np.array(rotation, dtype=np.float64)
+    t = np.array(translation, dtype=np.float64)
+    huber = 0.3 * gate
+    for _ in range(iterations):
+        moved = source @ R.T + t
+        dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        if ok.sum() < 6:
+            break
+        p, q, n = moved[ok], target[j[ok]], target_normals[j[ok]]
+        c = p.mean(axis=0)
+        r = np.einsum("ij,ij->i", p - q, n)
+        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
+        A = np.hstack([np.cross(p - c, n), n]) * np.sqrt(w)[:, None]
+        b = -r * np.sqrt(w)
+        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        omega, delta = x[:3], x[3:]
+        Rinc = Rotor.from_rotvec(omega).as_matrix()
+        R = Rinc @ R
+        t = Rinc @ (t - c) + c + delta
+        if np.linalg.norm(omega) * np.abs(p - c).max() + np.linalg.norm(delta) < 1e-9 * gate:
+            break
+    return R, t
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -169,10 +211,13 @@ def register_scans(
     report(0.0, "surface tokens")
     if clutter:
         ix, _ = surface_points(X, seed=seed)
-        iy, _ = surface_points(Y, seed=seed)
+        iy, nys = surface_points(Y, seed=seed)
     else:
         ix, iy = np.arange(X.shape[0]), np.arange(Y.shape[0])
+        nys = None
     Xs, Ys = X[ix], Y[iy]
+    if nys is None:
+        nys = _normals(Ys)
     info["surface_points"] = (int(Xs.shape[0]), int(Ys.shape[0]))
     if voxel is None:
         voxel = _voxel_for(Ys, int(n_points))
@@ -217,24 +262,26 @@ def register_scans(
     R, t, kept = best[0], best[1], best[2]
     info.update(judged_support=int(kept.shape[0]), t_judge=time.perf_counter() - t0)
 
-    # Polish: coarse gates on a subsample, the final gate at full resolution.
+    # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
+    # the tensor-voting normals of the target's surface points.
     report(0.85, "refine")
-    Pf = _reg._Problem(Xs, Ys)
+    from scipy.spatial import cKDTree
+
     fine = 3.0 * median_spacing(Ys)
     g = gate
-    kept = None
+    tree = cKDTree(Ys)
     if refine:
         rng_sub = np.random.default_rng(seed)
         sub = Xs if Xs.shape[0] <= 8000 else Xs[rng_sub.choice(Xs.shape[0], 8000, replace=False)]
-        Ps = _reg._Problem(sub, Ys)
-        while g > fine:
-            R, t, _ = _reg._refine(Ps, R, t, g)
+        while True:
+            R, t = refine_point_to_plane(sub, Ys, nys, R, t, g, tree=tree)
+            if g <= fine:
+                break
             g = max(fine, g / 2.0)
-        R, t, kept = _reg._refine(Pf, R, t, g)
-    if kept is None:
-        dist, j = Pf.tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-        ok = np.flatnonzero(np.isfinite(dist))
-        kept = np.stack([ok, j[ok]], axis=1)[_reg.one_to_one(np.stack([ok, j[ok]], axis=1), dist[ok])]
+    dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+    ok = np.flatnonzero(np.isfinite(dist))
+    pairs = np.stack([ok, j[ok]], axis=1)
+    kept = pairs[_reg.one_to_one(pairs, dist[ok])]
     # Correspondences index the input points.
     kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)
     Pin = _reg._Problem.__new__(_reg._Problem)

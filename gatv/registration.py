@@ -275,13 +275,17 @@ def _failure(reason: str, info: dict) -> RigidMotion:
 
 def _bounded(P, max_angle, max_translation, levels, sigma, refine, memory_budget, info):
     """Small-motion mode: vote on the bounded candidate pairs, no search."""
-    from .voting import extract_surfaces
+    from .voting import default_sigma, extract_surfaces
 
     pairs = bounded_pairs(P.X, P.Y, max_angle, max_translation, memory_budget=memory_budget)
     info["n_tokens"] = int(pairs.shape[0])
     if pairs.shape[0] < 3:
         return None
     tokens = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
+    if sigma is None:
+        # ~40 tokens within the voting radius of a typical token, estimated
+        # from 500 of them (the full estimate costs more than the voting).
+        sigma = default_sigma(tokens, sample=500)
     # The paper's optimised version: one ball pass and one stick pass.
     surf = extract_surfaces(tokens, sigma, n_stick_passes=1)
     idx = np.asarray(surf.indices)

@@ -61,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     reg.add_argument("source", type=Path, help="source point file")
     reg.add_argument("target", type=Path, help="target point file")
+    reg.add_argument(
+        "--scans", action="store_true",
+        help="real, differently sampled range scans (gatv.register_scans: surface tokens, "
+             "voxel downsampling, normal-pruned trials, point-to-plane polish)",
+    )
     _add_run_options(reg)
     reg.set_defaults(handler=_cmd_register)
 
@@ -163,9 +168,12 @@ def _options(args) -> dict:
     return opts
 
 
-def _load_register():
+def _load_register(scans: bool = False):
     try:
-        from gatv.registration import register
+        if scans:
+            from gatv.scans import register_scans as register
+        else:
+            from gatv.registration import register
     except ImportError as exc:
         msg = f"the registration module gatv.registration cannot be imported ({_one_line(exc)})."
         raise RuntimeError(msg) from exc
@@ -256,8 +264,11 @@ def _run(args, source, target, inputs: dict, extra: dict | None = None) -> tuple
     for name, pts in (("source", source), ("target", target)):
         if len(pts) < 3:
             raise _Usage(f"{inputs[name]}: expected at least 3 points in `{name}`, got {len(pts)}.")
-    register = _load_register()
+    scans = bool(getattr(args, "scans", False))
+    register = _load_register(scans)
     options = _options(args)
+    if scans and options:
+        raise _Usage(f"--scans takes no {', '.join('--' + k.replace('_', '-') for k in options)}.")
     progress = _progress_printer(args)
     call = dict(options)
     if progress is not None:

@@ -48,7 +48,7 @@ def fake(monkeypatch, trial):
             info={"mode": "fake", "array": np.arange(3)},
         )
 
-    monkeypatch.setattr(cli, "_load_register", lambda: register)
+    monkeypatch.setattr(cli, "_load_register", lambda scans=False: register)
     return calls
 
 
@@ -139,7 +139,7 @@ def test_register_value_error_is_one_line(tmp_path, files, monkeypatch, capsys):
     def register(source, target, **kwargs):
         raise ValueError("Expected `max_angle` in degrees,\nat most 180, got 500.0.")
 
-    monkeypatch.setattr(cli, "_load_register", lambda: register)
+    monkeypatch.setattr(cli, "_load_register", lambda scans=False: register)
     before = _listing(tmp_path)
     rc = cli.main(["register", str(src), str(tgt), "--max-angle", "500", "--out", str(tmp_path / "r.json")])
     assert rc == 2
@@ -183,7 +183,7 @@ def test_failure_in_last_output_leaves_no_output(tmp_path, files, fake, monkeypa
 def test_no_motion_found_exit_1_json_only(tmp_path, files, monkeypatch, capsys):
     src, tgt = files
     failed = RigidMotion(np.eye(3), np.zeros(3), info={"reason": "no plane above chance"})
-    monkeypatch.setattr(cli, "_load_register", lambda: lambda s, t, **kw: failed)
+    monkeypatch.setattr(cli, "_load_register", lambda scans=False: lambda s, t, **kw: failed)
     out = tmp_path / "r.json"
     rc = cli.main(["register", str(src), str(tgt), "--out", str(out), "--aligned", str(tmp_path / "a.xyz")])
     assert rc == 1
@@ -226,3 +226,21 @@ def test_real_register_end_to_end(tmp_path, files, trial):
     data = json.loads(out.read_text())
     precision, recall = correspondence_stats(data["correspondences"], trial.true_pairs)
     assert recall >= 0.9 and precision >= 0.9
+
+
+def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
+    """``--scans`` runs gatv.register_scans and refuses options it does not take."""
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(3000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    src, tgt = tmp_path / "a.npy", tmp_path / "b.npy"
+    write_points(src, u * [1.0, 0.7, 0.5])
+    write_points(tgt, u * [1.0, 0.7, 0.5] + 0.01)
+    seen = []
+    monkeypatch.setattr(cli, "_load_register",
+                        lambda scans=False: seen.append(scans) or (lambda s, t, **kw: RigidMotion(
+                            np.eye(3), np.full(3, 0.01), np.c_[np.arange(5), np.arange(5)])))
+    assert cli.main(["register", str(src), str(tgt), "--scans", "-q"]) == 0
+    assert seen == [True]
+    assert cli.main(["register", str(src), str(tgt), "--scans", "--noise", "0.1"]) == 2
+    _assert_one_error_line(capsys, "--scans takes no --noise")

@@ -422,3 +422,52 @@ def test_second_process_hits_the_numba_cache():
         out = json.loads(proc.stdout.strip().splitlines()[-1])
     for name, (hits, misses) in out.items():
         assert misses == 0 and hits >= 1, (name, out)
+
+
+# ---------------------------------------------------------------------------
+# kernel building blocks (the fast paths must not change results)
+# ---------------------------------------------------------------------------
+
+
+def test_exp_neg_small_matches_math_exp():
+    from numba import njit
+
+    from gatv.voting._kernels import EXP_NEG_MAX, exp_neg_small
+
+    f = njit(lambda x: exp_neg_small(x))
+    xs = np.r_[np.linspace(0.0, EXP_NEG_MAX, 20001), np.random.default_rng(0).uniform(0, EXP_NEG_MAX, 5000)]
+    got = np.array([f(x) for x in xs])
+    ref = np.exp(-xs)
+    assert np.max(np.abs(got / ref - 1.0)) < 5e-15
+    # the largest exponent a stick vote inside the 45° cone can reach
+    assert EXP_NEG_MAX >= RADIUS_FACTOR**2 * (math.pi / 4) ** 2 / 0.5 + 4 * _fields.GAMMA * 0.5 * _fields.SIGMA_REF**2
+
+
+def test_interleaved_ball_table_reproduces_the_interpolant():
+    A, B, _ = _fields.ball_table()
+    t = _fields.ball_table4()
+    assert t.shape == (_fields.BALL_TABLE_SIZE + 1, 4)
+    k = np.arange(_fields.BALL_TABLE_SIZE + 1)
+    f = np.random.default_rng(1).uniform(size=k.size)
+    np.testing.assert_array_equal(t[k, 0] + t[k, 1] * f, A[k] + (A[k + 1] - A[k]) * f)
+    np.testing.assert_array_equal(t[k, 2] + t[k, 3] * f, B[k] + (B[k + 1] - B[k]) * f)
+
+
+def test_more_neighbours_than_the_kernel_buffer_matches_reference():
+    from gatv.voting._kernels import CAP
+
+    rng = np.random.default_rng(11)
+    n = 3 * CAP
+    p = rng.uniform(0.0, 1.0, (n, 3))
+    p[: n // 4] = p[n // 4 : n // 2]  # coincident pairs
+    normals = rng.normal(size=(n, 3))
+    sal = rng.uniform(0.0, 1.0, n)
+    sal[rng.uniform(size=n) < 0.2] = 0.0
+    for sigma in (0.3, 2.0):  # partial and full overlap: up to n neighbours per votee
+        tv = vote(p, sigma)
+        assert tv.n_votes.max() > CAP
+        ref = _reference.ball_pass(p, sigma)
+        np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+        tv = vote(p, sigma, normals, saliency=sal)
+        ref = _reference.stick_pass(p, normals, sal, sigma)
+        np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())

@@ -179,6 +179,29 @@ def ball_table() -> tuple[np.ndarray, np.ndarray, float]:
     return _TABLE
 
 
+_TABLE4: np.ndarray | None = None
+
+
+def ball_table4() -> np.ndarray:
+    """The ball table interleaved for the kernels: ``(BALL_TABLE_SIZE + 1, 4)``.
+
+    Row ``k`` is ``(A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (the last row
+    uses the guard entry), so one lookup touches one cache line and the
+    interpolant ``A[k] + (A[k+1] − A[k])·f`` is reproduced bit for bit.
+    """
+    global _TABLE4
+    if _TABLE4 is None:
+        A, B, _ = ball_table()
+        t = np.empty((A.size - 1, 4))
+        t[:, 0] = A[:-1]
+        t[:, 1] = A[1:] - A[:-1]
+        t[:, 2] = B[:-1]
+        t[:, 3] = B[1:] - B[:-1]
+        t.setflags(write=False)
+        _TABLE4 = t
+    return _TABLE4
+
+
 def ball_vote(offset, sigma: float) -> np.ndarray:
     """Normalised ball vote tensor at ``offset`` from the lookup table (numpy).
 

@@ -89,6 +89,9 @@ def _counting_sort(key, nkeys, points, cix, ciy, ciz):
         order[fill[k]] = i
         fill[k] += 1
     ps = np.empty((n, 3), np.float64)
+    xs = np.empty(n, np.float64)
+    ys = np.empty(n, np.float64)
+    zs = np.empty(n, np.float64)
     sx = np.empty(n, np.int64)
     sy = np.empty(n, np.int64)
     sz = np.empty(n, np.int64)
@@ -97,10 +100,13 @@ def _counting_sort(key, nkeys, points, cix, ciy, ciz):
         ps[j, 0] = points[i, 0]
         ps[j, 1] = points[i, 1]
         ps[j, 2] = points[i, 2]
+        xs[j] = points[i, 0]
+        ys[j] = points[i, 1]
+        zs[j] = points[i, 2]
         sx[j] = cix[i]
         sy[j] = ciy[i]
         sz[j] = ciz[i]
-    return start, order, ps, sx, sy, sz
+    return start, order, ps, xs, ys, zs, sx, sy, sz
 
 
 @dataclass(frozen=True)
@@ -108,6 +114,9 @@ class Grid:
     """Tokens sorted by cell plus the cell index (all arrays in sorted order)."""
 
     points: np.ndarray  # (N, 3) sorted tokens
+    xs: np.ndarray  # (N,) sorted x (structure of arrays, for the kernels)
+    ys: np.ndarray
+    zs: np.ndarray
     order: np.ndarray  # (N,) sorted position -> original index
     cix: np.ndarray
     ciy: np.ndarray
@@ -151,6 +160,6 @@ def build_grid(points: np.ndarray, radius: float, subdiv: int = 2) -> Grid:
     h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv)
     mask = nkeys - 1 if hashed else 0
     cix, ciy, ciz, key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)
-    start, order, ps, sx, sy, sz = _counting_sort(key, nkeys, points, cix, ciy, ciz)
-    return Grid(ps, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius,
+    start, order, ps, xs, ys, zs, sx, sy, sz = _counting_sort(key, nkeys, points, cix, ciy, ciz)
+    return Grid(ps, xs, ys, zs, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius,
                 np.ascontiguousarray(lo, dtype=np.float64), float(h))

@@ -231,33 +231,53 @@ def eig3_top_batch(t6, vals, e1):
 
 
 # ---------------------------------------------------------------------------
-# Sparse voting (gather).  ``ps`` are the tokens sorted by grid cell, ``cix,
-# ciy, ciz`` their integer cells and ``start`` the run of each cell (dense) or
-# hash bucket (hashed); see ``_grid.py``.  Outputs are in sorted order.
+# Sparse voting (gather).  ``xs, ys, zs`` are the tokens sorted by grid cell
+# (structure of arrays), ``cix, ciy, ciz`` their integer cells and ``start``
+# the run of each cell (dense) or hash bucket (hashed); see ``_grid.py``.
+# Outputs are in sorted order.
+#
+# Each votee works in two steps so that the expensive field evaluation runs
+# as a branch-free, vectorisable loop over a dense buffer:
+#
+# 1. *collect*: scan the candidate runs (the 5×5 x-rows of cells around the
+#    votee, each trimmed to the voting sphere) and append every token with
+#    ``d² < r²`` to a small per-thread buffer by branch-free compaction
+#    (always store at ``cnt``, then ``cnt += inside``);
+# 2. *flush*: evaluate the votes of the buffered tokens and add them to the
+#    votee's accumulator (a fixed-order, deterministic reduction).
+#
+# The buffer holds ``CAP`` tokens; it is flushed early when a run would not
+# fit, so any number of neighbours is handled.
 # ---------------------------------------------------------------------------
 
 _H1 = 73856093
 _H2 = 19349663
 _H3 = 83492791
 BLOCK = 256
+#: Capacity of the per-thread neighbour buffer.
+CAP = 256
+
+# The flush loops may reassociate their sums (vectorised reduction) and
+# contract a*b+c into FMAs: both change results by a few ulps only (relative
+# 1e-15, far below the 1e-12 budget), and the result stays identical from run
+# to run (the code path does not depend on the number of threads).
+_FLUSH_FLAGS = {"reassoc", "contract"}
 
 
 @njit(cache=True, inline="always")
-def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2):
+def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r2):
     """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz).
 
-    Dense layout: the row is skipped when its y–z extent is already farther
-    than the voting radius from the votee, and its x-range is trimmed to the
-    cells the radius can reach (slack of 1e-6 cell so rounding never drops a
-    token; the exact ``d² < r²`` test follows anyway).
+    ``xl, yl, zl``: votee in box-local coordinates (as the binning computed
+    them).  Dense layout: the row is skipped when its y–z extent is already
+    farther than the voting radius from the votee, and its x-range is trimmed
+    to the cells the radius can reach (slack of 1e-6 cell so rounding never
+    drops a token; the exact ``d² < r²`` test follows anyway).
     """
     if hashed:
         cx = ix - m + kx
         b = ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
         return start[b], start[b + 1], cx
-    # in box-local coordinates, as the binning computed them
-    yl = yi - lo[1]
-    zl = zi - lo[2]
     y0 = cy * h
     z0 = cz * h
     slack = 1e-6 * h
@@ -267,8 +287,6 @@ def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2):
     if rem <= 0.0:
         return 0, 0, -1
     ext = math.sqrt(rem) + slack
-    inv_h = 1.0 / h
-    xl = xi - lo[0]
     xa = (xl - ext) * inv_h
     xb = (xl + ext) * inv_h
     x0 = max(ix - m, 0)
@@ -300,23 +318,102 @@ def _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1):
     e1[i, 2] = ez
 
 
-@njit(cache=True, parallel=True)
-def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, inv_s2,
-              tab_a, tab_b, tscale, stride, t6, vals, e1, counts):
+@njit(cache=True, inline="always", boundscheck=False)
+def _collect(xs, ys, zs, ws, use_w, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1,
+             xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt):
+    """Append the tokens of ``[j0, j1)`` inside the voting sphere to the buffer.
+
+    Offsets are stored as votee − voter.  Branch-free compaction; the caller
+    guarantees ``cnt + (j1 − j0) ≤ CAP``.  Unsigned indices spare numba's
+    negative-index wraparound code.
+    """
+    c = np.uint64(cnt)
+    for j in range(np.uint64(j0), np.uint64(j1)):
+        dx = xi - xs[j]
+        dy = yi - ys[j]
+        dz = zi - zs[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        bj[c] = j
+        bdx[c] = dx
+        bdy[c] = dy
+        bdz[c] = dz
+        ok = d2 < r2
+        if use_w:
+            ok = ok & (ws[j] != 0.0)
+        if hashed:
+            ok = ok & (cix[j] == cx) & (ciy[j] == cy) & (ciz[j] == cz)
+        c += np.uint64(ok)
+    return np.int64(c)
+
+
+@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
+def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale):
+    """Sum of the ball votes at the buffered offsets (branch-free).
+
+    ``tab[k] = (A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (see
+    :func:`ball_table4`): one cache line per lookup, same interpolant as
+    ``A[k] + (A[k+1] − A[k])·f``.
+    """
+    s00 = 0.0
+    s01 = 0.0
+    s02 = 0.0
+    s11 = 0.0
+    s12 = 0.0
+    s22 = 0.0
+    for k in range(cnt):
+        dx = bdx[k]
+        dy = bdy[k]
+        dz = bdz[k]
+        d2 = dx * dx + dy * dy + dz * dz
+        q = d2 * tscale
+        i = int(q)
+        f = q - i
+        a = tab[i, 0] + tab[i, 1] * f
+        b = tab[i, 2] + tab[i, 3] * f
+        pos = d2 > 0.0
+        # l = 0: the isotropic average, exactly the identity
+        c = (a - b) / (d2 if pos else 1.0)
+        c = c if pos else 0.0
+        b = b if pos else 1.0
+        cx = c * dx
+        cy = c * dy
+        s00 += b + cx * dx
+        s01 += cx * dy
+        s02 += cx * dz
+        s11 += b + cy * dy
+        s12 += cy * dz
+        s22 += b + c * dz * dz
+    return s00, s01, s02, s11, s12, s22
+
+
+@njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
+def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
+              tab, tscale, stride, t6, vals, e1, counts):
     """Sparse ball voting with eigen-analysis fused at the end of each votee.
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
     is included, so a lone token ends with the identity.
     """
-    n = ps.shape[0]
+    n = xs.shape[0]
     nb = (n + BLOCK - 1) // BLOCK
     nruns = 2 * m + 1 if hashed else 1
+    inv_h = 1.0 / h
+    lx = lo[0]
+    ly = lo[1]
+    lz = lo[2]
     for t in prange(nb):
         blk = (t * stride) % nb  # interleave blocks across threads (load balance)
+        bj = np.empty(CAP, np.int64)
+        bdx = np.empty(CAP)
+        bdy = np.empty(CAP)
+        bdz = np.empty(CAP)
         for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-            xi = ps[i, 0]
-            yi = ps[i, 1]
-            zi = ps[i, 2]
+            xi = xs[i]
+            yi = ys[i]
+            zi = zs[i]
+            xl = xi - lx
+            yl = yi - ly
+            zl = zi - lz
             ix = cix[i]
             iy = ciy[i]
             iz = ciz[i]
@@ -326,6 +423,7 @@ def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, 
             a11 = 0.0
             a12 = 0.0
             a22 = 0.0
+            total = 0
             cnt = 0
             for dz in range(-m, m + 1):
                 cz = iz + dz
@@ -336,35 +434,34 @@ def ball_pass(ps, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, 
                     if not hashed and (cy < 0 or cy >= ny):
                         continue
                     for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2)
-                        for j in range(j0, j1):
-                            if hashed and (cix[j] != cx or ciy[j] != cy or ciz[j] != cz):
-                                continue
-                            dx = ps[j, 0] - xi
-                            dy_ = ps[j, 1] - yi
-                            dz_ = ps[j, 2] - zi
-                            d2 = dx * dx + dy_ * dy_ + dz_ * dz_
-                            if d2 >= r2:
-                                continue
-                            cnt += 1
-                            if d2 == 0.0:
-                                a00 += 1.0
-                                a11 += 1.0
-                                a22 += 1.0
-                                continue
-                            q = d2 * tscale
-                            k = int(q)
-                            f = q - k
-                            a = tab_a[k] + (tab_a[k + 1] - tab_a[k]) * f
-                            b = tab_b[k] + (tab_b[k + 1] - tab_b[k]) * f
-                            c = (a - b) / d2
-                            a00 += b + c * dx * dx
-                            a01 += c * dx * dy_
-                            a02 += c * dx * dz_
-                            a11 += b + c * dy_ * dy_
-                            a12 += c * dy_ * dz_
-                            a22 += b + c * dz_ * dz_
-            counts[i] = cnt
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
+                                          xl, yl, zl, h, inv_h, r2)
+                        j = j0
+                        while j < j1:
+                            room = CAP - cnt
+                            if j1 - j > room and cnt > 0:
+                                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+                                a00 += s00
+                                a01 += s01
+                                a02 += s02
+                                a11 += s11
+                                a12 += s12
+                                a22 += s22
+                                total += cnt
+                                cnt = 0
+                                room = CAP
+                            je = min(j1, j + room)
+                            cnt = _collect(xs, ys, zs, xs, False, cix, ciy, ciz, hashed, cx, cy, cz,
+                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt)
+                            j = je
+            s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+            a00 += s00
+            a01 += s01
+            a02 += s02
+            a11 += s11
+            a12 += s12
+            a22 += s22
+            counts[i] = total + cnt
             _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
 
 
@@ -396,24 +493,117 @@ def arcsin_ratio2(t):
     return p
 
 
-@njit(cache=True, parallel=True)
-def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2, inv_s2,
-               gamma4, lmin2, stride, t6, vals, e1, counts):
+#: exp(C) for the centre C of the reduced argument of :func:`exp_neg_small`.
+_EXP_C = -0.385
+_EXP_EC = math.exp(_EXP_C)
+#: Largest argument for which :func:`exp_neg_small` keeps full accuracy.
+EXP_NEG_MAX = 6.16
+
+
+@njit(cache=True, inline="always")
+def exp_neg_small(x):
+    """``exp(−x)`` for ``0 ≤ x ≤ EXP_NEG_MAX`` without a libm call (vectorisable).
+
+    ``exp(−x) = (e^{y})⁸`` with ``y = −x/8 ∈ [−0.77, 0]``; ``e^{y} = e^{C} ·
+    Σ_{k≤13} t^k/k!`` with ``t = y − C``, ``|t| ≤ 0.385`` (truncation 2e-17),
+    then three squarings: relative error below 2e-15 (tested against
+    ``math.exp``).  Larger ``x`` give finite, less accurate values.
+    """
+    t = -0.125 * x - _EXP_C
+    p = 1.0 / 6227020800.0
+    p = p * t + 1.0 / 479001600.0
+    p = p * t + 1.0 / 39916800.0
+    p = p * t + 1.0 / 3628800.0
+    p = p * t + 1.0 / 362880.0
+    p = p * t + 1.0 / 40320.0
+    p = p * t + 1.0 / 5040.0
+    p = p * t + 1.0 / 720.0
+    p = p * t + 1.0 / 120.0
+    p = p * t + 1.0 / 24.0
+    p = p * t + 1.0 / 6.0
+    p = p * t + 0.5
+    p = p * t + 1.0
+    p = p * t + 1.0
+    p *= _EXP_EC
+    p *= p
+    p *= p
+    return p * p
+
+
+@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
+def _stick_flush(bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2):
+    """Sum of the stick votes of the buffered voters (branch-free, masked cone)."""
+    s00 = 0.0
+    s01 = 0.0
+    s02 = 0.0
+    s11 = 0.0
+    s12 = 0.0
+    s22 = 0.0
+    for k in range(cnt):
+        j = bj[k]
+        dx = bdx[k]
+        dy = bdy[k]
+        dz = bdz[k]
+        w = ws[j]
+        nx_ = nxs[j]
+        ny_ = nys[j]
+        nz_ = nzs[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        pos = d2 > 0.0
+        inv = 1.0 / (d2 if pos else 1.0)
+        inv = inv if pos else 0.0  # l = 0: s2 = 0, m = n, DF = 1
+        u = nx_ * dx + ny_ * dy + nz_ * dz
+        u2 = u * u
+        cone = not (u2 + u2 > d2)  # θ ≤ 45°
+        s2 = min(u2 * inv, 0.5)
+        rho2 = d2 * inv_s2
+        ex = rho2 * arcsin_ratio2(s2) + gamma4 * s2 / max(rho2, lmin2)
+        df = w * exp_neg_small(ex)
+        df = df if cone else 0.0
+        kk = 2.0 * u * inv
+        mx = nx_ - kk * dx
+        my = ny_ - kk * dy
+        mz = nz_ - kk * dz
+        dmx = df * mx
+        dmy = df * my
+        s00 += dmx * mx
+        s01 += dmx * my
+        s02 += dmx * mz
+        s11 += dmy * my
+        s12 += dmy * mz
+        s22 += df * mz * mz
+    return s00, s01, s02, s11, s12, s22
+
+
+@njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
+def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+               lo, h, r2, inv_s2, gamma4, lmin2, stride, t6, vals, e1, counts):
     """Sparse stick voting (eq. 44) with eigen-analysis fused per votee.
 
-    Voter ``j`` votes with unit normal ``ns[j]`` and weight ``ws[j]``
-    (``ws[j] == 0``: no vote).  The votee's own stick ``ws[i]·nᵢnᵢᵀ`` (self
-    vote, l = 0) is included.  ``gamma4 = 4γ`` and ``lmin2 = (l_min/σ)²``.
+    Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
+    ``ws[j]`` (``ws[j] == 0``: no vote).  The votee's own stick ``ws[i]·nᵢnᵢᵀ``
+    (self vote, l = 0) is included.  ``gamma4 = 4γ`` and ``lmin2 = (l_min/σ)²``.
     """
-    n = ps.shape[0]
+    n = xs.shape[0]
     nb = (n + BLOCK - 1) // BLOCK
     nruns = 2 * m + 1 if hashed else 1
+    inv_h = 1.0 / h
+    lx = lo[0]
+    ly = lo[1]
+    lz = lo[2]
     for t in prange(nb):
         blk = (t * stride) % nb
+        bj = np.empty(CAP, np.int64)
+        bdx = np.empty(CAP)
+        bdy = np.empty(CAP)
+        bdz = np.empty(CAP)
         for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-            xi = ps[i, 0]
-            yi = ps[i, 1]
-            zi = ps[i, 2]
+            xi = xs[i]
+            yi = ys[i]
+            zi = zs[i]
+            xl = xi - lx
+            yl = yi - ly
+            zl = zi - lz
             ix = cix[i]
             iy = ciy[i]
             iz = ciz[i]
@@ -423,6 +613,7 @@ def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo
             a11 = 0.0
             a12 = 0.0
             a22 = 0.0
+            total = 0
             cnt = 0
             for dz in range(-m, m + 1):
                 cz = iz + dz
@@ -433,49 +624,34 @@ def stick_pass(ps, ns, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo
                     if not hashed and (cy < 0 or cy >= ny):
                         continue
                     for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xi, yi, zi, lo, h, r2)
-                        for j in range(j0, j1):
-                            w = ws[j]
-                            if w == 0.0:
-                                continue
-                            if hashed and (cix[j] != cx or ciy[j] != cy or ciz[j] != cz):
-                                continue
-                            # v = x - p = votee - voter
-                            dx = xi - ps[j, 0]
-                            dy_ = yi - ps[j, 1]
-                            dz_ = zi - ps[j, 2]
-                            d2 = dx * dx + dy_ * dy_ + dz_ * dz_
-                            if d2 >= r2:
-                                continue
-                            nx_ = ns[j, 0]
-                            ny_ = ns[j, 1]
-                            nz_ = ns[j, 2]
-                            cnt += 1
-                            if d2 == 0.0:
-                                a00 += w * nx_ * nx_
-                                a01 += w * nx_ * ny_
-                                a02 += w * nx_ * nz_
-                                a11 += w * ny_ * ny_
-                                a12 += w * ny_ * nz_
-                                a22 += w * nz_ * nz_
-                                continue
-                            u = nx_ * dx + ny_ * dy_ + nz_ * dz_
-                            u2 = u * u
-                            if u2 + u2 > d2:  # θ > 45°
-                                continue
-                            rho2 = d2 * inv_s2
-                            s2 = u2 / d2
-                            ex = rho2 * arcsin_ratio2(s2) + gamma4 * s2 / max(rho2, lmin2)
-                            df = w * math.exp(-ex)
-                            k = 2.0 * u / d2
-                            mx = nx_ - k * dx
-                            my = ny_ - k * dy_
-                            mz = nz_ - k * dz_
-                            a00 += df * mx * mx
-                            a01 += df * mx * my
-                            a02 += df * mx * mz
-                            a11 += df * my * my
-                            a12 += df * my * mz
-                            a22 += df * mz * mz
-            counts[i] = cnt
+                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
+                                          xl, yl, zl, h, inv_h, r2)
+                        j = j0
+                        while j < j1:
+                            room = CAP - cnt
+                            if j1 - j > room and cnt > 0:
+                                s00, s01, s02, s11, s12, s22 = _stick_flush(
+                                    bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2)
+                                a00 += s00
+                                a01 += s01
+                                a02 += s02
+                                a11 += s11
+                                a12 += s12
+                                a22 += s22
+                                total += cnt
+                                cnt = 0
+                                room = CAP
+                            je = min(j1, j + room)
+                            cnt = _collect(xs, ys, zs, ws, True, cix, ciy, ciz, hashed, cx, cy, cz,
+                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt)
+                            j = je
+            s00, s01, s02, s11, s12, s22 = _stick_flush(
+                bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2)
+            a00 += s00
+            a01 += s01
+            a02 += s02
+            a11 += s11
+            a12 += s12
+            a22 += s22
+            counts[i] = total + cnt
             _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)

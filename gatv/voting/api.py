@@ -13,6 +13,12 @@ the voting sphere, ~120 candidates for ~50 neighbours) won against
 takes 0.05–0.11 s while ``cKDTree`` build + ``query_ball_point(r,
 workers=2, return_length=True)`` — counts only, no neighbour lists — takes
 7.5–12 s, i.e. ~100× more (``benchmarks/voting.py``).
+
+Per votee the kernels first *collect* the candidates inside the sphere into a
+small buffer (branch-free compaction over structure-of-arrays coordinates),
+then evaluate the votes in a branch-free loop that LLVM vectorises (ball
+table interleaved per row, stick decay with a polynomial ``exp``); see
+:mod:`gatv.voting._kernels`.
 """
 
 from __future__ import annotations
@@ -189,24 +195,28 @@ class _Engine:
         n = self.grid.n
         return np.empty((n, 6)), np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64)
 
-    def _geom(self):
+    def _cells(self):
         g = self.grid
         return (g.cix, g.ciy, g.ciz, g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.mask,
-                g.subdiv, g.lo, g.h, self.radius**2, 1.0 / self.sigma**2)
+                g.subdiv, g.lo, g.h, self.radius**2)
 
     def ball(self):
-        A, B, _ = _fields.ball_table()
+        tab = _fields.ball_table4()
         t6, vals, e1, cnt = self._out()
         tscale = _fields.BALL_TABLE_SIZE / self.radius**2
-        self._K.ball_pass(self.grid.points, *self._geom(), A, B, tscale, self.stride,
+        g = self.grid
+        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.stride,
                           t6, vals, e1, cnt)
         return t6, vals, e1, cnt
 
     def stick(self, normals_sorted: np.ndarray, weights_sorted: np.ndarray):
         t6, vals, e1, cnt = self._out()
-        self._K.stick_pass(self.grid.points, normals_sorted, weights_sorted, *self._geom(),
-                           4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2, self.stride,
-                           t6, vals, e1, cnt)
+        g = self.grid
+        nrm = np.ascontiguousarray(np.asarray(normals_sorted, dtype=np.float64).T)
+        self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
+                           np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
+                           1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
+                           self.stride, t6, vals, e1, cnt)
         return t6, vals, e1, cnt
 
     def to_sorted(self, a: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Command-line interface: ``gatv register SOURCE TARGET`` and ``gatv demo``.
+"""Command-line interface: ``gatv register SOURCE TARGET``, ``gatv segment SOURCE TARGET`` and ``gatv demo``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -89,6 +89,28 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_run_options(demo)
     demo.set_defaults(handler=_cmd_demo)
+
+    seg = sub.add_parser(
+        "segment",
+        help="find every rigid motion between SOURCE and TARGET (several overlapping motions)",
+        description=(
+            "Find every rigid motion taking part of SOURCE onto part of TARGET (paper section 5), "
+            "each with its own one-to-one correspondences; each point belongs to at most one "
+            "motion. The number of motions is found from the data."
+        ),
+    )
+    seg.add_argument("source", type=Path, help="source point file")
+    seg.add_argument("target", type=Path, help="target point file")
+    seg.add_argument("--out", type=Path, metavar="JSON", help="write the result as JSON")
+    seg.add_argument("--render", type=Path, metavar="PNG", help="write an off-screen picture, one colour per motion")
+    seg.add_argument("--seed", type=int, default=0, help="seed of the trial search (default: 0)")
+    seg.add_argument("--max-motions", type=int, metavar="K", help="return at most K motions (largest first)")
+    seg.add_argument("--min-support", type=int, metavar="N",
+                     help="correspondences a motion needs (default: from the chance level)")
+    seg.add_argument("--noise", type=float, metavar="SIGMA", help="point noise, data units")
+    seg.add_argument("--progress", action="store_true", help="print progress lines to stderr")
+    seg.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
+    seg.set_defaults(handler=_cmd_segment)
     return parser
 
 
@@ -371,6 +393,101 @@ def _cmd_demo(args) -> int:
             f"precision {precision:.3f}, recall {recall:.3f}"
         )
     return status
+
+
+def _render_segmentation_fallback(source, target, segmentation, path) -> None:
+    """Fig. 12 style: target points coloured by motion, each motion's source moved onto them."""
+    import pyvista as pv
+
+    from .io import _quiet_vtk
+
+    colours = ("orangered", "royalblue", "forestgreen", "gold", "darkviolet", "deeppink", "darkcyan",
+               "saddlebrown", "olive", "navy")
+    source, target = np.asarray(source), np.asarray(target)
+    with _quiet_vtk():
+        plotter = pv.Plotter(off_screen=True, window_size=(1024, 768))
+        try:
+            plotter.set_background("white")
+            free = segmentation.target_labels < 0
+            if free.any():
+                plotter.add_points(target[free], color="lightgrey", point_size=4,
+                                   render_points_as_spheres=True, label="unexplained")
+            for k, motion in enumerate(segmentation.motions):
+                c = motion.correspondences
+                colour = colours[k % len(colours)]
+                plotter.add_points(target[c[:, 1]], color=colour, point_size=9, render_points_as_spheres=True,
+                                   label=f"motion {k}: {motion.angle_deg:.1f} deg, {motion.support} pts")
+                seg = np.empty((2 * len(c), 3))
+                seg[0::2] = source[c[:, 0]]
+                seg[1::2] = target[c[:, 1]]
+                plotter.add_mesh(pv.line_segments_from_points(seg), color=colour, line_width=1, opacity=0.5)
+            plotter.add_legend(bcolor="white")
+            plotter.add_text(f"{len(segmentation.motions)} motions (lines: source -> target)",
+                             font_size=10, color="black")
+            plotter.screenshot(str(path))
+        finally:
+            plotter.close()
+
+
+def _render_segmentation(source, target, segmentation, path) -> None:
+    try:
+        from gatv.render import render_segmentation
+    except ImportError:
+        render_segmentation = _render_segmentation_fallback
+    render_segmentation(source, target, segmentation, path)
+
+
+def _cmd_segment(args) -> int:
+    from .io import atomic_path, read_points, to_jsonable, write_json
+
+    _check_output(args.out, "the result", None)
+    _check_output(args.render, "a picture", _IMAGE_EXTENSIONS)
+    outs = [p.resolve() for p in (args.out, args.render) if p is not None]
+    if len(set(outs)) != len(outs):
+        raise _Usage("--out and --render must name different files.")
+    if args.max_motions is not None and args.max_motions < 1:
+        raise _Usage(f"expected --max-motions >= 1, got {args.max_motions}.")
+    source = read_points(args.source)
+    target = read_points(args.target)
+    for out in (args.out, args.render):
+        if out is not None and out.resolve() in (args.source.resolve(), args.target.resolve()):
+            raise _Usage(f"{out}: refusing to overwrite an input file.")
+    for name, pts, path in (("source", source, args.source), ("target", target, args.target)):
+        if len(pts) < 3:
+            raise _Usage(f"{path}: expected at least 3 points in `{name}`, got {len(pts)}.")
+    from .motions import segment
+
+    options = {k: v for k, v in (("max_motions", args.max_motions), ("min_support", args.min_support),
+                                 ("noise", args.noise)) if v is not None}
+    progress = _progress_printer(args)
+    start = time.perf_counter()
+    result = segment(source, target, seed=args.seed, progress=progress, **options)
+    seconds = time.perf_counter() - start
+    ok = bool(result)
+    if not args.quiet:
+        print(f"motions:         {len(result)}")
+        for k, m in enumerate(result.motions):
+            print(f"motion {k}:        {m.angle_deg:.4f} deg about axis {_fmt(_axis(m.rotation))}, "
+                  f"t = {_fmt(m.translation)}, {m.support} correspondences, rms {m.rms:.3g}")
+        print(f"unexplained:     {int(np.sum(result.source_labels < 0))} source, "
+              f"{int(np.sum(result.target_labels < 0))} target points")
+        print(f"time:            {seconds:.3f} s")
+    if not ok:
+        print(f"{PROG}: segmentation found no motion: "
+              f"{result.info.get('reason', 'no plane with enough support')}", file=sys.stderr)
+    record = {"source": str(args.source), "target": str(args.target), "n_source": int(len(source)),
+              "n_target": int(len(target)), "seed": args.seed, "options": options, "success": ok,
+              "time_s": seconds, **result.to_dict(), "info": to_jsonable(result.info)}
+    with contextlib.ExitStack() as stack:  # all outputs land together, or none
+        if args.out is not None:
+            write_json(stack.enter_context(atomic_path(args.out)), record)
+        if ok and args.render is not None:
+            _render_segmentation(source, target, result, stack.enter_context(atomic_path(args.render)))
+    if not args.quiet:
+        for path in (args.out, args.render if ok else None):
+            if path is not None:
+                print(f"wrote {path}")
+    return EXIT_OK if ok else EXIT_FAILED
 
 
 # --------------------------------------------------------------------- main

@@ -46,26 +46,26 @@ def all_pairs(n_source: int, n_target: int, *, memory_budget=None) -> np.ndarray
     return np.stack([i.ravel(), j.ravel()], axis=1)
 
 
-def _flatten(lists, memory_budget=None) -> np.ndarray:
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    total = int(counts.sum())
-    check_memory(total * BYTES_PER_TOKEN, f"{total} candidate pairs", memory_budget)
-    i = np.repeat(np.arange(len(lists)), counts)
-    j = np.fromiter((v for x in lists for v in x), dtype=np.int64, count=total)
-    return np.stack([i, j], axis=1)
-
-
 def pairs_within(moved_source: np.ndarray, target: np.ndarray, radius, *,
                  tree: cKDTree | None = None, memory_budget=None) -> np.ndarray:
-    """Pairs ``(i, j)`` with ``|target[j] - moved_source[i]| <= radius``.
+    """Pairs ``(i, j)`` with ``|target[j] - moved_source[i]| <= radius``, sorted.
 
     ``radius`` may be a scalar or one radius per source point.
     """
     tree = cKDTree(target) if tree is None else tree
     r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (moved_source.shape[0],))
-    # Estimate before materialising: expected count from the mean density.
-    lists = tree.query_ball_point(moved_source, r)
-    return _flatten(lists, memory_budget)
+    if moved_source.shape[0] == 0:
+        return np.zeros((0, 2), np.int64)
+    # Expected count from the mean density, checked before materialising.
+    n_t = target.shape[0]
+    vol = float(np.prod(np.maximum(np.ptp(target, axis=0), 1e-300)))
+    expected = float(np.sum(np.minimum(n_t, n_t * (4.0 / 3.0) * np.pi * r**3 / vol)))
+    check_memory(expected * BYTES_PER_TOKEN, f"about {expected:.3g} candidate pairs", memory_budget)
+    m = cKDTree(moved_source).sparse_distance_matrix(tree, float(r.max()), output_type="ndarray")
+    keep = m["v"] <= r[m["i"]]
+    pairs = np.stack([m["i"][keep], m["j"][keep]], axis=1).astype(np.int64)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    return pairs[order]
 
 
 def bounded_pairs(source: np.ndarray, target: np.ndarray, max_angle: float,

@@ -153,11 +153,12 @@ def _eq41_consistent(d: np.ndarray, s: np.ndarray, pairs: np.ndarray, ref: int,
 
 
 def _best_reference(P, pairs, Xr, saliency, tol, n_refs=4):
-    """Verify with eq. 41 against the most salient tokens; keep the best motion.
+    """Verify with eq. 41 against the most salient tokens; fit the best set.
 
     The paper tests the plane's most salient token against the rest
-    (section 3.4); trying the next few as well guards against a salient
-    false token.
+    (section 3.4); the next few are tried as well, which guards against a
+    salient false token, and the reference with the largest eq.-41
+    consistent set is fitted.
     """
     gate = _gate(tol)
     tau = 2.0 * gate
@@ -169,16 +170,13 @@ def _best_reference(P, pairs, Xr, saliency, tol, n_refs=4):
         if saliency[ref] <= 0:
             break
         cons = _eq41_consistent(d, s, pairs, ref, tau)
-        if cons.size < 3:
-            continue
-        # one-to-one by saliency before fitting
-        sub = cons[one_to_one(pairs[cons], -saliency[cons])]
-        fit = _fit_and_gate(P, pairs, pairs[sub], gate)
-        if fit is None:
-            continue
-        if best is None or fit[2].shape[0] > best[2].shape[0]:
-            best = fit
-    return best
+        if cons.size >= 3 and (best is None or cons.size > best.size):
+            best = cons
+    if best is None:
+        return None
+    # one-to-one by saliency before fitting
+    sub = best[one_to_one(pairs[best], -saliency[best])]
+    return _fit_and_gate(P, pairs, pairs[sub], gate)
 
 
 def _vote_judge(P: _Problem, R0: np.ndarray, t0: np.ndarray, tol: float, sigma, max_candidates: int):

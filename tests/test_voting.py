@@ -471,3 +471,48 @@ def test_more_neighbours_than_the_kernel_buffer_matches_reference():
         tv = vote(p, sigma, normals, saliency=sal)
         ref = _reference.stick_pass(p, normals, sal, sigma)
         np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("max_pairs", [0, 700, 10**9])
+def test_stick_pass_from_recorded_neighbour_lists_matches_reference(max_pairs):
+    # the ball pass records the neighbour lists that the stick pass at the same σ
+    # reuses; votees with more than NL_CAP neighbours, or beyond the max_pairs
+    # cap, scan the grid instead: every mix must give the reference votes
+    from gatv.voting._kernels import NL_CAP
+    from gatv.voting.api import _Engine
+
+    rng = np.random.default_rng(3)
+    p = np.vstack([rng.uniform(0.0, 1.0, (600, 3)), rng.uniform(0.0, 0.05, (NL_CAP + 50, 3))])
+    p[:40] = p[40:80]  # coincident pairs
+    n = p.shape[0]
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    sal = rng.uniform(0.0, 1.0, n)
+    sal[rng.uniform(size=n) < 0.2] = 0.0
+    sigma = 0.08
+    eng = _Engine(p, sigma, max_pairs)
+    t6, _, _, cnt = eng.ball(record=True)
+    if max_pairs:
+        nbr, nstart, _ = eng.lists
+        assert nbr.size <= max_pairs and (nstart >= 0).any() and (nstart < 0).any()
+    else:
+        assert eng.lists is None
+    ref = _reference.components(_reference.ball_pass(eng.grid.points, sigma))
+    np.testing.assert_allclose(t6, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    t6, _, _, cnt = eng.stick(eng.to_sorted(normals), eng.to_sorted(sal))
+    ref = _reference.components(_reference.stick_pass(eng.grid.points, eng.to_sorted(normals),
+                                                      eng.to_sorted(sal), sigma))
+    np.testing.assert_allclose(t6, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    ws = eng.to_sorted(sal)
+    d2 = ((eng.grid.points[:, None] - eng.grid.points[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(cnt, ((d2 < (2 * sigma) ** 2) & (ws[None] != 0)).sum(1))
+
+
+def test_extract_surfaces_memory_budget_only_drops_the_neighbour_lists(monkeypatch):
+    pts, _ = _plane_in_noise(500, 4, seed=2)
+    a = extract_surfaces(pts)
+    from gatv.voting import api
+
+    b = extract_surfaces(pts, memory_budget=api.BYTES_PER_TOKEN * len(pts) * 1.05 + 2**22)
+    np.testing.assert_array_equal(a.indices, b.indices)
+    np.testing.assert_allclose(a.normals, b.normals, atol=1e-12)

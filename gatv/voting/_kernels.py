@@ -256,6 +256,10 @@ _H3 = 83492791
 BLOCK = 256
 #: Capacity of the per-thread neighbour buffer.
 CAP = 256
+#: Largest neighbour list (self included) a votee may record in the ball pass.
+NL_CAP = 192
+#: Blocks per wave of the recording ball pass (scratch: WAVE·BLOCK·NL_CAP int32).
+WAVE = 16
 
 # The flush loops may reassociate their sums (vectorised reduction) and
 # contract a*b+c into FMAs: both change results by a few ulps only (relative
@@ -320,10 +324,12 @@ def _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1):
 
 @njit(cache=True, inline="always", boundscheck=False)
 def _collect(xs, ys, zs, ws, use_w, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1,
-             xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt):
+             xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, bnx, bny, bnz, bw):
     """Append the tokens of ``[j0, j1)`` inside the voting sphere to the buffer.
 
-    Offsets are stored as votee − voter.  Branch-free compaction; the caller
+    Offsets are stored as votee − voter; with ``use_w`` the voter's normal
+    ``(nxs, nys, nzs)[j]`` and weight ``ws[j]`` go to ``bnx, bny, bnz, bw``
+    (unused otherwise).  Branch-free compaction; the caller
     guarantees ``cnt + (j1 − j0) ≤ CAP``.  Unsigned indices spare numba's
     negative-index wraparound code.
     """
@@ -339,7 +345,14 @@ def _collect(xs, ys, zs, ws, use_w, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1,
         bdz[c] = dz
         ok = d2 < r2
         if use_w:
-            ok = ok & (ws[j] != 0.0)
+            # the voter's normal and weight too: the flush then reads only
+            # contiguous buffers (vector gathers are slow on this hardware)
+            w = ws[j]
+            bnx[c] = nxs[j]
+            bny[c] = nys[j]
+            bnz[c] = nzs[j]
+            bw[c] = w
+            ok = ok & (w != 0.0)
         if hashed:
             ok = ok & (cix[j] == cx) & (ciy[j] == cy) & (ciz[j] == cz)
         c += np.uint64(ok)
@@ -386,13 +399,53 @@ def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale):
     return s00, s01, s02, s11, s12, s22
 
 
+@njit(cache=True, inline="always", boundscheck=False)
+def _record(bj, cnt, scr, row, pos, lim):
+    """Append ``bj[:cnt]`` to ``scr[row, pos:]``; returns the new end, or −1 if over ``lim``."""
+    if pos < 0 or pos + cnt > lim:
+        return -1
+    for k in range(cnt):
+        scr[row, pos + k] = np.int32(bj[k])
+    return pos + cnt
+
+
+@njit(cache=True, boundscheck=False)
+def _copy_prefix(src, dst, n):
+    for k in range(n):
+        dst[k] = src[k]
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def _publish(scr, used, nbr, base, w0, wn, stride, nb, n, nstart):
+    """Copy the wave's scratch rows into ``nbr`` at ``base`` and make ``nstart`` global."""
+    for tt in prange(wn):
+        b = base[tt]
+        if b < 0:
+            continue
+        u = used[tt]
+        for k in range(u):
+            nbr[b + k] = scr[tt, k]
+        blk = ((w0 + tt) * stride) % nb
+        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
+            if nstart[i] >= 0:
+                nstart[i] += b
+
+
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, stride, t6, vals, e1, counts):
+              tab, tscale, stride, t6, vals, e1, counts, nstart, record, max_pairs):
     """Sparse ball voting with eigen-analysis fused at the end of each votee.
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
     is included, so a lone token ends with the identity.
+
+    With ``record`` the neighbours of each votee (self included, in scan
+    order) are also written to the returned int32 array ``nbr``: votee ``i``'s
+    list is ``nbr[nstart[i] : nstart[i] + counts[i]]``, or ``nstart[i] = −1``
+    when it was not kept (more than ``NL_CAP`` neighbours, or the list would
+    exceed ``max_pairs`` entries); a stick pass then scans the grid for it.
+    Blocks are processed in waves of ``WAVE`` blocks; each wave fills a
+    scratch row per block, then is copied (in parallel) into ``nbr``.
     """
     n = xs.shape[0]
     nb = (n + BLOCK - 1) // BLOCK
@@ -401,68 +454,115 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     lx = lo[0]
     ly = lo[1]
     lz = lo[2]
-    for t in prange(nb):
-        blk = (t * stride) % nb  # interleave blocks across threads (load balance)
-        bj = np.empty(CAP, np.int64)
-        bdx = np.empty(CAP)
-        bdy = np.empty(CAP)
-        bdz = np.empty(CAP)
-        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-            xi = xs[i]
-            yi = ys[i]
-            zi = zs[i]
-            xl = xi - lx
-            yl = yi - ly
-            zl = zi - lz
-            ix = cix[i]
-            iy = ciy[i]
-            iz = ciz[i]
-            a00 = 0.0
-            a01 = 0.0
-            a02 = 0.0
-            a11 = 0.0
-            a12 = 0.0
-            a22 = 0.0
-            total = 0
-            cnt = 0
-            for dz in range(-m, m + 1):
-                cz = iz + dz
-                if not hashed and (cz < 0 or cz >= nz):
-                    continue
-                for dy in range(-m, m + 1):
-                    cy = iy + dy
-                    if not hashed and (cy < 0 or cy >= ny):
+    wave = WAVE if record else nb
+    lim = BLOCK * NL_CAP if record else 0
+    scr = np.empty((wave if record else 0, lim), np.int32)
+    used = np.zeros(wave, np.int64)
+    nbr = np.empty(0, np.int32)
+    filled = 0
+    done = 0
+    for w0 in range(0, nb, wave):
+        wn = min(wave, nb - w0)
+        for tt in prange(wn):
+            blk = ((w0 + tt) * stride) % nb  # interleave blocks across threads (load balance)
+            bj = np.empty(CAP, np.int64)
+            bdx = np.empty(CAP)
+            bdy = np.empty(CAP)
+            bdz = np.empty(CAP)
+            pos = 0
+            for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
+                xi = xs[i]
+                yi = ys[i]
+                zi = zs[i]
+                xl = xi - lx
+                yl = yi - ly
+                zl = zi - lz
+                ix = cix[i]
+                iy = ciy[i]
+                iz = ciz[i]
+                a00 = 0.0
+                a01 = 0.0
+                a02 = 0.0
+                a11 = 0.0
+                a12 = 0.0
+                a22 = 0.0
+                total = 0
+                cnt = 0
+                p0 = pos
+                p = pos if record else -1
+                plim = min(lim, p0 + NL_CAP)
+                for dz in range(-m, m + 1):
+                    cz = iz + dz
+                    if not hashed and (cz < 0 or cz >= nz):
                         continue
-                    for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
-                                          xl, yl, zl, h, inv_h, r2)
-                        j = j0
-                        while j < j1:
-                            room = CAP - cnt
-                            if j1 - j > room and cnt > 0:
-                                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
-                                a00 += s00
-                                a01 += s01
-                                a02 += s02
-                                a11 += s11
-                                a12 += s12
-                                a22 += s22
-                                total += cnt
-                                cnt = 0
-                                room = CAP
-                            je = min(j1, j + room)
-                            cnt = _collect(xs, ys, zs, xs, False, cix, ciy, ciz, hashed, cx, cy, cz,
-                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt)
-                            j = je
-            s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
-            a00 += s00
-            a01 += s01
-            a02 += s02
-            a11 += s11
-            a12 += s12
-            a22 += s22
-            counts[i] = total + cnt
-            _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
+                    for dy in range(-m, m + 1):
+                        cy = iy + dy
+                        if not hashed and (cy < 0 or cy >= ny):
+                            continue
+                        for kx in range(nruns):
+                            j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
+                                              xl, yl, zl, h, inv_h, r2)
+                            j = j0
+                            while j < j1:
+                                room = CAP - cnt
+                                if j1 - j > room and cnt > 0:
+                                    s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+                                    a00 += s00
+                                    a01 += s01
+                                    a02 += s02
+                                    a11 += s11
+                                    a12 += s12
+                                    a22 += s22
+                                    p = _record(bj, cnt, scr, tt, p, plim)
+                                    total += cnt
+                                    cnt = 0
+                                    room = CAP
+                                je = min(j1, j + room)
+                                cnt = _collect(xs, ys, zs, xs, False, cix, ciy, ciz, hashed, cx, cy, cz,
+                                               j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt,
+                                               xs, xs, xs, bdx, bdx, bdx, bdx)
+                                j = je
+                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+                a00 += s00
+                a01 += s01
+                a02 += s02
+                a11 += s11
+                a12 += s12
+                a22 += s22
+                p = _record(bj, cnt, scr, tt, p, plim)
+                counts[i] = total + cnt
+                if p >= 0:
+                    nstart[i] = p0
+                    pos = p
+                else:
+                    nstart[i] = -1
+                _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
+            used[tt] = pos
+        if record:
+            # place the wave's rows (fixed order) in the growing list
+            base = np.empty(wn, np.int64)
+            need = filled
+            for tt in range(wn):
+                if need + used[tt] <= max_pairs:
+                    base[tt] = need
+                    need += used[tt]
+                else:
+                    base[tt] = -1
+            done += wn
+            if need > nbr.shape[0]:
+                est = need * nb // done + need // 8  # projected total from the blocks so far
+                cap = min(max(est, 2 * nbr.shape[0], need), max_pairs)
+                grown = np.empty(cap, np.int32)
+                _copy_prefix(nbr, grown, filled)
+                nbr = grown
+            _publish(scr, used, nbr, base, w0, wn, stride, nb, n, nstart)
+            for tt in range(wn):
+                if base[tt] < 0:  # over max_pairs: these votees stream
+                    blk = ((w0 + tt) * stride) % nb
+                    for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
+                        nstart[i] = -1
+            filled = need
+    return nbr[:filled]
 
 
 @njit(cache=True, inline="always")
@@ -471,26 +571,28 @@ def arcsin_ratio2(t):
 
     Degree-16 polynomial in ``x = 4t − 1`` (Chebyshev fit, max error 3e-15 on
     [0, 1/2]); replaces a ``sqrt``, an ``asin`` and a division per vote.
+    Estrin's scheme (depth 5 instead of 16 dependent FMAs: the vectorised
+    stick flush is latency-bound).
     """
     x = 4.0 * t - 1.0
-    p = 4.1044578648793166e-10
-    p = p * x + 1.3053246796434555e-09
-    p = p * x + 2.55834384061086e-09
-    p = p * x + 8.71749458263692e-09
-    p = p * x + 3.244813103299451e-08
-    p = p * x + 1.0982521186436823e-07
-    p = p * x + 3.739019978974341e-07
-    p = p * x + 1.3003728142575214e-06
-    p = p * x + 4.59633842594097e-06
-    p = p * x + 1.6567610831680862e-05
-    p = p * x + 6.125736394522079e-05
-    p = p * x + 0.00023423067685740802
-    p = p * x + 0.0009380950980537155
-    p = p * x + 0.004021191635587047
-    p = p * x + 0.019223205716590357
-    p = p * x + 0.1125768649239618
-    p = p * x + 1.096622711232152
-    return p
+    x2 = x * x
+    x4 = x2 * x2
+    x8 = x4 * x4
+    a0 = 1.096622711232152 + 0.1125768649239618 * x
+    a1 = 0.019223205716590357 + 0.004021191635587047 * x
+    a2 = 0.0009380950980537155 + 0.00023423067685740802 * x
+    a3 = 6.125736394522079e-05 + 1.6567610831680862e-05 * x
+    a4 = 4.59633842594097e-06 + 1.3003728142575214e-06 * x
+    a5 = 3.739019978974341e-07 + 1.0982521186436823e-07 * x
+    a6 = 3.244813103299451e-08 + 8.71749458263692e-09 * x
+    a7 = 2.55834384061086e-09 + 1.3053246796434555e-09 * x
+    b0 = a0 + a1 * x2
+    b1 = a2 + a3 * x2
+    b2 = a4 + a5 * x2
+    b3 = a6 + a7 * x2
+    d0 = b0 + b1 * x4
+    d1 = b2 + b3 * x4
+    return (d0 + d1 * x8) + 4.1044578648793166e-10 * (x8 * x8)
 
 
 #: exp(C) for the centre C of the reduced argument of :func:`exp_neg_small`.
@@ -510,29 +612,34 @@ def exp_neg_small(x):
     ``math.exp``).  Larger ``x`` give finite, less accurate values.
     """
     t = -0.125 * x - _EXP_C
-    p = 1.0 / 6227020800.0
-    p = p * t + 1.0 / 479001600.0
-    p = p * t + 1.0 / 39916800.0
-    p = p * t + 1.0 / 3628800.0
-    p = p * t + 1.0 / 362880.0
-    p = p * t + 1.0 / 40320.0
-    p = p * t + 1.0 / 5040.0
-    p = p * t + 1.0 / 720.0
-    p = p * t + 1.0 / 120.0
-    p = p * t + 1.0 / 24.0
-    p = p * t + 1.0 / 6.0
-    p = p * t + 0.5
-    p = p * t + 1.0
-    p = p * t + 1.0
-    p *= _EXP_EC
+    t2 = t * t
+    t4 = t2 * t2
+    # Estrin: Σ_{k≤13} t^k/k! in pairs (depth 5 instead of 13 dependent FMAs)
+    a0 = 1.0 + t
+    a1 = 0.5 + (1.0 / 6.0) * t
+    a2 = (1.0 / 24.0) + (1.0 / 120.0) * t
+    a3 = (1.0 / 720.0) + (1.0 / 5040.0) * t
+    a4 = (1.0 / 40320.0) + (1.0 / 362880.0) * t
+    a5 = (1.0 / 3628800.0) + (1.0 / 39916800.0) * t
+    a6 = (1.0 / 479001600.0) + (1.0 / 6227020800.0) * t
+    b0 = a0 + a1 * t2
+    b1 = a2 + a3 * t2
+    b2 = a4 + a5 * t2
+    d0 = b0 + b1 * t4
+    d1 = b2 + a6 * t4
+    p = (d0 + d1 * (t4 * t4)) * _EXP_EC
     p *= p
     p *= p
     return p * p
 
 
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
-def _stick_flush(bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2):
-    """Sum of the stick votes of the buffered voters (branch-free, masked cone)."""
+def _stick_flush(bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2):
+    """Sum of the stick votes of the buffered voters (branch-free, masked cone).
+
+    Offsets, normals and weights come from contiguous buffers only, so the
+    vectorised loop needs no gathers.
+    """
     s00 = 0.0
     s01 = 0.0
     s02 = 0.0
@@ -540,14 +647,13 @@ def _stick_flush(bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin
     s12 = 0.0
     s22 = 0.0
     for k in range(cnt):
-        j = bj[k]
         dx = bdx[k]
         dy = bdy[k]
         dz = bdz[k]
-        w = ws[j]
-        nx_ = nxs[j]
-        ny_ = nys[j]
-        nz_ = nzs[j]
+        w = bw[k]
+        nx_ = bnx[k]
+        ny_ = bny[k]
+        nz_ = bnz[k]
         d2 = dx * dx + dy * dy + dz * dz
         pos = d2 > 0.0
         inv = 1.0 / (d2 if pos else 1.0)
@@ -575,15 +681,44 @@ def _stick_flush(bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin
     return s00, s01, s02, s11, s12, s22
 
 
+@njit(cache=True, inline="always", boundscheck=False)
+def _gather_nl(nbr, k0, k1, xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws,
+               bdx, bdy, bdz, bnx, bny, bnz, bw):
+    """Copy the voters of the recorded list ``nbr[k0:k1]`` with nonzero weight to the buffers.
+
+    Scalar compaction (``c += w ≠ 0``): not vectorised, so no gathers.
+    Returns the number of voters copied.
+    """
+    c = np.uint64(0)
+    for k in range(np.uint64(k0), np.uint64(k1)):
+        j = np.uint64(nbr[k])
+        w = ws[j]
+        bdx[c] = xi - xs[j]
+        bdy[c] = yi - ys[j]
+        bdz[c] = zi - zs[j]
+        bnx[c] = nxs[j]
+        bny[c] = nys[j]
+        bnz[c] = nzs[j]
+        bw[c] = w
+        c += np.uint64(w != 0.0)
+    return np.int64(c)
+
+
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, stride, t6, vals, e1, counts):
+               lo, h, r2, inv_s2, gamma4, lmin2, stride, t6, vals, e1, counts, nbr, nstart, ncount):
     """Sparse stick voting (eq. 44) with eigen-analysis fused per votee.
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
     ``ws[j]`` (``ws[j] == 0``: no vote).  The votee's own stick ``ws[i]·nᵢnᵢᵀ``
     (self vote, l = 0) is included.  ``gamma4 = 4γ`` and ``lmin2 = (l_min/σ)²``.
+
+    ``nbr, nstart, ncount``: neighbour lists recorded by :func:`ball_pass` at
+    the same σ (see there); a votee with ``nstart[i] ≥ 0`` sums the votes of
+    its list, the others scan the grid.  Pass an empty ``nstart`` to scan for
+    every votee.
     """
+    use_nl = nstart.shape[0] == xs.shape[0]
     n = xs.shape[0]
     nb = (n + BLOCK - 1) // BLOCK
     nruns = 2 * m + 1 if hashed else 1
@@ -597,6 +732,10 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
         bdx = np.empty(CAP)
         bdy = np.empty(CAP)
         bdz = np.empty(CAP)
+        bnx = np.empty(CAP)
+        bny = np.empty(CAP)
+        bnz = np.empty(CAP)
+        bw = np.empty(CAP)
         for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
             xi = xs[i]
             yi = ys[i]
@@ -613,6 +752,15 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
             a11 = 0.0
             a12 = 0.0
             a22 = 0.0
+            if use_nl and nstart[i] >= 0:
+                k0 = nstart[i]
+                nv = _gather_nl(nbr, k0, k0 + ncount[i], xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws,
+                                bdx, bdy, bdz, bnx, bny, bnz, bw)
+                a00, a01, a02, a11, a12, a22 = _stick_flush(bdx, bdy, bdz, bnx, bny, bnz, bw, nv,
+                                                            inv_s2, gamma4, lmin2)
+                counts[i] = nv
+                _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
+                continue
             total = 0
             cnt = 0
             for dz in range(-m, m + 1):
@@ -631,7 +779,7 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                             room = CAP - cnt
                             if j1 - j > room and cnt > 0:
                                 s00, s01, s02, s11, s12, s22 = _stick_flush(
-                                    bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2)
+                                    bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2)
                                 a00 += s00
                                 a01 += s01
                                 a02 += s02
@@ -643,10 +791,11 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                                 room = CAP
                             je = min(j1, j + room)
                             cnt = _collect(xs, ys, zs, ws, True, cix, ciy, ciz, hashed, cx, cy, cz,
-                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt)
+                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt,
+                                           nxs, nys, nzs, bnx, bny, bnz, bw)
                             j = je
             s00, s01, s02, s11, s12, s22 = _stick_flush(
-                bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, ws, inv_s2, gamma4, lmin2)
+                bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2)
             a00 += s00
             a01 += s01
             a02 += s02

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gatv._validation import as_points, as_vectors, check_memory, check_positive
+from gatv._validation import _memory_budget, as_points, as_vectors, check_memory, check_positive
 from gatv.voting import _fields
 from gatv.voting._grid import Grid, build_grid, grid_layout
 
@@ -51,6 +51,8 @@ __all__ = [
 GRID_SUBDIV = 2
 #: Bytes of O(N) working storage per token (sorted copy, cells, tensors, eigen output).
 BYTES_PER_TOKEN = 400
+#: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
+NL_BYTES_PER_PAIR = 4
 
 
 def voting_radius(sigma: float) -> float:
@@ -179,9 +181,15 @@ def _stride(nb: int) -> int:
 
 
 class _Engine:
-    """Grid over the tokens at one σ; passes return sorted-order arrays."""
+    """Grid over the tokens at one σ; passes return sorted-order arrays.
 
-    def __init__(self, points: np.ndarray, sigma: float):
+    ``ball(record=True)`` also keeps the neighbour lists (CSR, int32) that the
+    next :meth:`stick` at the same σ reuses instead of scanning the grid again;
+    ``max_pairs`` (from the memory budget) caps their length, votees beyond it
+    (or with more than ``NL_CAP`` neighbours) are scanned as usual.
+    """
+
+    def __init__(self, points: np.ndarray, sigma: float, max_pairs: int = 0):
         from gatv.voting import _kernels as K
 
         self._K = K
@@ -190,6 +198,8 @@ class _Engine:
         self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV)
         n = points.shape[0]
         self.stride = _stride((n + K.BLOCK - 1) // K.BLOCK)
+        self.max_pairs = int(max_pairs)
+        self.lists = None  # (nbr, nstart, counts) after a recording ball pass
 
     def _out(self):
         n = self.grid.n
@@ -200,24 +210,34 @@ class _Engine:
         return (g.cix, g.ciy, g.ciz, g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.mask,
                 g.subdiv, g.lo, g.h, self.radius**2)
 
-    def ball(self):
+    def ball(self, record: bool = False):
         tab = _fields.ball_table4()
         t6, vals, e1, cnt = self._out()
         tscale = _fields.BALL_TABLE_SIZE / self.radius**2
         g = self.grid
-        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.stride,
-                          t6, vals, e1, cnt)
+        record = bool(record and self.max_pairs > 0)
+        nstart = np.empty(g.n, np.int64)
+        nbr = self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.stride,
+                                t6, vals, e1, cnt, nstart, record, self.max_pairs)
+        self.lists = (nbr, nstart, cnt) if record else None
         return t6, vals, e1, cnt
 
     def stick(self, normals_sorted: np.ndarray, weights_sorted: np.ndarray):
         t6, vals, e1, cnt = self._out()
         g = self.grid
         nrm = np.ascontiguousarray(np.asarray(normals_sorted, dtype=np.float64).T)
+        if self.lists is None:
+            nbr, nstart, ncount = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
+        else:
+            nbr, nstart, ncount = self.lists
         self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
-                           self.stride, t6, vals, e1, cnt)
+                           self.stride, t6, vals, e1, cnt, nbr, nstart, ncount)
         return t6, vals, e1, cnt
+
+    def drop_lists(self) -> None:
+        self.lists = None
 
     def to_sorted(self, a: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(a[self.grid.order])
@@ -232,12 +252,24 @@ class _Engine:
         return out
 
 
-def _check_budget(points: np.ndarray, sigma: float, memory_budget) -> None:
+def _check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
+    """Check the O(N) working storage; return how many neighbour-list entries fit.
+
+    The neighbour lists of a recording ball pass (int32 per pair, self
+    included, ~50 pairs per token at the default σ, i.e. ~200 B per token)
+    are optional: they get what the budget leaves after the O(N) storage,
+    the ball pass's scratch and a growth copy (hence 2 × 4 B per pair).  If
+    nothing is left the passes scan the grid instead (same results, slower).
+    """
+    from gatv.voting._kernels import BLOCK, NL_CAP, WAVE
+
     n = points.shape[0]
     radius = voting_radius(sigma)
     _, _, dims, hashed, nkeys = grid_layout(points, radius, GRID_SUBDIV)
     nbytes = n * BYTES_PER_TOKEN + 8 * (nkeys + 1)
     check_memory(nbytes, f"Voting on {n} tokens", memory_budget)
+    spare = _memory_budget(memory_budget) - nbytes - 4 * WAVE * BLOCK * NL_CAP
+    return max(0, int(spare // (2 * NL_BYTES_PER_PAIR)))
 
 
 def _votes(engine: _Engine, kind: str, res) -> TensorVotes:
@@ -322,8 +354,8 @@ def _prepare(tokens, sigma, memory_budget, k):
             msg = "Cannot derive `sigma` from a single token; pass `sigma` explicitly."
             raise ValueError(msg)
         sigma = _default_sigma(pts, k)
-    _check_budget(pts, sigma, memory_budget)
-    return pts, sigma
+    max_pairs = _check_budget(pts, sigma, memory_budget)
+    return pts, sigma, max_pairs
 
 
 def _as_normals(normals, n: int) -> np.ndarray:
@@ -407,7 +439,7 @@ def vote(tokens, sigma=None, normals=None, *, saliency=None, k: int = 40,
     >>> bool(np.median(np.abs(tv.normals[:, 2])) > 0.99)
     True
     """
-    pts, sigma = _prepare(tokens, sigma, memory_budget, k)
+    pts, sigma, _ = _prepare(tokens, sigma, memory_budget, k)
     n = pts.shape[0]
     if normals is None:
         if saliency is not None:
@@ -485,7 +517,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     >>> bool(np.mean(res.indices < 3000) > 0.9)
     True
     """
-    pts, sigma = _prepare(tokens, sigma, memory_budget, k)
+    pts, sigma, max_pairs = _prepare(tokens, sigma, memory_budget, k)
     if isinstance(n_stick_passes, bool) or not isinstance(n_stick_passes, (int, np.integer)) \
             or n_stick_passes < 1:
         msg = f"Expected `n_stick_passes` to be an integer >= 1, got {n_stick_passes!r}."
@@ -496,8 +528,8 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         raise ValueError(msg)
     tau1, tau2 = _parse_threshold(threshold)
 
-    eng = _Engine(pts, sigma)
-    res = eng.ball()
+    eng = _Engine(pts, sigma, max_pairs)
+    res = eng.ball(record=True)  # neighbour lists for the first stick pass
     ball = _votes(eng, "ball", res)
     _, vals, e1, _ = res  # sorted order
     idx = eng.grid.order.copy()  # original index of each current token
@@ -508,7 +540,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         if p > 0:
             s *= growth
             _check_budget(cur_pts, s, memory_budget)
-            sub = _Engine(cur_pts, s)
+            sub = _Engine(cur_pts, s)  # larger σ: the ball pass's lists are too short
             e1 = sub.to_sorted(e1)
             sal = sub.to_sorted(sal)
             idx = idx[sub.grid.order]
@@ -518,6 +550,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         top = float(sal.max()) if sal.size else 0.0
         w = sal / top if top > 0 else np.zeros_like(sal)
         _, vals, e1, _ = eng.stick(e1, np.ascontiguousarray(w))
+        eng.drop_lists()
         sal = vals[:, 0] - vals[:, 1]
         if sal.size == 0 or sal.max() <= 0:
             keep = np.zeros(sal.shape[0], bool)

@@ -1,4 +1,4 @@
-"""Command-line interface: ``gatv register SOURCE TARGET``, ``gatv segment SOURCE TARGET`` and ``gatv demo``.
+"""Command-line interface: ``gatv register``, ``gatv segment``, ``gatv nonrigid`` and ``gatv demo``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -111,6 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
     seg.add_argument("--progress", action="store_true", help="print progress lines to stderr")
     seg.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     seg.set_defaults(handler=_cmd_segment)
+
+    from .nonrigid._cli import add_parser as add_nonrigid
+
+    add_nonrigid(sub)
     return parser
 
 

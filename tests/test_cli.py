@@ -244,3 +244,8 @@ def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
     assert seen == [True]
     assert cli.main(["register", str(src), str(tgt), "--scans", "--noise", "0.1"]) == 2
     _assert_one_error_line(capsys, "--scans takes no --noise")
+
+
+def test_nonrigid_subcommand_is_wired(tmp_path, capsys):
+    assert cli.main(["nonrigid", str(tmp_path / "nope.ply"), str(tmp_path / "b.ply")]) == 2
+    _assert_one_error_line(capsys, "nope.ply")

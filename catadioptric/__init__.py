@@ -11,13 +11,17 @@ from __future__ import annotations
 
 from catadioptric.camera import UnifiedCamera
 from catadioptric.corners import detect_corners, read_image, refine_corners
+from catadioptric.matching import SphereMatch, match, sphere_noise
 from catadioptric.synthetic import SyntheticViews, synthetic_views
 
 __all__ = [
+    "SphereMatch",
     "SyntheticViews",
     "UnifiedCamera",
     "detect_corners",
+    "match",
     "read_image",
     "refine_corners",
+    "sphere_noise",
     "synthetic_views",
 ]

@@ -8,7 +8,8 @@ functions used by the command line and the gallery:
   correspondences of one :class:`~gatv.motion.RigidMotion`;
 * :func:`render_motions` — several motions (Fig. 12 of Reyes, Medioni &
   Bayro, IJCV 2007), one colour per motion, an overview panel and one
-  panel per motion.
+  panel per motion; :func:`render_segmentation` draws a
+  :class:`gatv.motions.Segmentation` the same way.
 
 Style
 -----
@@ -84,6 +85,7 @@ __all__ = [
     "save",
     "render_registration",
     "render_motions",
+    "render_segmentation",
 ]
 
 #: Motion colours, in order (Okabe & Ito 2008, colour-blind safe; the
@@ -779,9 +781,10 @@ def render_motions(source, target, motions: Sequence[RigidMotion], path, *,
 
     Panel (a), the overview: every point coloured by the motion whose
     correspondences use it (target points large, source points small),
-    unclaimed points grey. Then one panel per motion: its source points,
-    their images under the motion and its target points, with its
-    correspondences as lines. Panels share one camera.
+    unclaimed points grey. Then one panel per motion: its source points
+    (small), their images under the motion (dark dots) inside its target
+    points (translucent halos), with its correspondences as lines. Panels
+    share one camera.
 
     Parameters
     ----------
@@ -827,16 +830,42 @@ def render_motions(source, target, motions: Sequence[RigidMotion], path, *,
             col = motion_color(k)
             add_points(pl, t[owner_t != k], color=NEUTRAL, size=3, opacity=0.5)
             add_points(pl, s[c[:, 0]], color=col, size=5, label="source (small)")
-            add_points(pl, t[c[:, 1]], color=col, size=10, label="target (large)")
-            add_points(pl, m.transform(s[c[:, 0]]), color=LINE_COLOR, size=3, label="source, moved")
             add_correspondences(pl, s, t, c, color=col, width=1)
+            # target points as translucent halos, so that the moved source
+            # points (dark dots) show inside them
+            add_points(pl, m.transform(s[c[:, 0]]), color=LINE_COLOR, size=4, label="source, moved")
+            add_points(pl, t[c[:, 1]], color=col, size=13, opacity=0.45, label="target (halo)")
             add_axes_labels(pl)
             add_title(pl, f"({chr(ord('b') + k)}) motion {k + 1}: {m.angle_deg:.1f} deg, {m.support} pairs")
             add_legend(pl)
         pl.subplot(0, 0)
-        set_view(pl)
+        set_view(pl, zoom=0.92)  # room for the tick labels of the near edges
         pl.link_views()
     except BaseException:
         pl.close()
         raise
     return save(pl, path)
+
+
+def render_segmentation(source, target, segmentation, path, *, size: Sequence[int] | None = None) -> Path:
+    """Picture of a :class:`gatv.motions.Segmentation` (Fig. 12): one colour per motion.
+
+    The same picture as :func:`render_motions` with the segmentation's
+    motions, in its order (largest support first). An empty (falsy)
+    segmentation draws the overview panel alone, every point grey.
+
+    Parameters
+    ----------
+    source, target : (N, 3), (M, 3) array_like of float
+    segmentation : Segmentation
+        From :func:`gatv.motions.segment` on ``source`` and ``target``.
+    path : str or path-like
+        Output picture (``.png``); written atomically.
+    size : (int, int), optional
+        Default 500x420 pixels per panel.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    return render_motions(source, target, tuple(segmentation.motions), path, size=size)

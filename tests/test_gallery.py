@@ -34,8 +34,18 @@ def _pixels(path: Path) -> np.ndarray:
     return np.asarray(img.point_data.active_scalars).reshape(h, w, -1)[..., :3]
 
 
+#: Figures whose picture shows one palette colour per detected motion: how many.
+MOTION_COLOURS = {"fig12_three_motions": 3}
+
+
+def _count_colour(px: np.ndarray, color: str) -> int:
+    return int(np.all(px == np.array(render._rgb(color), np.uint8), axis=-1).sum())
+
+
 def test_gallery_has_figures():
-    assert [p.name for p in SCRIPTS if p.name.startswith("fig08")] == ["fig08_joint_space.py"]
+    names = [p.name for p in SCRIPTS]
+    assert "fig08_joint_space.py" in names
+    assert "fig12_three_motions.py" in names
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])
@@ -63,6 +73,11 @@ def test_figure_renders(tmp_path, script, capsys):
         assert px.shape == (size[1], size[0], 3)
         assert float(px.astype(float).var()) > 20.0, f"{png.name} is blank"
     assert capsys.readouterr().out.strip(), "a figure script prints its numbers"
+    if script.stem in MOTION_COLOURS:
+        px = _pixels(pngs[0]).astype(np.uint8)
+        shown = [c for c in render.PALETTE if _count_colour(px, c) > 20]
+        assert shown == list(render.PALETTE[:MOTION_COLOURS[script.stem]])
+        assert result["colors"] == shown
 
 
 def test_fig08_numbers_are_the_paper_story(tmp_path):

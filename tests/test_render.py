@@ -205,3 +205,26 @@ def test_cli_uses_render_registration(tmp_path, monkeypatch):
     motion = RigidMotion(trial.rotation, trial.translation, trial.true_pairs)
     cli._render(trial.source, trial.target, motion, tmp_path / "x.png")
     assert len(calls) == 1
+
+
+def test_render_segmentation_draws_the_segmentation(tmp_path):
+    from gatv.motions import fig12_scene, segment
+
+    scene = fig12_scene(n_per_motion=20, seed=3)
+    seg = segment(scene.source, scene.target, seed=0)
+    assert len(seg) == 3
+    out = render.render_segmentation(scene.source, scene.target, seg, tmp_path / "s.png", size=(480, 360))
+    assert_not_blank(out, size=(480, 360))
+    px = read_png(out)
+    assert [c for c in render.PALETTE if count_color(px, c) > 50] == list(render.PALETTE[:3])
+
+
+def test_cli_uses_render_segmentation(tmp_path, monkeypatch):
+    from gatv import cli
+    from gatv.motions import Segmentation
+
+    calls = []
+    monkeypatch.setattr(render, "render_segmentation", lambda *a, **k: calls.append(a))
+    empty = Segmentation((), np.full(3, -1), np.full(3, -1), np.empty((0, 2), int), np.empty(0, int))
+    cli._render_segmentation(np.zeros((3, 3)), np.zeros((3, 3)), empty, tmp_path / "x.png")
+    assert len(calls) == 1

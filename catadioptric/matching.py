@@ -225,7 +225,7 @@ def sphere_noise(camera: UnifiedCamera, pixels: ArrayLike, noise_px: float = 1.0
     Examples
     --------
     >>> cam = UnifiedCamera(1.0, 300.0, 300.0, 640.0, 512.0)
-    >>> round(float(sphere_noise(cam, [[640.0, 512.0]])[0] * 300.0), 6)
+    >>> round(float(sphere_noise(cam, [[640.0, 512.0]])[0] * 300.0), 3)
     2.0
     """
     pix = _check_pixels(pixels, "pixels")

@@ -360,13 +360,26 @@ def _collect(xs, ys, zs, ws, use_w, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1,
 
 
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
-def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale):
+def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb):
     """Sum of the ball votes at the buffered offsets (branch-free).
 
     ``tab[k] = (A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (see
     :func:`ball_table4`): one cache line per lookup, same interpolant as
-    ``A[k] + (A[k+1] − A[k])·f``.
+    ``A[k] + (A[k+1] − A[k])·f``.  The lookups run in a scalar loop first
+    (into ``ba, bb``; vector gathers are slow on this hardware), then the
+    votes in a vectorised loop over contiguous buffers.
     """
+    c = np.uint64(0)
+    for k in range(np.uint64(0), np.uint64(cnt)):
+        dx = bdx[k]
+        dy = bdy[k]
+        dz = bdz[k]
+        q = (dx * dx + dy * dy + dz * dz) * tscale
+        i = np.uint64(q)
+        f = q - i
+        ba[c] = tab[i, 0] + tab[i, 1] * f
+        bb[c] = tab[i, 2] + tab[i, 3] * f
+        c += np.uint64(q >= 0.0)  # always 1, but keeps the loop scalar (no gathers)
     s00 = 0.0
     s01 = 0.0
     s02 = 0.0
@@ -378,24 +391,21 @@ def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale):
         dy = bdy[k]
         dz = bdz[k]
         d2 = dx * dx + dy * dy + dz * dz
-        q = d2 * tscale
-        i = int(q)
-        f = q - i
-        a = tab[i, 0] + tab[i, 1] * f
-        b = tab[i, 2] + tab[i, 3] * f
+        a = ba[k]
+        b = bb[k]
         pos = d2 > 0.0
         # l = 0: the isotropic average, exactly the identity
-        c = (a - b) / (d2 if pos else 1.0)
-        c = c if pos else 0.0
+        g = (a - b) / (d2 if pos else 1.0)
+        g = g if pos else 0.0
         b = b if pos else 1.0
-        cx = c * dx
-        cy = c * dy
+        cx = g * dx
+        cy = g * dy
         s00 += b + cx * dx
         s01 += cx * dy
         s02 += cx * dz
         s11 += b + cy * dy
         s12 += cy * dz
-        s22 += b + c * dz * dz
+        s22 += b + g * dz * dz
     return s00, s01, s02, s11, s12, s22
 
 
@@ -469,6 +479,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
             bdx = np.empty(CAP)
             bdy = np.empty(CAP)
             bdz = np.empty(CAP)
+            ba = np.empty(CAP)
+            bb = np.empty(CAP)
             pos = 0
             for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
                 xi = xs[i]
@@ -506,7 +518,7 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                             while j < j1:
                                 room = CAP - cnt
                                 if j1 - j > room and cnt > 0:
-                                    s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+                                    s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb)
                                     a00 += s00
                                     a01 += s01
                                     a02 += s02
@@ -522,7 +534,7 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                                                j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt,
                                                xs, xs, xs, bdx, bdx, bdx, bdx)
                                 j = je
-                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale)
+                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb)
                 a00 += s00
                 a01 += s01
                 a02 += s02

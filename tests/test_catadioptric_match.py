@@ -1,0 +1,131 @@
+"""catadioptric.match: corner correspondences on the unit sphere, and `gatv catadioptric`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catadioptric import SphereMatch, UnifiedCamera, match, sphere_noise, synthetic_views
+from catadioptric import _cli
+from gatv.datasets import correspondence_stats, rotation_error_deg
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+MEI = DATA / "omni_mei_paracatadioptric"
+needs_mei = pytest.mark.skipif(not MEI.is_dir(), reason="shared data absent")
+
+
+def test_pure_rotation_is_matched_exactly():
+    v = synthetic_views(150, xi=1.0, rotation_deg=50.0, translation=(0, 0, 0), noise_px=1.0, seed=4)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    precision, recall = correspondence_stats(m.correspondences, v.pairs)
+    assert isinstance(m, SphereMatch) and m.strategy == "rigid"
+    assert precision == 1.0 and recall >= 0.95
+    assert rotation_error_deg(m.rotation, v.rotation) < 0.5
+
+
+def test_translation_reaches_good_precision():
+    v = synthetic_views(200, xi=0.8, rotation_deg=30.0, translation=(0.3, 0.1, 0.05), noise_px=1.0,
+                        outlier_fraction=0.3, seed=1)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    precision, recall = correspondence_stats(m.correspondences, v.pairs)
+    assert precision >= 0.9 and recall >= 0.7
+
+
+def test_output_is_one_to_one_and_in_input_rows():
+    v = synthetic_views(120, rotation_deg=20.0, translation=(0, 0, 0), outlier_fraction=0.5, seed=4)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    c = m.correspondences
+    assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
+    assert c[:, 0].max() < len(v.pixels1) and c[:, 1].max() < len(v.pixels2)
+    assert not c.flags.writeable and m.rays1.shape == (len(m.index1), 3)
+
+
+def test_invalid_pixels_are_dropped_and_rows_kept():
+    v = synthetic_views(120, rotation_deg=25.0, translation=(0, 0, 0), seed=5)
+    cam = v.camera1
+    behind, ok = cam.project(np.array([[0.0, 0.0, -1.0]]), return_mask=True)  # NaN row
+    assert not ok.any()
+    p1 = np.vstack([[[np.nan, np.nan]], v.pixels1, behind])
+    m = match(p1, v.pixels2, cam)
+    assert m.index1.tolist() == list(range(1, len(v.pixels1) + 1))
+    # xi > 1: pixels outside the mirror's disc cannot be lifted
+    wide = UnifiedCamera(1.2, 300.0, 300.0, 640.0, 512.0)
+    m2 = match([[640.0, 512.0], [5000.0, 512.0], [700.0, 500.0], [650.0, 560.0]],
+               [[640.0, 512.0], [700.0, 500.0], [650.0, 560.0]], wide)
+    assert m2.index1.tolist() == [0, 2, 3] and m2.index2.tolist() == [0, 1, 2]
+    truth = v.pairs + [1, 0]
+    precision, recall = correspondence_stats(m.correspondences, truth)
+    assert precision == 1.0 and recall >= 0.95
+
+
+def test_sphere_noise_at_the_centre():
+    cam = UnifiedCamera(0.8, 250.0, 250.0, 640.0, 512.0)
+    assert sphere_noise(cam, [[640.0, 512.0]], 2.0)[0] == pytest.approx(2.0 * 1.8 / 250.0, rel=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match_text"),
+    [
+        ({"pixels1": np.zeros((5, 3))}, r"`pixels1` to have shape \(N, 2\)"),
+        ({"pixels2": [["a", "b"]]}, "`pixels2` to be an"),
+        ({"pixels1": None}, "`pixels1`"),
+        ({"camera1": {"xi": 1.0}}, "`camera1` to be a catadioptric.UnifiedCamera"),
+        ({"camera2": "cam.json"}, "`camera2` to be a catadioptric.UnifiedCamera"),
+        ({"noise_px": -1.0}, "`noise_px`"),
+        ({"strategy": "magic"}, "`strategy`"),
+    ],
+)
+def test_bad_input(kwargs, match_text):
+    cam = UnifiedCamera(1.0, 300.0, 300.0, 640.0, 512.0)
+    args = {"pixels1": np.full((5, 2), 600.0), "pixels2": np.full((5, 2), 600.0), "camera1": cam}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match_text):
+        match(**args)
+
+
+def test_too_few_pixels_is_a_falsy_result():
+    cam = UnifiedCamera(1.0, 300.0, 300.0, 640.0, 512.0)
+    m = match([[600.0, 500.0]], [[610.0, 500.0]], cam)
+    assert not m and m.strategy == "none" and "fewer than 3" in m.info["reason"]
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser(prog="gatv")
+    _cli.add_parser(parser.add_subparsers())
+    return parser.parse_args(argv)
+
+
+@needs_mei
+def test_cli_end_to_end_on_real_pair(tmp_path, capsys):
+    out, pic = tmp_path / "m.json", tmp_path / "m.png"
+    args = _parse(["catadioptric", str(MEI / "images" / "img_para_001.png"),
+                   str(MEI / "images" / "img_para_002.png"),
+                   "--camera", str(MEI / "calibration_mei_opencv.json"),
+                   "--out", str(out), "--render", str(pic), "--max-corners", "250"])
+    assert _cli.run(args) == 0
+    record = json.loads(out.read_text())
+    assert record["success"] and record["support"] >= 50
+    assert record["rotation_deg"] < 1.0  # the static corridor: identity
+    assert pic.stat().st_size > 10_000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "m.png"]
+
+
+def test_cli_bad_input_writes_nothing(tmp_path, capsys):
+    cam = tmp_path / "cam.json"
+    cam.write_text("{not json")
+    img = tmp_path / "a.pgm"
+    img.write_bytes(b"P5 4 4 255\n" + bytes(16))
+    out, pic = tmp_path / "m.json", tmp_path / "m.png"
+    args = _parse(["catadioptric", str(img), str(img), "--camera", str(cam), "--out", str(out),
+                   "--render", str(pic)])
+    assert _cli.run(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("gatv: error:")
+    assert not out.exists() and not pic.exists()
+    args = _parse(["catadioptric", str(tmp_path / "missing.png"), str(img), "--camera", str(cam)])
+    assert _cli.run(args) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pgm", "cam.json"]

@@ -170,7 +170,8 @@ def offscreen_problem(timeout: float = 120.0) -> str | None:
 
 
 # -------------------------------------------------------------- the plotter
-def new_plotter(size: Sequence[int] = (800, 600), *, shape: tuple[int, int] = (1, 1)) -> pyvista.Plotter:
+def new_plotter(size: Sequence[int] = (800, 600), *, shape: tuple[int, int] = (1, 1),
+                groups=None) -> pyvista.Plotter:
     """An off-screen plotter with the gatv style (white background).
 
     Parameters
@@ -179,6 +180,10 @@ def new_plotter(size: Sequence[int] = (800, 600), *, shape: tuple[int, int] = (1
         Window width and height in pixels.
     shape : (int, int), default: (1, 1)
         Rows and columns of panels; pick one with ``plotter.subplot(r, c)``.
+    groups : sequence of (rows, cols), optional
+        Panels spanning several cells, as PyVista's ``groups`` (e.g.
+        ``[(slice(None), 0)]``: the first column is one tall panel, picked
+        with ``subplot(0, 0)``).
 
     Returns
     -------
@@ -190,7 +195,7 @@ def new_plotter(size: Sequence[int] = (800, 600), *, shape: tuple[int, int] = (1
 
     w, h = _check_size(size)
     pl = pv.Plotter(off_screen=True, window_size=[w, h], shape=shape, border=shape != (1, 1),
-                    border_color="#D0D0D0", border_width=1.0)
+                    border_color="#D0D0D0", border_width=1.0, groups=groups)
     pl.set_background("white")
     return pl
 

@@ -46,6 +46,7 @@ def test_gallery_has_figures():
     names = [p.name for p in SCRIPTS]
     assert "fig08_joint_space.py" in names
     assert "fig12_three_motions.py" in names
+    assert "fig13_twisted_plane.py" in names
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])

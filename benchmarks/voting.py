@@ -12,10 +12,13 @@ first votes on 2 000 tokens to load the numba cache / compile, then times
 each stage ``--repeats`` times and reports medians:
 
 * grid      building the neighbour grid (bin + counting sort by cell)
-* ball      sparse ball pass (eigen-analysis fused at the end of each votee)
+* ball      sparse ball pass (eigen-analysis fused at the end of each votee),
+            recording the neighbour lists as ``extract_surfaces`` does
+* σ         ``default_sigma(k=40)`` (not part of total; paid when σ is not given)
 * eigen     the same eigen-analysis run on its own over the ball tensors
             (for reference; it is *inside* the ball and stick columns)
-* stick     sparse stick pass, saliency = normalised ball surfaceness (fused eigen)
+* stick     sparse stick pass over the recorded neighbour lists, saliency =
+            normalised ball surfaceness (fused eigen)
 * total     grid + ball + stick (the full pass)
 * kdtree    ``cKDTree`` build + ``query_ball_point(r, workers=2,
             return_length=True)`` (once for n ≥ 250k): a lower bound for a cKDTree neighbour
@@ -58,7 +61,7 @@ def worker(n: int, repeats: int) -> dict:
 
     from gatv.voting import default_sigma, vote
     from gatv.voting import _kernels as K
-    from gatv.voting.api import _Engine
+    from gatv.voting.api import _check_budget, _Engine
 
     warm = tokens(2000, seed=1)  # compile / load the cache
     b = vote(warm)
@@ -75,9 +78,9 @@ def worker(n: int, repeats: int) -> dict:
     pairs = 0
     for _ in range(repeats):
         t0 = time.perf_counter()
-        eng = _Engine(pts, sigma)
+        eng = _Engine(pts, sigma, _check_budget(pts, sigma, None))
         t1 = time.perf_counter()
-        t6, vals, e1, cnt_b = eng.ball()
+        t6, vals, e1, cnt_b = eng.ball(record=True)
         t2 = time.perf_counter()
         w = vals[:, 0] - vals[:, 1]
         w = np.ascontiguousarray(w / w.max())

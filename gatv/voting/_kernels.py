@@ -258,8 +258,12 @@ BLOCK = 256
 CAP = 256
 #: Largest neighbour list (self included) a votee may record in the ball pass.
 NL_CAP = 192
-#: Blocks per wave of the recording ball pass (scratch: WAVE·BLOCK·NL_CAP int32).
-WAVE = 16
+#: Mean list length reserved per votee of a block (a block's scratch row holds
+#: BLOCK·NL_ROW entries; votees that no longer fit are scanned by the stick pass).
+NL_ROW = 96
+#: Blocks per wave of the recording ball pass (scratch: WAVE·BLOCK·NL_ROW int32).
+#: Few waves: each ends with a barrier, costly when the cores are shared.
+WAVE = 64
 
 # The flush loops may reassociate their sums (vectorised reduction) and
 # contract a*b+c into FMAs: both change results by a few ulps only (relative
@@ -453,7 +457,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     order) are also written to the returned int32 array ``nbr``: votee ``i``'s
     list is ``nbr[nstart[i] : nstart[i] + counts[i]]``, or ``nstart[i] = −1``
     when it was not kept (more than ``NL_CAP`` neighbours, or the list would
-    exceed ``max_pairs`` entries); a stick pass then scans the grid for it.
+    exceed ``max_pairs`` entries, or its block's scratch row is full); a stick
+    pass then scans the grid for it.
     Blocks are processed in waves of ``WAVE`` blocks; each wave fills a
     scratch row per block, then is copied (in parallel) into ``nbr``.
     """
@@ -465,7 +470,7 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     ly = lo[1]
     lz = lo[2]
     wave = WAVE if record else nb
-    lim = BLOCK * NL_CAP if record else 0
+    lim = BLOCK * NL_ROW if record else 0
     scr = np.empty((wave if record else 0, lim), np.int32)
     used = np.zeros(wave, np.int64)
     nbr = np.empty(0, np.int32)

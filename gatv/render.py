@@ -622,7 +622,29 @@ def add_axes_labels(plotter, xlabel: str = "x", ylabel: str = "y", zlabel: str =
     fs = _font_size(plotter, 12.0)
     plotter.show_bounds(bounds=bounds, xtitle=xlabel, ytitle=ylabel, ztitle=zlabel, color="#202020",
                         font_size=fs, font_family=_FONT, bold=False, location="outer", ticks="outside",
-                        n_xlabels=nx, n_ylabels=ny, n_zlabels=nz, fmt="%.4g", grid=False, use_3d_text=False)
+                        n_xlabels=nx, n_ylabels=ny, n_zlabels=nz, fmt=_tick_format(bounds, (nx, ny, nz)),
+                        grid=False, use_3d_text=False)
+
+
+def _tick_format(bounds, counts) -> str:
+    """printf format of tick labels: fixed decimals for fractional steps.
+
+    VTK computes the labels as ``lo + k * step`` in floating point, so a
+    zero tick can come out as ``2.776e-17`` under ``%g``; fixed decimals
+    (as many as the finest step needs) print it as ``0.0``.
+    """
+    steps = [(hi - lo) / max(1, n - 1) for lo, hi, n in zip(bounds[0::2], bounds[1::2], counts, strict=True)]
+    finest = min(step for step in steps if step > 0) if any(step > 0 for step in steps) else 1.0
+    if finest >= 1.0:
+        return "%.4g"
+    decimals = min(6, int(np.ceil(-np.log10(finest) - 1e-9)) + (0 if _is_decade(finest) else 1))
+    return f"%.{decimals}f"
+
+
+def _is_decade(step: float) -> bool:
+    """Whether ``step`` is 1, 2 or 5 times a power of ten with one significant digit (0.1, 0.2, 0.5)."""
+    mag = 10.0 ** np.floor(np.log10(step))
+    return any(abs(step - m * mag) <= 1e-9 * mag for m in (1.0, 2.0, 5.0))
 
 
 def add_legend(plotter, *, loc: str = "upper right"):

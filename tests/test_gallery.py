@@ -47,6 +47,7 @@ def test_gallery_has_figures():
     assert "fig08_joint_space.py" in names
     assert "fig12_three_motions.py" in names
     assert "fig13_twisted_plane.py" in names
+    assert "fig14_local_eq41.py" in names
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])

@@ -86,6 +86,7 @@ __all__ = [
     "render_registration",
     "render_motions",
     "render_segmentation",
+    "add_image_pair",
 ]
 
 #: Motion colours, in order (Okabe & Ito 2008, colour-blind safe; the
@@ -684,6 +685,115 @@ def add_legend(plotter, *, loc: str = "upper right"):
 def add_title(plotter, text: str, *, position: str = "upper_left"):
     """A title in the current panel's corner, scaled to its height."""
     plotter.add_text(text, position=position, font_size=_font_size(plotter, 10.0), color="black", font=_FONT)
+
+
+# ------------------------------------------------------------ image pairs
+def _grey(image, name: str) -> np.ndarray:
+    a = np.asarray(image, dtype=np.float64)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
+    if a.ndim != 2 or min(a.shape) < 2 or not np.all(np.isfinite(a)):
+        msg = f"Expected `{name}` to be a finite (H, W) grey or (H, W, 3) colour image, got shape {np.shape(image)}."
+        raise ValueError(msg)
+    return a
+
+
+def _pixels(pixels, name: str) -> np.ndarray:
+    p = np.asarray(pixels, dtype=np.float64)
+    if p.size == 0:
+        return np.empty((0, 2))
+    if p.ndim != 2 or p.shape[1] != 2:
+        msg = f"Expected `{name}` to have shape (N, 2), got {p.shape}."
+        raise ValueError(msg)
+    return p
+
+
+def add_image_pair(plotter, image1, image2, pixels1, pixels2, pairs=None, *, right=None, gap: float = 40.0,
+                   title: str | None = None, corner_color: str = PALETTE[4], right_color: str = PALETTE[2],
+                   wrong_color: str = PALETTE[1], size: float = 9.0, clim: tuple[float, float] | None = None):
+    """Two images side by side in the current panel, their corners and matched corners linked (Fig. 15).
+
+    Image 1 on the left, image 2 on the right, rows top to bottom as in an
+    image; every corner is a small dot, matched corners are larger discs
+    joined by a line. The panel gets a 2D camera (parallel projection)
+    framing both images.
+
+    Parameters
+    ----------
+    plotter : pyvista.Plotter
+    image1, image2 : (H, W) or (H, W, 3) array_like
+        Grey (or colour, drawn grey) images.
+    pixels1, pixels2 : (N1, 2), (N2, 2) array_like of float
+        Corner pixels ``(u, v)``: column, row.
+    pairs : (K, 2) array_like of int, optional
+        Matched rows of ``pixels1`` and ``pixels2``.
+    right : (K,) array_like of bool, optional
+        Which pairs are right (e.g. against a ground truth): drawn in
+        ``right_color``, the others in ``wrong_color``; default all in
+        ``right_color``.
+    gap : float, default: 40
+        Pixels between the two images.
+    title : str, optional
+        Panel title.
+    corner_color, right_color, wrong_color : str
+    size : float, default: 9
+        Disc diameter of a matched corner, pixels on screen.
+    clim : (float, float), optional
+        Grey values drawn black and white; default the images' range.
+
+    Notes
+    -----
+    The images are drawn at about the panel's resolution: averaged over
+    ``f x f`` blocks when the panel shows more than one image pixel per
+    screen pixel (the corners keep their sub-pixel positions).
+    """
+    import pyvista as pv
+
+    a, b = _grey(image1, "image1"), _grey(image2, "image2")
+    p1, p2 = _pixels(pixels1, "pixels1"), _pixels(pixels2, "pixels2")
+    c = _as_pairs(pairs if pairs is not None else np.empty((0, 2), np.int64), p1.shape[0], p2.shape[0])
+    ok = np.ones(c.shape[0], bool) if right is None else np.asarray(right, bool).reshape(-1)
+    if ok.shape[0] != c.shape[0]:
+        msg = f"Expected `right` to hold {c.shape[0]} flags, got {ok.shape[0]}."
+        raise ValueError(msg)
+    h = max(a.shape[0], b.shape[0])
+    dx = float(a.shape[1] + gap)
+    w = dx + b.shape[1]
+    lo, hi = (min(float(a.min()), float(b.min())), max(float(a.max()), float(b.max()))) if clim is None else clim
+    f = max(1, int(w // max(1.0, _panel_px(plotter)[0])))
+    for img, x0 in ((a, 0.0), (b, dx)):
+        ny, nx = img.shape[0] // f, img.shape[1] // f
+        small = img[: ny * f, : nx * f].reshape(ny, f, nx, f).mean(axis=(1, 3))
+        grid = pv.ImageData(dimensions=(nx, ny, 1), spacing=(f, f, 1.0),
+                            origin=(x0 + 0.5 * (f - 1), h - ny * f + 0.5 * (f - 1), 0.0))
+        grid.point_data["grey"] = small[::-1].ravel()
+        plotter.add_mesh(grid, scalars="grey", cmap="gray", clim=(lo, hi if hi > lo else lo + 1.0),
+                         show_scalar_bar=False, lighting=False)
+
+    def xyz(p, x0, z):
+        return np.column_stack([p[:, 0] + x0, (h - 1) - p[:, 1], np.full(len(p), z)])
+
+    q1, q2 = xyz(p1, 0.0, 1.0), xyz(p2, dx, 1.0)
+    for q, label in ((q1, "corners"), (q2, None)):
+        q = q[np.all(np.isfinite(q), axis=1)]
+        add_points(plotter, q, color=corner_color, size=max(2.0, 0.45 * size), label=label)
+    for flags, color, name in ((ok, right_color, "right"), (~ok, wrong_color, "wrong")):
+        if not flags.any():
+            continue
+        s, t = xyz(p1[c[flags, 0]], 0.0, 2.0), xyz(p2[c[flags, 1]], dx, 2.0)
+        add_correspondences(plotter, s, t, color=color, width=1.0, opacity=0.55)
+        add_points(plotter, np.vstack([s, t]), color=color, size=size,
+                   label=f"{int(flags.sum())} matches" + ("" if right is None else f", {name}"))
+    if title:
+        add_title(plotter, title)
+    plotter.enable_parallel_projection()
+    cam = plotter.camera
+    cam.focal_point = (w / 2.0, h / 2.0, 0.0)
+    cam.position = (w / 2.0, h / 2.0, 10.0 * w)
+    cam.up = (0.0, 1.0, 0.0)
+    pw, ph = _panel_px(plotter)
+    cam.parallel_scale = 0.5 * max(h * 1.16, w * ph / pw * 1.02)  # room for the title line
+    plotter.renderer.ResetCameraClippingRange()
 
 
 # ---------------------------------------------------------------- writing

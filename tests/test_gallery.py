@@ -48,6 +48,7 @@ def test_gallery_has_figures():
     assert "fig12_three_motions.py" in names
     assert "fig13_twisted_plane.py" in names
     assert "fig14_local_eq41.py" in names
+    assert "fig15_catadioptric.py" in names
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])
@@ -128,3 +129,12 @@ def test_make_all_runs_discovered_scripts(tmp_path, capsys):
     assert [r["script"] for r in records] == ["fig99_dummy.py"]
     out = capsys.readouterr().out
     assert "dummy numbers" in out and "dummy.png 64x48" in out
+
+
+@needs_rendering
+def test_fig15_leaves_out_the_real_pair_without_the_data(tmp_path, capsys):
+    r = _load(GALLERY / "fig15_catadioptric.py").main(tmp_path, size=(300, 160), data_dir=tmp_path / "absent")
+    assert "real_precision" not in r
+    assert "panel (b) left out" in capsys.readouterr().out
+    assert float(_pixels(r["pngs"][0]).astype(float).var()) > 20.0
+    assert r["synthetic_precision"] >= 0.9 and r["synthetic_recall"] >= 0.8

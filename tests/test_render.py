@@ -228,3 +228,36 @@ def test_cli_uses_render_segmentation(tmp_path, monkeypatch):
     empty = Segmentation((), np.full(3, -1), np.full(3, -1), np.empty((0, 2), int), np.empty(0, int))
     cli._render_segmentation(np.zeros((3, 3)), np.zeros((3, 3)), empty, tmp_path / "x.png")
     assert len(calls) == 1
+
+
+def test_add_image_pair_draws_images_corners_and_matches(tmp_path, rng):
+    image = np.tile(np.linspace(0.0, 255.0, 64), (48, 1))
+    p1 = rng.uniform([4, 4], [60, 44], (12, 2))
+    p2 = p1 + [1.5, -2.0]
+    pairs = np.c_[np.arange(8), np.arange(8)]
+    right = np.arange(8) < 6
+    pl = render.new_plotter((320, 160))
+    render.add_image_pair(pl, image, image, p1, p2, pairs, right=right, title="pair", size=10)
+    render.add_legend(pl, loc="lower right")
+    px = read_png(render.save(pl, tmp_path / "pair.png"))
+    assert px.shape == (160, 320, 3)
+    assert count_color(px, render.PALETTE[2]) > 50  # right matches
+    assert count_color(px, render.PALETTE[1]) > 10  # wrong matches
+    assert count_color(px, render.PALETTE[4]) > 0  # unmatched corners
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"image1": np.zeros(5)}, "`image1`"), ({"pixels2": np.zeros((3, 3))}, "`pixels2`"),
+     ({"right": [True]}, "`right`"), ({"pairs": [[0, 9]]}, "`pairs`")],
+)
+def test_add_image_pair_names_bad_input(kwargs, match):
+    args = {"image1": np.zeros((8, 8)), "image2": np.zeros((8, 8)), "pixels1": np.ones((3, 2)),
+            "pixels2": np.ones((3, 2)), "pairs": [[0, 0], [1, 1]]}
+    args.update(kwargs)
+    pl = render.new_plotter((64, 48))
+    try:
+        with pytest.raises(ValueError, match=match):
+            render.add_image_pair(pl, **args)
+    finally:
+        pl.close()

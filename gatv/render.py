@@ -9,7 +9,9 @@ functions used by the command line and the gallery:
 * :func:`render_motions` — several motions (Fig. 12 of Reyes, Medioni &
   Bayro, IJCV 2007), one colour per motion, an overview panel and one
   panel per motion; :func:`render_segmentation` draws a
-  :class:`gatv.motions.Segmentation` the same way.
+  :class:`gatv.motions.Segmentation` the same way;
+* :func:`add_image_pair` — two images side by side with their corners and
+  matched corners linked (the catadioptric pictures of Fig. 15).
 
 Style
 -----

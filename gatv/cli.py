@@ -1,4 +1,4 @@
-"""Command-line interface: ``gatv register``, ``gatv segment``, ``gatv nonrigid`` and ``gatv demo``.
+"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric`` and ``demo``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -115,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .nonrigid._cli import add_parser as add_nonrigid
 
     add_nonrigid(sub)
+    try:
+        from catadioptric._cli import add_parser as add_catadioptric
+    except ImportError:  # pragma: no cover - the second package is optional at run time
+        pass
+    else:
+        add_catadioptric(sub)
     return parser
 
 

@@ -33,13 +33,17 @@ ball pass and stick passes of section 3.3 extracting the plane — the
 paper's "optimised version" for small motions.
 
 Noise: with ``noise=None`` a schedule of tolerances is tried, from
-exact (relative 1e-6 of the point spacing) up to a fifth of the spacing;
-the first tolerance at which a motion beats the chance level wins.  Give
-``noise`` (standard deviation of the point noise, data units) to fix it.
+exact (relative 1e-6 of the point spacing) up to 5% of the spacing, in
+round robin (a chunk of triples at each in turn); the first tolerance at
+which a motion beats the chance level wins, and the tolerance then grows
+while the support does.  Give ``noise`` (standard deviation of the point
+noise, data units) for noisier data, or use :func:`gatv.register_scans`
+for real scans.
 """
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -54,7 +58,7 @@ from .motion import RigidMotion, fit_rigid
 __all__ = ["register"]
 
 #: Tolerances tried when ``noise`` is not given, relative to the spacing.
-NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05, 0.2)
+NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
 
 
 def _check_not_degenerate(points: np.ndarray, name: str) -> None:
@@ -430,46 +434,59 @@ def register(
     budget = int(min(need, 3 * n_possible if n_possible < 10**6 else need))
     if max_triples is not None:
         budget = min(budget, int(max_triples))
-    index = None
-    tried = []
-    for level, tol in enumerate(levels):
-        gate = _gate(tol)
-        if index is None:
-            index = TargetIndex(P.Y, gate, memory_budget=memory_budget)
-        else:
-            index.set_radius(gate)
-        eps = 2.0 * gate  # side-length tolerance: two points' noise per side
-
-        def stage(f, msg, level=level):
-            report((level + f) / len(levels), f"tolerance {tol:.3g}: {msg}")
-
-        trials = trial_motions(P.X, index, eps=eps, max_triples=budget, rng=rng,
-                               keep=n_judged, progress=stage)
-        tried.append({"tolerance": tol, "triples": trials.n_triples, "congruent": trials.n_congruent,
-                      "best_support": int(trials.support[0]) if len(trials) else 0,
-                      "threshold": trials.threshold})
-        if not len(trials) or trials.support[0] < trials.threshold:
-            continue
-        threshold = P.chance(gate)
-        for k in range(len(trials)):
-            if trials.support[k] < trials.threshold:
-                break
-            judged = _vote_judge(P, trials.rotations[k], trials.translations[k], tol, sigma,
-                                 max_candidates)
-            if judged is None:
+    # One index of the target's pair lengths; one scoring grid per tolerance.
+    base = TargetIndex(P.Y, _gate(levels[0]), memory_budget=memory_budget)
+    indexes = []
+    for tol in levels:
+        idx = copy.copy(base)
+        idx.set_radius(_gate(tol))
+        indexes.append(idx)
+    max_matches = 64
+    accept = [chance_support(n, P.Y.shape[0], idx.volume, idx.radius, n_tests=budget * max_matches)
+              for idx in indexes]
+    tried = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
+             for tol, a in zip(levels, accept)]
+    # Round robin over the tolerances, a chunk of triples each: a motion
+    # that shows at a coarse tolerance is not kept waiting for the whole
+    # budget of the finer, fruitless ones.
+    chunk = 1024
+    rounds = -(-budget // chunk)
+    for rnd in range(rounds):
+        m = min(chunk, budget - rnd * chunk)
+        for level, tol in enumerate(levels):
+            report((rnd * len(levels) + level) / (rounds * len(levels)),
+                   f"tolerance {tol:.3g}: {tried[level]['triples']} triples")
+            gate = _gate(tol)
+            eps = 2.0 * gate  # side-length tolerance: two points' noise per side
+            trials = trial_motions(P.X, indexes[level], eps=eps, max_triples=m, rng=rng,
+                                   keep=n_judged, max_matches=max_matches, accept=accept[level])
+            rec = tried[level]
+            rec["triples"] += trials.n_triples
+            rec["congruent"] += trials.n_congruent
+            if len(trials):
+                rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
+            if not len(trials) or trials.support[0] < accept[level]:
                 continue
-            R, t, kept, n_tokens, sig = judged
-            if kept.shape[0] < threshold:
-                continue
-            if refine:
-                R, t, kept = _refine(P, R, t, gate)
-            if noise is None:
-                R, t, kept, grown = _grow_tolerance(P, R, t, kept, levels, level)
-                tol = levels[grown]
-            info.update(tolerance=tol, sigma=sig, n_tokens=n_tokens, trials=tried,
-                        trial_support=int(trials.support[k]), chance_support=threshold,
-                        time_s=time.perf_counter() - t_start)
-            report(1.0, f"found {kept.shape[0]} correspondences")
-            return _result(P, R, t, kept, info)
+            threshold = P.chance(gate)
+            for k in range(len(trials)):
+                if trials.support[k] < accept[level]:
+                    break
+                judged = _vote_judge(P, trials.rotations[k], trials.translations[k], tol, sigma,
+                                     max_candidates)
+                if judged is None:
+                    continue
+                R, t, kept, n_tokens, sig = judged
+                if kept.shape[0] < threshold:
+                    continue
+                if refine:
+                    R, t, kept = _refine(P, R, t, gate)
+                if noise is None:
+                    R, t, kept, grown = _grow_tolerance(P, R, t, kept, levels, level)
+                    tol = levels[grown]
+                info.update(tolerance=tol, sigma=sig, n_tokens=n_tokens, trials=tried,
+                            trial_support=int(trials.support[k]), chance_support=threshold,
+                            time_s=time.perf_counter() - t_start)
+                report(1.0, f"found {kept.shape[0]} correspondences")
+                return _result(P, R, t, kept, info)
     info.update(trials=tried, time_s=time.perf_counter() - t_start)
     return _failure("no trial motion beat the chance level", info)

@@ -249,3 +249,9 @@ def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
 def test_nonrigid_subcommand_is_wired(tmp_path, capsys):
     assert cli.main(["nonrigid", str(tmp_path / "nope.ply"), str(tmp_path / "b.ply")]) == 2
     _assert_one_error_line(capsys, "nope.ply")
+
+
+def test_catadioptric_subcommand_is_wired(tmp_path, capsys):
+    args = ["catadioptric", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--camera", "c.json"]
+    assert cli.main(args) == 2
+    _assert_one_error_line(capsys, "a.png")

@@ -446,15 +446,23 @@ def register(
               for idx in indexes]
     tried = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
              for tol, a in zip(levels, accept)]
-    # Round robin over the tolerances, a chunk of triples each: a motion
-    # that shows at a coarse tolerance is not kept waiting for the whole
-    # budget of the finer, fruitless ones.
-    chunk = 1024
-    rounds = -(-budget // chunk)
-    for rnd in range(rounds):
-        m = min(chunk, budget - rnd * chunk)
+    # Round robin over the tolerances with an equal share of work each: a
+    # motion that shows at a coarse tolerance is not kept waiting for the
+    # whole budget of the finer, fruitless ones, and a coarse tolerance
+    # (many congruent but wrong triangles, each scored on every point) does
+    # not slow down an exact one.  Work is counted deterministically, in
+    # microsecond-like units: 1 per triple drawn plus (2 + 0.03 n) per
+    # congruent triangle scored, so the same seed gives the same result.
+    share = 20000.0
+    done = [0] * len(levels)
+    per_triple = [share / 64.0] * len(levels)  # first chunk: 64 triples, then measured
+    while min(done) < budget:
         for level, tol in enumerate(levels):
-            report((rnd * len(levels) + level) / (rounds * len(levels)),
+            if done[level] >= budget:
+                continue
+            m = int(min(budget - done[level], max(16, min(4096, share / per_triple[level]))))
+            done[level] += m
+            report(sum(done) / (budget * len(levels)),
                    f"tolerance {tol:.3g}: {tried[level]['triples']} triples")
             gate = _gate(tol)
             eps = 2.0 * gate  # side-length tolerance: two points' noise per side
@@ -463,6 +471,7 @@ def register(
             rec = tried[level]
             rec["triples"] += trials.n_triples
             rec["congruent"] += trials.n_congruent
+            per_triple[level] = 1.0 + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

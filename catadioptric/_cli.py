@@ -18,11 +18,18 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["add_parser", "run"]
+from gatv.cli import (  # one set of conventions for every subcommand
+    _IMAGE_EXTENSIONS,
+    EXIT_FAILED,
+    EXIT_OK,
+    EXIT_USAGE,
+    PROG,
+    _check_output,
+    _error,
+    _one_line,
+)
 
-PROG = "gatv"
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
-_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+__all__ = ["add_parser", "run"]
 
 
 def add_parser(subparsers):
@@ -52,27 +59,6 @@ def add_parser(subparsers):
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(handler=run)
     return p
-
-
-def _error(message: str) -> None:
-    print(f"{PROG}: error: {message}", file=sys.stderr, flush=True)
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def _check_output(path, what, extensions):
-    if path is None:
-        return
-    if extensions is not None and path.suffix.lower() not in extensions:
-        raise ValueError(f"{path}: cannot write {what} as {path.suffix or 'a file without extension'!r}; "
-                         f"expected one of {', '.join(extensions)}.")
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ValueError(f"{path}: cannot write {what}: folder {str(folder)!r} does not exist.")
-    if path.is_dir():
-        raise ValueError(f"{path}: cannot write {what}: is a folder.")
 
 
 def _mirror_mask(camera, shape):

@@ -261,10 +261,11 @@ def _grow_tolerance(P: _Problem, R, t, kept, levels, level):
     return R, t, kept, level
 
 
-def _result(P, R, t, pairs, info, score=None) -> RigidMotion:
+def _result(X, Y, R, t, pairs, info, score=None) -> RigidMotion:
+    """The :class:`RigidMotion` for correspondences ``pairs`` between ``X`` and ``Y``."""
     order = np.argsort(pairs[:, 0], kind="stable")
     pairs = pairs[order]
-    res = P.Y[pairs[:, 1]] - (P.X[pairs[:, 0]] @ R.T + t)
+    res = Y[pairs[:, 1]] - (X[pairs[:, 0]] @ R.T + t)
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if pairs.size else float("nan")
     return RigidMotion(rotation=R, translation=t, correspondences=pairs,
                        score=float(pairs.shape[0] if score is None else score), rms=rms, info=info)
@@ -308,7 +309,7 @@ def _bounded(P, max_angle, max_translation, levels, sigma, refine, memory_budget
                 R, t, kept, grown = _grow_tolerance(P, R, t, kept, levels, levels.index(tol))
                 tol = levels[grown]
             info.update(tolerance=tol, sigma=float(surf.sigma))
-            return _result(P, R, t, kept, info, score=float(np.mean(surf.surfaceness)))
+            return _result(P.X, P.Y, R, t, kept, info, score=float(np.mean(surf.surfaceness)))
     return None
 
 
@@ -496,6 +497,6 @@ def register(
                             trial_support=int(trials.support[k]), chance_support=threshold,
                             time_s=time.perf_counter() - t_start)
                 report(1.0, f"found {kept.shape[0]} correspondences")
-                return _result(P, R, t, kept, info)
+                return _result(P.X, P.Y, R, t, kept, info)
     info.update(trials=tried, time_s=time.perf_counter() - t_start)
     return _failure("no trial motion beat the chance level", info)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import registration as _reg
 from ._validation import as_points, check_positive
@@ -110,8 +111,6 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
 
     Returns ``(rotation, translation)``.
     """
-    from scipy.spatial import cKDTree
-
     from .ga import Rotor
 
     tree = cKDTree(target) if tree is None else tree
@@ -178,6 +177,10 @@ def register_scans(
         Smallest share of downsampled source points expected to have a
         partner; sets the number of source triples drawn (with
         ``confidence``).
+    confidence : float, default: 0.999
+        Probability of drawing one source triple of overlapping points.
+    max_triples : int, optional
+        Hard cap on the source triples drawn.
     feature_tol : float, default: 0.15
         Tolerance on the normal invariants ``|n·u|`` and ``|n_i·n_j|``.
     n_judged : int, default: 4
@@ -243,7 +246,6 @@ def register_scans(
     info.update(triples=trials.n_triples, congruent=trials.n_congruent,
                 t_trials=time.perf_counter() - t0)
     if not len(trials):
-        info["reason"] = "no congruent triples"
         return _reg._failure("no congruent triples", info)
 
     # Tensor voting judges the best trials on the downsampled sets.
@@ -265,8 +267,6 @@ def register_scans(
     # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
     # the tensor-voting normals of the target's surface points.
     report(0.85, "refine")
-    from scipy.spatial import cKDTree
-
     fine = 3.0 * median_spacing(Ys)
     g = gate
     tree = cKDTree(Ys)
@@ -284,8 +284,6 @@ def register_scans(
     kept = pairs[_reg.one_to_one(pairs, dist[ok])]
     # Correspondences index the input points.
     kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)
-    Pin = _reg._Problem.__new__(_reg._Problem)
-    Pin.X, Pin.Y = X, Y
     info.update(final_gate=g, time_s=time.perf_counter() - t0)
     report(1.0, f"{kept.shape[0]} correspondences")
-    return _reg._result(Pin, R, t, kept, info)
+    return _reg._result(X, Y, R, t, kept, info)

@@ -54,6 +54,7 @@ from scipy.stats import poisson
 
 from catadioptric.camera import UnifiedCamera
 from gatv.candidates import one_to_one
+from gatv._validation import frozen_array as _frozen
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -65,12 +66,6 @@ __all__ = ["SphereMatch", "match", "sphere_noise"]
 GATE_SIGMAS = 3.03
 #: Neighbours per ray for the local triangles of the rotation search.
 TRIANGLE_NEIGHBOURS = 6
-
-
-def _frozen(a, dtype=np.float64):
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,6 +11,7 @@ import numbers
 import numpy as np
 
 __all__ = [
+    "frozen_array",
     "as_points",
     "as_vectors",
     "check_positive",
@@ -23,6 +24,13 @@ __all__ = [
 #: Override per call with ``memory_budget=`` or globally with the environment
 #: variable ``GATV_MEMORY_BUDGET`` (bytes, e.g. ``8e9``).
 DEFAULT_MEMORY_BUDGET = 4 * 1024**3
+
+
+def frozen_array(a, dtype=np.float64) -> np.ndarray:
+    """A read-only copy of ``a`` as ``dtype``: the arrays of frozen result dataclasses."""
+    a = np.array(a, dtype=dtype)
+    a.setflags(write=False)
+    return a
 
 
 def _memory_budget(budget: float | None) -> float:

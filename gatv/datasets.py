@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .motion import rotation_angle_deg
+from ._validation import frozen_array as _frozen
 
 __all__ = [
     "Trial",
@@ -42,12 +43,6 @@ __all__ = [
     "demo_mesh",
     "DEMO_MESHES",
 ]
-
-
-def _frozen(a, dtype=np.float64) -> np.ndarray:
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)

@@ -7,14 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ga import Rotor
+from .._validation import frozen_array as _frozen
 
 __all__ = ["MotionScene", "multi_motion_scene", "fig12_scene"]
-
-
-def _frozen(a, dtype=np.float64) -> np.ndarray:
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)

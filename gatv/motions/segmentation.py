@@ -68,16 +68,11 @@ from ..registration import (
     _refine,
     _vote_judge,
 )
+from .._validation import frozen_array as _frozen
 
 __all__ = ["Segmentation", "segment", "joint_space_residuals"]
 
 GROUPINGS = ("graph", "greedy")
-
-
-def _frozen(a, dtype) -> np.ndarray:
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)

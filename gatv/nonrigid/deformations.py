@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import as_points, check_positive
+from .._validation import frozen_array as _frozen
 
 __all__ = [
     "sample_plane",
@@ -301,12 +302,6 @@ def rigid(points, angle: float, *, axis=(0.0, 0.0, 1.0), translation=(0.0, 0.0, 
         msg = f"Expected `translation` to be 3 finite numbers, got {translation!r}."
         raise ValueError(msg)
     return _rotate_about(p - c, a, np.full(p.shape[0], _angle(angle, "angle"))) + c + t
-
-
-def _frozen(a, dtype=np.float64) -> np.ndarray:
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)

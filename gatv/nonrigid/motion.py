@@ -16,14 +16,9 @@ import numpy as np
 
 from .._validation import as_points
 from ..ga import Rotor
+from .._validation import frozen_array as _frozen
 
 __all__ = ["NonRigidMotion", "Diagnostics", "ThinPlateWarp"]
-
-
-def _frozen(a, dtype=np.float64) -> np.ndarray:
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 class ThinPlateWarp:

@@ -19,12 +19,11 @@ import time
 from pathlib import Path
 
 from gatv.cli import (  # one set of conventions for every subcommand
-    _IMAGE_EXTENSIONS,
     EXIT_FAILED,
     EXIT_OK,
     EXIT_USAGE,
     PROG,
-    _check_output,
+    _check_outputs,
     _error,
     _one_line,
 )
@@ -74,18 +73,12 @@ def _mirror_mask(camera, shape):
 
 
 def _run(args) -> int:
-    import numpy as np
-
     from catadioptric.camera import UnifiedCamera
     from catadioptric.corners import detect_corners, read_image
     from catadioptric.matching import match
     from gatv.io import atomic_path, to_jsonable, write_json
 
-    _check_output(args.out, "the result", None)
-    _check_output(args.render, "a picture", _IMAGE_EXTENSIONS)
-    outs = [p.resolve() for p in (args.out, args.render) if p is not None]
-    if len(set(outs)) != len(outs):
-        raise ValueError("--out and --render must name different files.")
+    outs = _check_outputs(args)
     inputs = [args.image1, args.image2, args.camera] + ([args.camera2] if args.camera2 else [])
     for path in inputs:
         if not path.is_file():

@@ -235,57 +235,9 @@ def _summary(motion, seconds: float) -> list[str]:
     return lines
 
 
-def _render_fallback(source, target, motion, path) -> None:
-    """A minimal off-screen picture: aligned source, target, correspondences."""
-    import pyvista as pv
-
-    from .io import _quiet_vtk
-
-    moved = motion.transform(source)
-    with _quiet_vtk():
-        plotter = pv.Plotter(off_screen=True, window_size=(1024, 768))
-        try:
-            plotter.set_background("white")
-            target = np.asarray(target)
-            c = motion.correspondences
-            matched = np.zeros(len(target), bool)
-            matched[c[:, 1]] = True
-            if (~matched).any():
-                plotter.add_points(
-                    target[~matched], color="royalblue", point_size=5,
-                    render_points_as_spheres=True, label="target",
-                )
-            moved_free = np.ones(len(moved), bool)
-            moved_free[c[:, 0]] = False
-            if moved_free.any():
-                plotter.add_points(
-                    moved[moved_free], color="orangered", point_size=5,
-                    render_points_as_spheres=True, label="source, aligned",
-                )
-            if len(c):
-                plotter.add_points(
-                    target[c[:, 1]], color="forestgreen", point_size=9,
-                    render_points_as_spheres=True, label="matched pairs",
-                )
-                seg = np.empty((2 * len(c), 3))
-                seg[0::2] = moved[c[:, 0]]
-                seg[1::2] = target[c[:, 1]]
-                plotter.add_mesh(pv.line_segments_from_points(seg), color="black", line_width=1)
-            plotter.add_legend(bcolor="white")
-            plotter.add_text(
-                f"{motion.support} correspondences, rotation {motion.angle_deg:.2f} deg",
-                font_size=10, color="black",
-            )
-            plotter.screenshot(str(path))
-        finally:
-            plotter.close()
-
-
 def _render(source, target, motion, path) -> None:
-    try:
-        from gatv.render import render_registration
-    except ImportError:
-        render_registration = _render_fallback
+    from .render import render_registration
+
     render_registration(source, target, motion, path)
 
 
@@ -344,15 +296,25 @@ def _run(args, source, target, inputs: dict, extra: dict | None = None) -> tuple
     return (EXIT_OK if ok else EXIT_FAILED), motion
 
 
-def _check_outputs(args) -> None:
+def _check_outputs(args) -> list[Path]:
+    """Fail before any work if an output (--out, --aligned, --render) cannot be written.
+
+    Serves every subcommand: only the output options its parser has are
+    checked.  Returns the resolved paths of the outputs asked for.
+    """
     from .io import WRITE_EXTENSIONS
 
-    _check_output(args.out, "the result", None)
-    _check_output(args.aligned, "aligned points", WRITE_EXTENSIONS)
-    _check_output(args.render, "a picture", _IMAGE_EXTENSIONS)
-    outs = [p.resolve() for p in (args.out, args.aligned, args.render) if p is not None]
+    kinds = (("out", "the result", None), ("aligned", "aligned points", WRITE_EXTENSIONS),
+             ("render", "a picture", _IMAGE_EXTENSIONS))
+    present = [(dest, what, ext) for dest, what, ext in kinds if hasattr(args, dest)]
+    for dest, what, ext in present:
+        _check_output(getattr(args, dest), what, ext)
+    outs = [getattr(args, dest).resolve() for dest, _, _ in present if getattr(args, dest) is not None]
     if len(set(outs)) != len(outs):
-        raise _Usage("--out, --aligned and --render must name different files.")
+        flags = [f"--{dest}" for dest, _, _ in present]
+        names = ", ".join(flags[:-1]) + " and " + flags[-1]
+        raise _Usage(f"{names} must name different files.")
+    return outs
 
 
 # ----------------------------------------------------------------- commands
@@ -405,56 +367,16 @@ def _cmd_demo(args) -> int:
     return status
 
 
-def _render_segmentation_fallback(source, target, segmentation, path) -> None:
-    """Fig. 12 style: target points coloured by motion, each motion's source moved onto them."""
-    import pyvista as pv
-
-    from .io import _quiet_vtk
-
-    colours = ("orangered", "royalblue", "forestgreen", "gold", "darkviolet", "deeppink", "darkcyan",
-               "saddlebrown", "olive", "navy")
-    source, target = np.asarray(source), np.asarray(target)
-    with _quiet_vtk():
-        plotter = pv.Plotter(off_screen=True, window_size=(1024, 768))
-        try:
-            plotter.set_background("white")
-            free = segmentation.target_labels < 0
-            if free.any():
-                plotter.add_points(target[free], color="lightgrey", point_size=4,
-                                   render_points_as_spheres=True, label="unexplained")
-            for k, motion in enumerate(segmentation.motions):
-                c = motion.correspondences
-                colour = colours[k % len(colours)]
-                plotter.add_points(target[c[:, 1]], color=colour, point_size=9, render_points_as_spheres=True,
-                                   label=f"motion {k}: {motion.angle_deg:.1f} deg, {motion.support} pts")
-                seg = np.empty((2 * len(c), 3))
-                seg[0::2] = source[c[:, 0]]
-                seg[1::2] = target[c[:, 1]]
-                plotter.add_mesh(pv.line_segments_from_points(seg), color=colour, line_width=1, opacity=0.5)
-            plotter.add_legend(bcolor="white")
-            plotter.add_text(f"{len(segmentation.motions)} motions (lines: source -> target)",
-                             font_size=10, color="black")
-            plotter.screenshot(str(path))
-        finally:
-            plotter.close()
-
-
 def _render_segmentation(source, target, segmentation, path) -> None:
-    try:
-        from gatv.render import render_segmentation
-    except ImportError:
-        render_segmentation = _render_segmentation_fallback
+    from .render import render_segmentation
+
     render_segmentation(source, target, segmentation, path)
 
 
 def _cmd_segment(args) -> int:
     from .io import atomic_path, read_points, to_jsonable, write_json
 
-    _check_output(args.out, "the result", None)
-    _check_output(args.render, "a picture", _IMAGE_EXTENSIONS)
-    outs = [p.resolve() for p in (args.out, args.render) if p is not None]
-    if len(set(outs)) != len(outs):
-        raise _Usage("--out and --render must name different files.")
+    _check_outputs(args)
     if args.max_motions is not None and args.max_motions < 1:
         raise _Usage(f"expected --max-motions >= 1, got {args.max_motions}.")
     source = read_points(args.source)

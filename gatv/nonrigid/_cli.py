@@ -16,12 +16,11 @@ import time
 from pathlib import Path
 
 from gatv.cli import (  # one set of conventions for every subcommand
-    _IMAGE_EXTENSIONS,
     EXIT_FAILED,
     EXIT_OK,
     EXIT_USAGE,
     PROG,
-    _check_output,
+    _check_outputs,
     _error,
     _one_line,
 )
@@ -76,11 +75,7 @@ def _run(args) -> int:
     from ..io import atomic_path, read_points, to_jsonable, write_json
     from .registration import register
 
-    _check_output(args.out, "the result", None)
-    _check_output(args.render, "a picture", _IMAGE_EXTENSIONS)
-    outs = [p.resolve() for p in (args.out, args.render) if p is not None]
-    if len(set(outs)) != len(outs):
-        raise ValueError("--out and --render must name different files.")
+    outs = _check_outputs(args)
     source = read_points(args.source)
     target = read_points(args.target)
     for out in outs:

@@ -237,8 +237,12 @@ def test_eigensolver_matches_numpy(seed, pattern):
     w = np.linalg.eigvalsh(a)[:, ::-1]
     assert np.all(np.diff(vals, axis=1) <= 0)
     # closed-form eigenvalues are accurate to ~1e-15 relative when distinct and
-    # to ~sqrt(eps) for (near-)repeated ones (acos near ±1)
-    tol = 1e-12 if pattern == "distinct" else 1e-7
+    # to ~sqrt(eps) for (near-)repeated ones (acos near ±1).  Random draws of the
+    # "distinct" pattern can put two eigenvalues within 1e-6 of each other
+    # (seed 1222): those rows are near-repeated and held to that bound.
+    gap = np.diff(np.sort(d, axis=1), axis=1).min(axis=1) / np.abs(d).max(axis=1)
+    separated = (gap >= 1e-3)[:, None] if pattern == "distinct" else np.zeros((n, 1), bool)
+    tol = np.where(separated, 1e-12, 1e-7)
     assert np.all(np.abs(vals - w) <= tol * scale)
     np.testing.assert_allclose(np.einsum("nji,njk->nik", vecs, vecs), np.broadcast_to(np.eye(3), a.shape), atol=1e-12)
     rec = np.einsum("nij,nj,nkj->nik", vecs, vals, vecs)

@@ -520,3 +520,14 @@ def test_extract_surfaces_memory_budget_only_drops_the_neighbour_lists(monkeypat
     b = extract_surfaces(pts, memory_budget=api.BYTES_PER_TOKEN * len(pts) * 1.05 + 2**22)
     np.testing.assert_array_equal(a.indices, b.indices)
     np.testing.assert_allclose(a.normals, b.normals, atol=1e-12)
+
+
+def test_eigensolver_triple_eigenvalue_off_by_one_ulp():
+    """A diagonal tensor whose entries differ in the last bit has finite eigenvectors."""
+    a = np.diag([-0.001655593145704745, -0.001655593145704745, -0.0016555931457047453])[None]
+    vals = np.empty((1, 3))
+    vecs = np.empty((1, 3, 3))
+    eig3_batch(_comp(a), vals, vecs)
+    assert np.all(np.isfinite(vecs))
+    np.testing.assert_allclose(vecs[0].T @ vecs[0], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(vals[0], np.diag(a[0])[::-1], rtol=1e-12)

@@ -47,6 +47,11 @@ def _evec_single(a00, a01, a02, a11, a12, a22, lam):
     d0 = c0x * c0x + c0y * c0y + c0z * c0z
     d1 = c1x * c1x + c1y * c1y + c1z * c1z
     d2 = c2x * c2x + c2y * c2y + c2z * c2z
+    if d0 == 0.0 and d1 == 0.0 and d2 == 0.0:
+        # A − λI vanished in rounding (λ is, to the last bit, a triple
+        # eigenvalue that the exact test of _eigvals missed): every unit
+        # vector is an eigenvector; without this the division gives NaN.
+        return 1.0, 0.0, 0.0
     if d0 >= d1 and d0 >= d2:
         s = 1.0 / math.sqrt(d0)
         return c0x * s, c0y * s, c0z * s

@@ -3,11 +3,11 @@
 Arrays and scalars in, arrays out; float64 throughout; no Python objects.
 Tensors are stored as 6 components ``(xx, xy, xz, yy, yz, zz)``.
 
-Every kernel is ``@njit(cache=True)``; only the outer loops over votees or
-tokens are ``prange``.  Voting uses the *gather* formulation: each votee sums
-the votes of the tokens in the grid cells around it, so the parallel loop
-writes only to its own row and the result does not depend on the number of
-threads (the order of the sums is fixed).
+Every kernel is ``@njit(cache=True)``; only the outer loops over chunks of
+tokens or over tokens are ``prange``.  Voting visits each pair of tokens once
+and adds its votes to both (see the comment above :func:`ball_pass`); the
+chunking that keeps the parallel loop race-free also fixes the order of every
+sum, so the result does not depend on the number of threads.
 """
 
 from __future__ import annotations
@@ -235,358 +235,6 @@ def eig3_top_batch(t6, vals, e1):
         e1[i, 2] = ez
 
 
-# ---------------------------------------------------------------------------
-# Sparse voting (gather).  ``xs, ys, zs`` are the tokens sorted by grid cell
-# (structure of arrays), ``cix, ciy, ciz`` their integer cells and ``start``
-# the run of each cell (dense) or hash bucket (hashed); see ``_grid.py``.
-# Outputs are in sorted order.
-#
-# Each votee works in two steps so that the expensive field evaluation runs
-# as a branch-free, vectorisable loop over a dense buffer:
-#
-# 1. *collect*: scan the candidate runs (the 5×5 x-rows of cells around the
-#    votee, each trimmed to the voting sphere) and append every token with
-#    ``d² < r²`` to a small per-thread buffer by branch-free compaction
-#    (always store at ``cnt``, then ``cnt += inside``);
-# 2. *flush*: evaluate the votes of the buffered tokens and add them to the
-#    votee's accumulator (a fixed-order, deterministic reduction).
-#
-# The buffer holds ``CAP`` tokens; it is flushed early when a run would not
-# fit, so any number of neighbours is handled.
-# ---------------------------------------------------------------------------
-
-_H1 = 73856093
-_H2 = 19349663
-_H3 = 83492791
-BLOCK = 256
-#: Capacity of the per-thread neighbour buffer.
-CAP = 256
-#: Largest neighbour list (self included) a votee may record in the ball pass.
-NL_CAP = 192
-#: Mean list length reserved per votee of a block (a block's scratch row holds
-#: BLOCK·NL_ROW entries; votees that no longer fit are scanned by the stick pass).
-NL_ROW = 96
-#: Blocks per wave of the recording ball pass (scratch: WAVE·BLOCK·NL_ROW int32).
-#: Few waves: each ends with a barrier, costly when the cores are shared.
-WAVE = 64
-
-# The flush loops may reassociate their sums (vectorised reduction) and
-# contract a*b+c into FMAs: both change results by a few ulps only (relative
-# 1e-15, far below the 1e-12 budget), and the result stays identical from run
-# to run (the code path does not depend on the number of threads).
-_FLUSH_FLAGS = {"reassoc", "contract"}
-
-
-@njit(cache=True, inline="always")
-def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r2):
-    """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz).
-
-    ``xl, yl, zl``: votee in box-local coordinates (as the binning computed
-    them).  Dense layout: the row is skipped when its y–z extent is already
-    farther than the voting radius from the votee, and its x-range is trimmed
-    to the cells the radius can reach (slack of 1e-6 cell so rounding never
-    drops a token; the exact ``d² < r²`` test follows anyway).
-    """
-    if hashed:
-        cx = ix - m + kx
-        b = ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
-        return start[b], start[b + 1], cx
-    y0 = cy * h
-    z0 = cz * h
-    slack = 1e-6 * h
-    ddy = max(max(y0 - yl, yl - (y0 + h)) - slack, 0.0)
-    ddz = max(max(z0 - zl, zl - (z0 + h)) - slack, 0.0)
-    rem = r2 - ddy * ddy - ddz * ddz
-    if rem <= 0.0:
-        return 0, 0, -1
-    ext = math.sqrt(rem) + slack
-    xa = (xl - ext) * inv_h
-    xb = (xl + ext) * inv_h
-    x0 = max(ix - m, 0)
-    x1 = min(ix + m, nx - 1)
-    if xa > x0:
-        x0 = int(xa)
-    if xb < x1:
-        x1 = int(xb)
-    if x1 < x0:
-        return 0, 0, -1
-    base = nx * (cy + ny * cz)
-    return start[base + x0], start[base + x1 + 1], -1
-
-
-@njit(cache=True, inline="always")
-def _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1):
-    t6[i, 0] = a00
-    t6[i, 1] = a01
-    t6[i, 2] = a02
-    t6[i, 3] = a11
-    t6[i, 4] = a12
-    t6[i, 5] = a22
-    l1, l2, l3, ex, ey, ez = eig3_top(a00, a01, a02, a11, a12, a22)
-    vals[i, 0] = l1
-    vals[i, 1] = l2
-    vals[i, 2] = l3
-    e1[i, 0] = ex
-    e1[i, 1] = ey
-    e1[i, 2] = ez
-
-
-@njit(cache=True, inline="always", boundscheck=False)
-def _collect(xs, ys, zs, ws, use_w, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1,
-             xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt, nxs, nys, nzs, bnx, bny, bnz, bw):
-    """Append the tokens of ``[j0, j1)`` inside the voting sphere to the buffer.
-
-    Offsets are stored as votee − voter; with ``use_w`` the voter's normal
-    ``(nxs, nys, nzs)[j]`` and weight ``ws[j]`` go to ``bnx, bny, bnz, bw``
-    (unused otherwise).  Branch-free compaction; the caller
-    guarantees ``cnt + (j1 − j0) ≤ CAP``.  Unsigned indices spare numba's
-    negative-index wraparound code.
-    """
-    c = np.uint64(cnt)
-    for j in range(np.uint64(j0), np.uint64(j1)):
-        dx = xi - xs[j]
-        dy = yi - ys[j]
-        dz = zi - zs[j]
-        d2 = dx * dx + dy * dy + dz * dz
-        bj[c] = j
-        bdx[c] = dx
-        bdy[c] = dy
-        bdz[c] = dz
-        ok = d2 < r2
-        if use_w:
-            # the voter's normal and weight too: the flush then reads only
-            # contiguous buffers (vector gathers are slow on this hardware)
-            w = ws[j]
-            bnx[c] = nxs[j]
-            bny[c] = nys[j]
-            bnz[c] = nzs[j]
-            bw[c] = w
-            ok = ok & (w != 0.0)
-        if hashed:
-            ok = ok & (cix[j] == cx) & (ciy[j] == cy) & (ciz[j] == cz)
-        c += np.uint64(ok)
-    return np.int64(c)
-
-
-@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
-def _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb):
-    """Sum of the ball votes at the buffered offsets (branch-free).
-
-    ``tab[k] = (A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (see
-    :func:`ball_table4`): one cache line per lookup, same interpolant as
-    ``A[k] + (A[k+1] − A[k])·f``.  The lookups run in a scalar loop first
-    (into ``ba, bb``; vector gathers are slow on this hardware), then the
-    votes in a vectorised loop over contiguous buffers.
-    """
-    c = np.uint64(0)
-    for k in range(np.uint64(0), np.uint64(cnt)):
-        dx = bdx[k]
-        dy = bdy[k]
-        dz = bdz[k]
-        q = (dx * dx + dy * dy + dz * dz) * tscale
-        i = np.uint64(q)
-        f = q - i
-        ba[c] = tab[i, 0] + tab[i, 1] * f
-        bb[c] = tab[i, 2] + tab[i, 3] * f
-        c += np.uint64(q >= 0.0)  # always 1, but keeps the loop scalar (no gathers)
-    s00 = 0.0
-    s01 = 0.0
-    s02 = 0.0
-    s11 = 0.0
-    s12 = 0.0
-    s22 = 0.0
-    for k in range(cnt):
-        dx = bdx[k]
-        dy = bdy[k]
-        dz = bdz[k]
-        d2 = dx * dx + dy * dy + dz * dz
-        a = ba[k]
-        b = bb[k]
-        pos = d2 > 0.0
-        # l = 0: the isotropic average, exactly the identity
-        g = (a - b) / (d2 if pos else 1.0)
-        g = g if pos else 0.0
-        b = b if pos else 1.0
-        cx = g * dx
-        cy = g * dy
-        s00 += b + cx * dx
-        s01 += cx * dy
-        s02 += cx * dz
-        s11 += b + cy * dy
-        s12 += cy * dz
-        s22 += b + g * dz * dz
-    return s00, s01, s02, s11, s12, s22
-
-
-@njit(cache=True, inline="always", boundscheck=False)
-def _record(bj, cnt, scr, row, pos, lim):
-    """Append ``bj[:cnt]`` to ``scr[row, pos:]``; returns the new end, or −1 if over ``lim``."""
-    if pos < 0 or pos + cnt > lim:
-        return -1
-    for k in range(cnt):
-        scr[row, pos + k] = np.int32(bj[k])
-    return pos + cnt
-
-
-@njit(cache=True, boundscheck=False)
-def _copy_prefix(src, dst, n):
-    for k in range(n):
-        dst[k] = src[k]
-
-
-@njit(cache=True, parallel=True, boundscheck=False)
-def _publish(scr, used, nbr, base, w0, wn, stride, nb, n, nstart):
-    """Copy the wave's scratch rows into ``nbr`` at ``base`` and make ``nstart`` global."""
-    for tt in prange(wn):
-        b = base[tt]
-        if b < 0:
-            continue
-        u = used[tt]
-        for k in range(u):
-            nbr[b + k] = scr[tt, k]
-        blk = ((w0 + tt) * stride) % nb
-        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-            if nstart[i] >= 0:
-                nstart[i] += b
-
-
-@njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
-def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, stride, t6, vals, e1, counts, nstart, record, max_pairs):
-    """Sparse ball voting with eigen-analysis fused at the end of each votee.
-
-    Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
-    is included, so a lone token ends with the identity.
-
-    With ``record`` the neighbours of each votee (self included, in scan
-    order) are also written to the returned int32 array ``nbr``: votee ``i``'s
-    list is ``nbr[nstart[i] : nstart[i] + counts[i]]``, or ``nstart[i] = −1``
-    when it was not kept (more than ``NL_CAP`` neighbours, or the list would
-    exceed ``max_pairs`` entries, or its block's scratch row is full); a stick
-    pass then scans the grid for it.
-    Blocks are processed in waves of ``WAVE`` blocks; each wave fills a
-    scratch row per block, then is copied (in parallel) into ``nbr``.
-    """
-    n = xs.shape[0]
-    nb = (n + BLOCK - 1) // BLOCK
-    nruns = 2 * m + 1 if hashed else 1
-    inv_h = 1.0 / h
-    lx = lo[0]
-    ly = lo[1]
-    lz = lo[2]
-    wave = WAVE if record else nb
-    lim = BLOCK * NL_ROW if record else 0
-    scr = np.empty((wave if record else 0, lim), np.int32)
-    used = np.zeros(wave, np.int64)
-    nbr = np.empty(0, np.int32)
-    filled = 0
-    done = 0
-    for w0 in range(0, nb, wave):
-        wn = min(wave, nb - w0)
-        for tt in prange(wn):
-            blk = ((w0 + tt) * stride) % nb  # interleave blocks across threads (load balance)
-            bj = np.empty(CAP, np.int64)
-            bdx = np.empty(CAP)
-            bdy = np.empty(CAP)
-            bdz = np.empty(CAP)
-            ba = np.empty(CAP)
-            bb = np.empty(CAP)
-            pos = 0
-            for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-                xi = xs[i]
-                yi = ys[i]
-                zi = zs[i]
-                xl = xi - lx
-                yl = yi - ly
-                zl = zi - lz
-                ix = cix[i]
-                iy = ciy[i]
-                iz = ciz[i]
-                a00 = 0.0
-                a01 = 0.0
-                a02 = 0.0
-                a11 = 0.0
-                a12 = 0.0
-                a22 = 0.0
-                total = 0
-                cnt = 0
-                p0 = pos
-                p = pos if record else -1
-                plim = min(lim, p0 + NL_CAP)
-                for dz in range(-m, m + 1):
-                    cz = iz + dz
-                    if not hashed and (cz < 0 or cz >= nz):
-                        continue
-                    for dy in range(-m, m + 1):
-                        cy = iy + dy
-                        if not hashed and (cy < 0 or cy >= ny):
-                            continue
-                        for kx in range(nruns):
-                            j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
-                                              xl, yl, zl, h, inv_h, r2)
-                            j = j0
-                            while j < j1:
-                                room = CAP - cnt
-                                if j1 - j > room and cnt > 0:
-                                    s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb)
-                                    a00 += s00
-                                    a01 += s01
-                                    a02 += s02
-                                    a11 += s11
-                                    a12 += s12
-                                    a22 += s22
-                                    p = _record(bj, cnt, scr, tt, p, plim)
-                                    total += cnt
-                                    cnt = 0
-                                    room = CAP
-                                je = min(j1, j + room)
-                                cnt = _collect(xs, ys, zs, xs, False, cix, ciy, ciz, hashed, cx, cy, cz,
-                                               j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt,
-                                               xs, xs, xs, bdx, bdx, bdx, bdx)
-                                j = je
-                s00, s01, s02, s11, s12, s22 = _ball_flush(bdx, bdy, bdz, cnt, tab, tscale, ba, bb)
-                a00 += s00
-                a01 += s01
-                a02 += s02
-                a11 += s11
-                a12 += s12
-                a22 += s22
-                p = _record(bj, cnt, scr, tt, p, plim)
-                counts[i] = total + cnt
-                if p >= 0:
-                    nstart[i] = p0
-                    pos = p
-                else:
-                    nstart[i] = -1
-                _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
-            used[tt] = pos
-        if record:
-            # place the wave's rows (fixed order) in the growing list
-            base = np.empty(wn, np.int64)
-            need = filled
-            for tt in range(wn):
-                if need + used[tt] <= max_pairs:
-                    base[tt] = need
-                    need += used[tt]
-                else:
-                    base[tt] = -1
-            done += wn
-            if need > nbr.shape[0]:
-                est = need * nb // done + need // 8  # projected total from the blocks so far
-                cap = min(max(est, 2 * nbr.shape[0], need), max_pairs)
-                grown = np.empty(cap, np.int32)
-                _copy_prefix(nbr, grown, filled)
-                nbr = grown
-            _publish(scr, used, nbr, base, w0, wn, stride, nb, n, nstart)
-            for tt in range(wn):
-                if base[tt] < 0:  # over max_pairs: these votees stream
-                    blk = ((w0 + tt) * stride) % nb
-                    for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-                        nstart[i] = -1
-            filled = need
-    return nbr[:filled]
-
-
 @njit(cache=True, inline="always")
 def arcsin_ratio2(t):
     """``(asin(√t)/√t)² = (θ/sin θ)²`` for ``t = sin²θ ∈ [0, 1/2]``.
@@ -655,12 +303,313 @@ def exp_neg_small(x):
     return p * p
 
 
-@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
-def _stick_flush(bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2):
-    """Sum of the stick votes of the buffered voters (branch-free, masked cone).
+# ---------------------------------------------------------------------------
+# Sparse voting, each pair once.  ``xs, ys, zs`` are the tokens sorted by
+# grid cell (structure of arrays), ``cix, ciy, ciz`` their integer cells and
+# ``start`` the run of each cell (dense) or hash bucket (hashed); see
+# ``_grid.py``.  Outputs are in sorted order.
+#
+# Both votes between tokens i and j depend on the offset ``v = x_i − x_j``
+# only through ``|v|`` and ``v vᵀ`` (both are even in v), so a pair is visited
+# once, from its lower sorted index i: the *upper neighbours* of i are the
+# tokens j > i within the voting radius, found in the half-shell of rows
+# (dz > 0, or dz = 0 and dy ≥ 0; with dy = dz = 0 only j > i).  The ball vote
+# of the pair is computed once and added to both tokens; the stick pass
+# computes j → i and i → j with the shared distance.  i's own sum stays in
+# registers and is added to its row at the end; the votes for the j's are
+# scattered to their rows.
+#
+# Races.  In the dense layout a token only writes rows of cells at most
+# ``reach = m·(nx·ny + nx + 1)`` cell keys ahead of its own.  The tokens are
+# cut into *chunks* of ``reach`` consecutive keys; two chunks of the same
+# parity never write the same row, so the even chunks run in parallel, then
+# the odd ones.  The order of every sum is fixed by the chunking alone (it
+# does not depend on the number of threads), so results are reproducible.
+# The hashed layout (rare: huge boxes) runs as one chunk.
+#
+# Per votee the upper neighbours are first *collected* into a buffer of
+# indices (branch-free compaction: always store at ``cnt``, then
+# ``cnt += inside``), grown when a run would not fit, then the votes are
+# evaluated over the buffer.
+# ---------------------------------------------------------------------------
 
-    Offsets, normals and weights come from contiguous buffers only, so the
-    vectorised loop needs no gathers.
+_H1 = 73856093
+_H2 = 19349663
+_H3 = 83492791
+#: Initial capacity of the per-chunk neighbour buffers (grown on demand).
+CAP = 256
+#: Upper-neighbour list entries reserved per token when a ball pass records
+#: the lists for the stick pass (int32; the mean is ~k/2 at the default σ).
+NL_ROW = 48
+
+# The flush loops may reassociate their sums (vectorised reduction) and
+# contract a*b+c into FMAs: both change results by a few ulps only (relative
+# 1e-15, far below the 1e-12 budget), and the result stays identical from run
+# to run (the code path does not depend on the number of threads).
+_FLUSH_FLAGS = {"reassoc", "contract"}
+
+
+@njit(cache=True, inline="always")
+def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r2):
+    """Run ``[j0, j1)`` of sorted tokens for the kx-th x-run of row (cy, cz).
+
+    ``xl, yl, zl``: votee in box-local coordinates (as the binning computed
+    them).  Dense layout: the row is skipped when its y–z extent is already
+    farther than the voting radius from the votee, and its x-range is trimmed
+    to the cells the radius can reach (slack of 1e-6 cell so rounding never
+    drops a token; the exact ``d² < r²`` test follows anyway).
+    """
+    if hashed:
+        cx = ix - m + kx
+        b = ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
+        return start[b], start[b + 1], cx
+    y0 = cy * h
+    z0 = cz * h
+    slack = 1e-6 * h
+    ddy = max(max(y0 - yl, yl - (y0 + h)) - slack, 0.0)
+    ddz = max(max(z0 - zl, zl - (z0 + h)) - slack, 0.0)
+    rem = r2 - ddy * ddy - ddz * ddz
+    if rem <= 0.0:
+        return 0, 0, -1
+    ext = math.sqrt(rem) + slack
+    xa = (xl - ext) * inv_h
+    xb = (xl + ext) * inv_h
+    x0 = max(ix - m, 0)
+    x1 = min(ix + m, nx - 1)
+    if xa > x0:
+        x0 = int(xa)
+    if xb < x1:
+        x1 = int(xb)
+    if x1 < x0:
+        return 0, 0, -1
+    base = nx * (cy + ny * cz)
+    return start[base + x0], start[base + x1 + 1], -1
+
+
+@njit(cache=True, boundscheck=False)
+def _grown(a, keep, need):
+    """A copy of ``a[:keep]`` in an array of at least ``need`` entries (doubling)."""
+    b = np.empty(max(2 * a.shape[0], need), a.dtype)
+    for k in range(keep):
+        b[k] = a[k]
+    return b
+
+
+@njit(cache=True, inline="always", boundscheck=False)
+def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, r2, bj, cnt):
+    """Append the indices of the tokens of ``[j0, j1)`` inside the voting sphere to ``bj``.
+
+    Branch-free compaction; the caller guarantees room for ``j1 − j0`` more.
+    Unsigned indices spare numba's negative-index wraparound code.
+    """
+    c = np.uint64(cnt)
+    for j in range(np.uint64(j0), np.uint64(j1)):
+        dx = xi - xs[j]
+        dy = yi - ys[j]
+        dz = zi - zs[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        bj[c] = j
+        ok = d2 < r2
+        if hashed:
+            ok = ok & (cix[j] == cx) & (ciy[j] == cy) & (ciz[j] == cz)
+        c += np.uint64(ok)
+    return np.int64(c)
+
+
+@njit(cache=True, inline="always", boundscheck=False)
+def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj):
+    """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): ``(bj, cnt)``.
+
+    ``bj[:cnt]`` lists them (``bj`` is replaced by a larger buffer if needed).
+    Dense layout: sorted order is cell-key order, so j > i means a row with
+    dz > 0, or dz = 0 and dy > 0, or the own row beyond i.  Hashed layout:
+    cells lexicographically after i's by (dz, dy, dx), and j > i within i's
+    own cell (all its tokens share one bucket).
+    """
+    xi = xs[i]
+    yi = ys[i]
+    zi = zs[i]
+    xl = xi - lo[0]
+    yl = yi - lo[1]
+    zl = zi - lo[2]
+    ix = cix[i]
+    iy = ciy[i]
+    iz = ciz[i]
+    nruns = 2 * m + 1 if hashed else 1
+    cnt = 0
+    for dz in range(0, m + 1):
+        cz = iz + dz
+        if not hashed and cz >= nz:
+            break
+        for dy in range(-m if dz > 0 else 0, m + 1):
+            cy = iy + dy
+            if not hashed and (cy < 0 or cy >= ny):
+                continue
+            own_row = dz == 0 and dy == 0
+            for kx in range(m if hashed and own_row else 0, nruns):
+                j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r2)
+                if own_row and (kx == m or not hashed):
+                    j0 = max(j0, i + 1)
+                if j1 - j0 > bj.shape[0] - cnt:
+                    bj = _grown(bj, cnt, cnt + j1 - j0)
+                cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, r2, bj, cnt)
+    return bj, cnt
+
+
+@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
+def _ball_pairs(xs, ys, zs, i, bj, k0, cnt, tab, tscale, acc, counts):
+    """Ball votes of the pairs (i, ``bj[k0 + k]``), ``k < cnt``: scattered to the j's, summed for i.
+
+    ``tab[k] = (A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (see
+    :func:`ball_table4`): one cache line per lookup, same interpolant as
+    ``A[k] + (A[k+1] − A[k])·f``.  Returns i's sum.
+    """
+    xi = xs[i]
+    yi = ys[i]
+    zi = zs[i]
+    s00 = 0.0
+    s01 = 0.0
+    s02 = 0.0
+    s11 = 0.0
+    s12 = 0.0
+    s22 = 0.0
+    for k in range(np.uint64(k0), np.uint64(k0 + cnt)):
+        j = np.uint64(bj[k])
+        dx = xi - xs[j]
+        dy = yi - ys[j]
+        dz = zi - zs[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        q = d2 * tscale
+        t = np.uint64(q)
+        f = q - t
+        a = tab[t, 0] + tab[t, 1] * f
+        b = tab[t, 2] + tab[t, 3] * f
+        pos = d2 > 0.0
+        # l = 0: the isotropic average, exactly the identity
+        g = (a - b) / (d2 if pos else 1.0)
+        g = g if pos else 0.0
+        b = b if pos else 1.0
+        cx = g * dx
+        cy = g * dy
+        t00 = b + cx * dx
+        t01 = cx * dy
+        t02 = cx * dz
+        t11 = b + cy * dy
+        t12 = cy * dz
+        t22 = b + g * dz * dz
+        s00 += t00
+        s01 += t01
+        s02 += t02
+        s11 += t11
+        s12 += t12
+        s22 += t22
+        acc[j, 0] += t00
+        acc[j, 1] += t01
+        acc[j, 2] += t02
+        acc[j, 3] += t11
+        acc[j, 4] += t12
+        acc[j, 5] += t22
+        counts[j] += 1
+    return s00, s01, s02, s11, s12, s22
+
+
+@njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
+def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
+              tab, tscale, cb, acc, counts, nbr, rb, nstart, nup):
+    """Sparse ball voting, each pair once (see the section comment).
+
+    Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
+    is included, so a lone token ends with the identity.  ``acc (N, 6)`` and
+    ``counts (N,)`` must be zero on entry; they receive the tensors and the
+    number of voters (self included).  ``cb``: token bounds of the chunks.
+
+    Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
+    to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
+    filling its slice ``nbr[rb[c] : rb[c + 1]]`` in order; ``nstart[i] = −1``
+    when they did not fit (the stick pass then scans for them).
+    """
+    n = xs.shape[0]
+    record = nstart.shape[0] == n
+    nch = cb.shape[0] - 1
+    inv_h = 1.0 / h
+    for phase in range(2):
+        for c in prange((nch - phase + 1) // 2):
+            ch = 2 * c + phase
+            bj = np.empty(CAP, np.int64)
+            pos = rb[ch] if record else 0
+            lim = rb[ch + 1] if record else 0
+            for i in range(cb[ch], cb[ch + 1]):
+                bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                 lo, h, inv_h, r2, bj)
+                s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
+                                                           acc, counts)
+                acc[i, 0] += 1.0 + s00
+                acc[i, 1] += s01
+                acc[i, 2] += s02
+                acc[i, 3] += 1.0 + s11
+                acc[i, 4] += s12
+                acc[i, 5] += 1.0 + s22
+                counts[i] += 1 + cnt
+                if record:
+                    nup[i] = cnt
+                    if pos + cnt <= lim:
+                        nstart[i] = pos
+                        for k in range(cnt):
+                            nbr[pos + k] = np.int32(bj[k])
+                        pos += cnt
+                    else:
+                        nstart[i] = -1
+
+
+@njit(cache=True, inline="always", boundscheck=False)
+def _gather(bj, k0, cnt, xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws, buf):
+    """Offsets ``x_i − x_j``, normals and weights of the j's of ``bj[k0 : k0 + cnt]`` to ``buf``.
+
+    ``buf`` rows: dx, dy, dz, nx, ny, nz, w (contiguous, so the vectorised
+    flush needs no gathers).  Returns how many j's have a nonzero weight.
+    """
+    nv = 0
+    for k in range(cnt):
+        j = np.uint64(bj[k0 + k])
+        w = ws[j]
+        buf[0, k] = xi - xs[j]
+        buf[1, k] = yi - ys[j]
+        buf[2, k] = zi - zs[j]
+        buf[3, k] = nxs[j]
+        buf[4, k] = nys[j]
+        buf[5, k] = nzs[j]
+        buf[6, k] = w
+        nv += w != 0.0
+    return nv
+
+
+@njit(cache=True, inline="always")
+def _stick_one(dx, dy, dz, d2, inv, rho2, gl, nx_, ny_, nz_, w):
+    """Stick vote ``w·DF·m mᵀ`` of a voter with normal n at offset d (see :func:`_stick_pairs`)."""
+    u = nx_ * dx + ny_ * dy + nz_ * dz
+    u2 = u * u
+    cone = not (u2 + u2 > d2)  # θ ≤ 45°
+    s2 = min(u2 * inv, 0.5)
+    ex = rho2 * arcsin_ratio2(s2) + gl * s2
+    df = w * exp_neg_small(ex)
+    df = df if cone else 0.0
+    kk = 2.0 * u * inv
+    mx = nx_ - kk * dx
+    my = ny_ - kk * dy
+    mz = nz_ - kk * dz
+    dmx = df * mx
+    dmy = df * my
+    return dmx * mx, dmx * my, dmx * mz, dmy * my, dmy * mz, df * mz * mz
+
+
+@njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
+def _stick_pairs(buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
+    """Stick votes of the buffered pairs (branch-free, masked cone).
+
+    Votes of the j's on i are summed and returned; with ``both`` the votes of
+    i (normal ``ni``, weight ``wi``) on each j go to ``out[:, k]``.  A stick
+    vote is even in the offset, so both use ``d = x_i − x_j``.  l = 0 gives
+    ``s2 = 0``, ``m = n``, ``DF = 1``.
     """
     s00 = 0.0
     s01 = 0.0
@@ -669,160 +618,115 @@ def _stick_flush(bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2):
     s12 = 0.0
     s22 = 0.0
     for k in range(cnt):
-        dx = bdx[k]
-        dy = bdy[k]
-        dz = bdz[k]
-        w = bw[k]
-        nx_ = bnx[k]
-        ny_ = bny[k]
-        nz_ = bnz[k]
+        dx = buf[0, k]
+        dy = buf[1, k]
+        dz = buf[2, k]
         d2 = dx * dx + dy * dy + dz * dz
         pos = d2 > 0.0
         inv = 1.0 / (d2 if pos else 1.0)
-        inv = inv if pos else 0.0  # l = 0: s2 = 0, m = n, DF = 1
-        u = nx_ * dx + ny_ * dy + nz_ * dz
-        u2 = u * u
-        cone = not (u2 + u2 > d2)  # θ ≤ 45°
-        s2 = min(u2 * inv, 0.5)
+        inv = inv if pos else 0.0
         rho2 = d2 * inv_s2
-        ex = rho2 * arcsin_ratio2(s2) + gamma4 * s2 / max(rho2, lmin2)
-        df = w * exp_neg_small(ex)
-        df = df if cone else 0.0
-        kk = 2.0 * u * inv
-        mx = nx_ - kk * dx
-        my = ny_ - kk * dy
-        mz = nz_ - kk * dz
-        dmx = df * mx
-        dmy = df * my
-        s00 += dmx * mx
-        s01 += dmx * my
-        s02 += dmx * mz
-        s11 += dmy * my
-        s12 += dmy * mz
-        s22 += df * mz * mz
+        gl = gamma4 / max(rho2, lmin2)
+        t00, t01, t02, t11, t12, t22 = _stick_one(dx, dy, dz, d2, inv, rho2, gl,
+                                                  buf[3, k], buf[4, k], buf[5, k], buf[6, k])
+        s00 += t00
+        s01 += t01
+        s02 += t02
+        s11 += t11
+        s12 += t12
+        s22 += t22
+        if both:
+            t00, t01, t02, t11, t12, t22 = _stick_one(dx, dy, dz, d2, inv, rho2, gl, nix, niy, niz, wi)
+            out[0, k] = t00
+            out[1, k] = t01
+            out[2, k] = t02
+            out[3, k] = t11
+            out[4, k] = t12
+            out[5, k] = t22
     return s00, s01, s02, s11, s12, s22
 
 
 @njit(cache=True, inline="always", boundscheck=False)
-def _gather_nl(nbr, k0, k1, xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws,
-               bdx, bdy, bdz, bnx, bny, bnz, bw):
-    """Copy the voters of the recorded list ``nbr[k0:k1]`` with nonzero weight to the buffers.
-
-    Scalar compaction (``c += w ≠ 0``): not vectorised, so no gathers.
-    Returns the number of voters copied.
-    """
-    c = np.uint64(0)
-    for k in range(np.uint64(k0), np.uint64(k1)):
-        j = np.uint64(nbr[k])
-        w = ws[j]
-        bdx[c] = xi - xs[j]
-        bdy[c] = yi - ys[j]
-        bdz[c] = zi - zs[j]
-        bnx[c] = nxs[j]
-        bny[c] = nys[j]
-        bnz[c] = nzs[j]
-        bw[c] = w
-        c += np.uint64(w != 0.0)
-    return np.int64(c)
+def _scatter(bj, k0, cnt, out, acc, counts):
+    """Add ``out[:, k]`` to the row of token ``bj[k0 + k]`` and count one voter."""
+    for k in range(cnt):
+        j = np.uint64(bj[k0 + k])
+        acc[j, 0] += out[0, k]
+        acc[j, 1] += out[1, k]
+        acc[j, 2] += out[2, k]
+        acc[j, 3] += out[3, k]
+        acc[j, 4] += out[4, k]
+        acc[j, 5] += out[5, k]
+        counts[j] += 1
 
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, stride, t6, vals, e1, counts, nbr, nstart, ncount):
-    """Sparse stick voting (eq. 44) with eigen-analysis fused per votee.
+               lo, h, r2, inv_s2, gamma4, lmin2, cb, acc, counts, nbr, nstart, nup):
+    """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
-    ``ws[j]`` (``ws[j] == 0``: no vote).  The votee's own stick ``ws[i]·nᵢnᵢᵀ``
-    (self vote, l = 0) is included.  ``gamma4 = 4γ`` and ``lmin2 = (l_min/σ)²``.
+    ``ws[j]`` (``ws[j] == 0``: no vote, not counted).  The votee's own stick
+    ``ws[i]·nᵢnᵢᵀ`` (self vote, l = 0) is included.  ``gamma4 = 4γ`` and
+    ``lmin2 = (l_min/σ)²``.  ``acc`` and ``counts`` must be zero on entry.
 
-    ``nbr, nstart, ncount``: neighbour lists recorded by :func:`ball_pass` at
-    the same σ (see there); a votee with ``nstart[i] ≥ 0`` sums the votes of
-    its list, the others scan the grid.  Pass an empty ``nstart`` to scan for
-    every votee.
+    ``nbr, nstart, nup``: upper-neighbour lists recorded by :func:`ball_pass`
+    at the same σ; a token with ``nstart[i] ≥ 0`` takes its upper neighbours
+    from there, the others scan the grid.  Pass an empty ``nstart`` to scan
+    for every token.
     """
-    use_nl = nstart.shape[0] == xs.shape[0]
     n = xs.shape[0]
-    nb = (n + BLOCK - 1) // BLOCK
-    nruns = 2 * m + 1 if hashed else 1
+    use_nl = nstart.shape[0] == n
+    nch = cb.shape[0] - 1
     inv_h = 1.0 / h
-    lx = lo[0]
-    ly = lo[1]
-    lz = lo[2]
-    for t in prange(nb):
-        blk = (t * stride) % nb
-        bj = np.empty(CAP, np.int64)
-        bdx = np.empty(CAP)
-        bdy = np.empty(CAP)
-        bdz = np.empty(CAP)
-        bnx = np.empty(CAP)
-        bny = np.empty(CAP)
-        bnz = np.empty(CAP)
-        bw = np.empty(CAP)
-        for i in range(blk * BLOCK, min((blk + 1) * BLOCK, n)):
-            xi = xs[i]
-            yi = ys[i]
-            zi = zs[i]
-            xl = xi - lx
-            yl = yi - ly
-            zl = zi - lz
-            ix = cix[i]
-            iy = ciy[i]
-            iz = ciz[i]
-            a00 = 0.0
-            a01 = 0.0
-            a02 = 0.0
-            a11 = 0.0
-            a12 = 0.0
-            a22 = 0.0
-            if use_nl and nstart[i] >= 0:
-                k0 = nstart[i]
-                nv = _gather_nl(nbr, k0, k0 + ncount[i], xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws,
-                                bdx, bdy, bdz, bnx, bny, bnz, bw)
-                a00, a01, a02, a11, a12, a22 = _stick_flush(bdx, bdy, bdz, bnx, bny, bnz, bw, nv,
-                                                            inv_s2, gamma4, lmin2)
-                counts[i] = nv
-                _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
-                continue
-            total = 0
-            cnt = 0
-            for dz in range(-m, m + 1):
-                cz = iz + dz
-                if not hashed and (cz < 0 or cz >= nz):
-                    continue
-                for dy in range(-m, m + 1):
-                    cy = iy + dy
-                    if not hashed and (cy < 0 or cy >= ny):
-                        continue
-                    for kx in range(nruns):
-                        j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx,
-                                          xl, yl, zl, h, inv_h, r2)
-                        j = j0
-                        while j < j1:
-                            room = CAP - cnt
-                            if j1 - j > room and cnt > 0:
-                                s00, s01, s02, s11, s12, s22 = _stick_flush(
-                                    bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2)
-                                a00 += s00
-                                a01 += s01
-                                a02 += s02
-                                a11 += s11
-                                a12 += s12
-                                a22 += s22
-                                total += cnt
-                                cnt = 0
-                                room = CAP
-                            je = min(j1, j + room)
-                            cnt = _collect(xs, ys, zs, ws, True, cix, ciy, ciz, hashed, cx, cy, cz,
-                                           j, je, xi, yi, zi, r2, bj, bdx, bdy, bdz, cnt,
-                                           nxs, nys, nzs, bnx, bny, bnz, bw)
-                            j = je
-            s00, s01, s02, s11, s12, s22 = _stick_flush(
-                bdx, bdy, bdz, bnx, bny, bnz, bw, cnt, inv_s2, gamma4, lmin2)
-            a00 += s00
-            a01 += s01
-            a02 += s02
-            a11 += s11
-            a12 += s12
-            a22 += s22
-            counts[i] = total + cnt
-            _store(i, a00, a01, a02, a11, a12, a22, t6, vals, e1)
+    for phase in range(2):
+        for c in prange((nch - phase + 1) // 2):
+            ch = 2 * c + phase
+            bj = np.empty(CAP, np.int64)
+            buf = np.empty((7, CAP))
+            out = np.empty((6, CAP))
+            for i in range(cb[ch], cb[ch + 1]):
+                wi = ws[i]
+                nix = nxs[i]
+                niy = nys[i]
+                niz = nzs[i]
+                listed = use_nl and nstart[i] >= 0
+                if listed:
+                    k0 = nstart[i]
+                    cnt = nup[i]
+                else:
+                    bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                     lo, h, inv_h, r2, bj)
+                    k0 = 0
+                if cnt > buf.shape[1]:
+                    cap = max(2 * buf.shape[1], cnt)
+                    buf = np.empty((7, cap))
+                    out = np.empty((6, cap))
+                if listed:
+                    nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], xs, ys, zs, nxs, nys, nzs, ws, buf)
+                else:
+                    nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], xs, ys, zs, nxs, nys, nzs, ws, buf)
+                both = wi != 0.0
+                s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
+                                                            inv_s2, gamma4, lmin2, out)
+                if both:
+                    if listed:
+                        _scatter(nbr, k0, cnt, out, acc, counts)
+                    else:
+                        _scatter(bj, k0, cnt, out, acc, counts)
+                    # own stick (l = 0): w n nᵀ
+                    wx = wi * nix
+                    wy = wi * niy
+                    s00 += wx * nix
+                    s01 += wx * niy
+                    s02 += wx * niz
+                    s11 += wy * niy
+                    s12 += wy * niz
+                    s22 += wi * niz * niz
+                acc[i, 0] += s00
+                acc[i, 1] += s01
+                acc[i, 2] += s02
+                acc[i, 3] += s11
+                acc[i, 4] += s12
+                acc[i, 5] += s22
+                counts[i] += nv + (1 if both else 0)

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from itertools import combinations
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -107,6 +108,8 @@ class SphereMatch:
     strategy: str
     noise: float
     info: dict = field(default_factory=dict)
+    motion_rotation: NDArray[np.float64] | None = None
+    translation: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "correspondences",
@@ -351,12 +354,13 @@ def _dominant_rotation(r1, r2, rel_tol, radius_deg):
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
-    members = near % q.shape[0]
-    return R, int(counts[best]), int(Rs.shape[0]), verts[members].reshape(-1, 2)
+    members = np.unique(near % q.shape[0])
+    return R, int(counts[best]), int(Rs.shape[0]), verts[members]
 
 
 def _voted_seeds(vertex_pairs, min_votes=2):
     """Pairs named by at least ``min_votes`` trials of the cluster, one-to-one by votes."""
+    vertex_pairs = vertex_pairs.reshape(-1, 2)
     if vertex_pairs.shape[0] == 0:
         return vertex_pairs
     pairs, votes = np.unique(vertex_pairs, axis=0, return_counts=True)
@@ -534,7 +538,7 @@ def match(
     shape_tolerance = _check_real(shape_tolerance, "shape_tolerance")
     cluster_deg = _check_real(cluster_deg, "cluster_deg")
     rigid_share = _check_real(rigid_share, "rigid_share")
-    if strategy not in ("auto", "rigid", "local", "nonrigid"):
+    if strategy not in ("auto", "rigid", "local", "nonrigid", "epipolar"):
         msg = f"Expected `strategy` to be 'auto', 'rigid', 'local' or 'nonrigid', got {strategy!r}."
         raise ValueError(msg)
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
@@ -549,14 +553,15 @@ def match(
     s2 = sphere_noise(camera2, p2[index2], noise_px) if index2.size else np.empty(0)
     noise = float(np.median(np.concatenate([s1, s2]))) if s1.size + s2.size else float("nan")
 
-    def result(pairs, rotation, rot_support, used, reason=None):
+    def result(pairs, rotation, rot_support, used, reason=None, motion=None):
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         out = np.column_stack([index1[pairs[:, 0]], index2[pairs[:, 1]]]) if pairs.size else pairs
         out = out[np.argsort(out[:, 0], kind="stable")]
         if reason is not None:
             info["reason"] = reason
         info["time_s"] = time.perf_counter() - t_start
-        return SphereMatch(out, r1, r2, index1, index2, rotation, rot_support, used, noise, info)
+        return SphereMatch(out, r1, r2, index1, index2, rotation, rot_support, used, noise, info,
+                           *(motion if motion is not None else (None, None)))
 
     if r1.shape[0] < 3 or r2.shape[0] < 3:
         return result([], None, 0, "none", "fewer than 3 liftable pixels in a view")
@@ -600,6 +605,16 @@ def match(
         local = _grow_local(r1, r2, tree2, s1, s2, seeds)
     info["time_local_s"] = time.perf_counter() - t0
     info["local_support"] = int(local.shape[0])
+    if strategy in ("auto", "epipolar") and _EPI:
+        t0 = time.perf_counter()
+        seeds_e = local if local.shape[0] >= rigid.shape[0] else rigid
+        epi = _epipolar_stage(r1, r2, tree2, s1, s2, seeds_e, shape_tolerance, seed, info)
+        info["time_epipolar_s"] = time.perf_counter() - t0
+        if epi is not None:
+            Re, te, pe = epi
+            info["epi_support"] = int(pe.shape[0])
+            if strategy == "epipolar" or pe.shape[0] >= max(nonrigid_gain * rigid.shape[0], chance):
+                return result(pe, R, rot_support, "epipolar", motion=(Re, te))
     if strategy != "auto" or local.shape[0] >= max(nonrigid_gain * rigid.shape[0], chance):
         if local.shape[0] == 0:
             return result([], R, rot_support, "none", info.get("nonrigid_reason", "nothing matched"))
@@ -607,6 +622,355 @@ def match(
     if R is None:
         return result([], None, 0, "none", "no rotation and no locally rigid match beat the chance level")
     return result(rigid, R, rot_support, "rigid")
+
+
+EPI_PARALLAX = 0.5
+EPI_CLUSTER_DEG = 15.0
+EPI_SHAPE_TOL = 0.25
+EPI_RANSAC = 2000
+EPI_HYPOTHESES = 3
+EPI_RIVAL = 0.75
+EPI_FINAL = 0.9
+
+
+# --------------------------------------------------------------- epipolar stage
+def _essential_from_motion(R, t):
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return tx @ R
+
+
+def _epipolar_distance(E, x, y):
+    """Angular distance of ``y`` from the epipolar great circle of ``x`` and vice versa (the larger)."""
+    ex = x @ E.T
+    ey = y @ E
+    num = np.abs(np.einsum("ij,ij->i", y, ex))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.maximum(num / np.linalg.norm(ex, axis=1), num / np.linalg.norm(ey, axis=1))
+    return np.nan_to_num(d, nan=np.inf)
+
+
+def _batched_essentials(X, Y):
+    """Essential matrices of stacks of 8 ray pairs (K, 8, 3) by the linear 8-point method."""
+    A = np.einsum("kni,knj->knij", Y, X).reshape(X.shape[0], X.shape[1], 9)
+    if A.shape[1] < 9:
+        A = np.concatenate([A, np.zeros((A.shape[0], 9 - A.shape[1], 9))], axis=1)
+    _, _, Vt = np.linalg.svd(A)
+    E = Vt[:, -1, :].reshape(-1, 3, 3)
+    U, _, Vt = np.linalg.svd(E)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def _motions(E):
+    """The four (R, t) of an essential matrix."""
+    U, _, Vt = np.linalg.svd(E)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    out = []
+    for Rm in (U @ W @ Vt, U @ W.T @ Vt):
+        for s in (1.0, -1.0):
+            out.append((Rm, s * U[:, 2]))
+    return out
+
+
+def _arc_coordinates(Rx, t, y):
+    """Epipolar coordinates of ``y`` against the rays ``Rx`` for the translation direction ``t``.
+
+    Returns ``(phi, alpha, across)``: ``phi`` the angle from ``Rx`` to the
+    projection of ``y`` on the epipolar great circle, positive towards
+    ``t``; ``alpha`` the angle from ``Rx`` to ``t``; ``across`` the signed
+    angular distance of ``y`` from the circle.
+    """
+    c = Rx @ t
+    e2 = t[None, :] - c[:, None] * Rx
+    s = np.linalg.norm(e2, axis=1)
+    e2 = e2 / np.maximum(s, 1e-12)[:, None]
+    nrm = np.cross(Rx, e2)
+    a, b = np.einsum("ij,ij->i", y, Rx), np.einsum("ij,ij->i", y, e2)
+    phi = np.arctan2(b, a)
+    alpha = np.arctan2(s, c)
+    across = np.arcsin(np.clip(np.einsum("ij,ij->i", y, nrm), -1.0, 1.0))
+    return phi, alpha, across
+
+
+def _inverse_depth(phi, alpha):
+    """Inverse depth ``|t| / d`` of the arc angle ``phi`` (``alpha``: angle to the epipole)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sin(phi) / np.sin(alpha - phi)
+
+
+def _arc_angle(rho, alpha):
+    """Arc angle of the inverse depth ``rho`` (inverse of :func:`_inverse_depth`)."""
+    return np.arctan2(rho * np.sin(alpha), 1.0 + rho * np.cos(alpha))
+
+
+def _cheirality(R, t, x, y):
+    """Pairs in front of both cameras (inverse depth above a small negative bound)."""
+    phi, alpha, _ = _arc_coordinates(x @ R.T, t, y)
+    return (phi > -0.02) & (phi < alpha)
+
+
+def _refine_motion(R, t, x, y, sig):
+    """Least squares (R, t) on the sphere: signed epipolar distances, 5 parameters."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    def unpack(p):
+        Rm = Rotation.from_rotvec(p[:3]).as_matrix() @ R
+        # t on the sphere: tangent coordinates about the current t
+        b1 = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
+        b1 /= np.linalg.norm(b1)
+        b2 = np.cross(t, b1)
+        tv = t + p[3] * b1 + p[4] * b2
+        return Rm, tv / np.linalg.norm(tv)
+
+    def res(p):
+        Rm, tv = unpack(p)
+        n = np.cross(tv[None, :], x @ Rm.T)
+        nn = np.linalg.norm(n, axis=1)
+        return np.einsum("ij,ij->i", y, n) / np.maximum(nn, 1e-9) / sig
+
+    sol = least_squares(res, np.zeros(5), loss="soft_l1", f_scale=GATE_SIGMAS)
+    return unpack(sol.x)
+
+
+def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypotheses=EPI_HYPOTHESES):
+    """Robust motions (R, t) from candidate pairs: 8-point RANSAC on the sphere, then least squares.
+
+    ``groups`` (G, 3) rows of ``x, y``: the vertex pairs of matched local
+    triangles; a sample is then three triangles (nine pairs), all right
+    far more often than eight independent pairs. Returns up to
+    ``hypotheses`` distinct ``(R, t, inlier mask)``, best supported first
+    (the caller keeps the one that explains most rays).
+    """
+    k = x.shape[0]
+    if k < 12:
+        return []
+    if groups is not None and groups.shape[0] >= 3:
+        pick = np.argsort(rng.random((iterations, groups.shape[0])), axis=1)[:, :3]
+        samples = groups[pick].reshape(iterations, 9)
+    else:
+        samples = np.argsort(rng.random((iterations, k)), axis=1)[:, :8]
+    Es = _batched_essentials(x[samples], y[samples])
+    gate = GATE_SIGMAS * sig
+    ex = np.einsum("kij,nj->kni", Es, x)
+    ey = np.einsum("kij,ni->knj", Es, y)
+    num = np.abs(np.einsum("ni,kni->kn", y, ex))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.maximum(num / np.linalg.norm(ex, axis=2), num / np.linalg.norm(ey, axis=2))
+    inl_all = np.nan_to_num(d, nan=np.inf) <= gate
+    score = inl_all.sum(axis=1)
+    out = []
+    for h in np.argsort(-score, kind="stable"):
+        if len(out) >= hypotheses or score[h] < 8 or (out and score[h] < EPI_RIVAL * np.count_nonzero(out[0][3])):
+            break
+        if any(np.count_nonzero(inl_all[h] & o[3]) > 0.5 * score[h] for o in out):
+            continue
+        inl = inl_all[h]
+        cands = [(int(np.count_nonzero(_cheirality(Rm, tv, x[inl], y[inl]))), i, Rm, tv)
+                 for i, (Rm, tv) in enumerate(_motions(Es[h]))]
+        _, _, R, t = max(cands, key=lambda c: (c[0], -c[1]))
+        ok = True
+        for _ in range(3):
+            R, t = _refine_motion(R, t, x[inl], y[inl], sig[inl])
+            E = _essential_from_motion(R, t)
+            inl = (_epipolar_distance(E, x, y) <= gate) & _cheirality(R, t, x, y)
+            if np.count_nonzero(inl) < 8:
+                ok = False
+                break
+        if ok:
+            out.append((R, t, inl, inl_all[h]))
+    return [o[:3] for o in out]
+
+
+def _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax):
+    """Candidate pairs near the epipolar arcs: ``(i, j, phi, alpha_i, sigma)`` arrays."""
+    Rx = r1 @ R.T
+    lists = tree2.query_ball_point(Rx, max_parallax)
+    lens = np.fromiter((len(a) for a in lists), np.int64, len(lists))
+    ii = np.repeat(np.arange(r1.shape[0]), lens)
+    jj = np.fromiter((j for a in lists for j in a), np.int64, int(lens.sum()))
+    if ii.size == 0:
+        e = np.empty(0)
+        return ii, jj, e, e, e, np.arctan2(np.linalg.norm(np.cross(Rx, t), axis=1), Rx @ t)
+    phi, alpha, across = _arc_coordinates(Rx[ii], t, r2[jj])
+    sig = np.sqrt(s1[ii] ** 2 + s2[jj] ** 2)
+    gate = GATE_SIGMAS * sig
+    ok = (np.abs(across) <= gate) & (phi >= -gate) & (phi <= alpha + gate)
+    alpha_all = np.arctan2(np.linalg.norm(np.cross(Rx, t), axis=1), Rx @ t)
+    return ii[ok], jj[ok], phi[ok], across[ok], sig[ok], alpha_all
+
+
+def _local_planes(A, rn, wts, keep, ridge, support_gate=GATE_SIGMAS):
+    """Inverse-depth planes ``rho = w . u`` of each ray's neighbours, robust to a second plane.
+
+    Every triple of a ray's neighbours gives an exact plane; the plane that
+    the most neighbours agree with (within ``support_gate`` noise units of
+    arc angle) is refitted by weighted least squares on those neighbours,
+    so a ray near a crease of the scene is predicted by one side of it
+    rather than by a blend of both.
+
+    ``A``: (n, k, 3) neighbour rays; ``rn``: (n, k) their inverse depths;
+    ``wts``: (n, k) weights (arc-angle sensitivity over noise, squared);
+    ``keep``: (n, k) bool mask of usable neighbours. Returns (n, 3).
+    """
+    n, k, _ = A.shape
+    sw = np.sqrt(wts)
+    trip = np.array(list(combinations(range(k), 3)), dtype=np.int64) if k >= 3 else np.empty((0, 3), np.int64)
+    if trip.shape[0]:
+        a0, a1, a2 = A[:, trip[:, 0]], A[:, trip[:, 1]], A[:, trip[:, 2]]   # (n, T, 3)
+        c0, c1, c2 = np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)
+        det = np.einsum("nti,nti->nt", a0, c0)
+        usable = np.all(keep[:, trip], axis=2) & (np.abs(det) > 1e-12)
+        bt = rn[:, trip]                                  # (n, T, 3)
+        # Cramer's rule: the plane through the three neighbours' (ray, rho)
+        wt = (bt[..., 0:1] * c0 + bt[..., 1:2] * c1 + bt[..., 2:3] * c2) / np.where(usable, det, 1.0)[..., None]
+        res = (rn[:, None, :] - np.einsum("nki,nti->ntk", A, wt)) * sw[:, None, :]
+        inl = (np.abs(res) <= support_gate) & keep[:, None, :]
+        score = inl.sum(axis=2) - np.minimum(np.where(inl, res * res, 0.0).sum(axis=2) / (support_gate ** 2 * k), 0.99)
+        score = np.where(usable, score, -1.0)
+        best = np.argmax(score, axis=1)
+        w = wts * inl[np.arange(n), best]
+        w = np.where(np.any(usable, axis=1)[:, None], w, wts * keep)
+    else:
+        w = wts * keep
+    AtW = A * w[..., None]
+    Mt = np.einsum("nki,nkj->nij", AtW, A) + ridge * (wts * keep).sum(axis=1)[:, None, None] * np.eye(3)
+    b = np.einsum("nki,nk->ni", AtW, rn)
+    return _solve3(Mt, b)
+
+
+def _solve3(M, b):
+    """Solutions of stacks of 3x3 systems ``M w = b`` by Cramer's rule."""
+    m0, m1, m2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
+    c0, c1, c2 = np.cross(m1, m2), np.cross(m2, m0), np.cross(m0, m1)
+    det = np.einsum("ni,ni->n", m0, c0)
+    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    return np.column_stack([np.einsum("ni,ni->n", b, c0), np.einsum("ni,ni->n", b, c1),
+                            np.einsum("ni,ni->n", b, c2)]) / det[:, None]
+
+
+def _grow_epipolar(r1, cand, n2, seeds, neighbours=8, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3):
+    """Match along the epipolar arcs, each ray at the inverse depth of its matched neighbours.
+
+    The inverse depth of a plane is linear in the ray, ``rho(u) = w . u``:
+    ``w`` is fitted (weighted least squares in arc angle) on the
+    ``neighbours`` matched rays nearest to each ray, and predicts where on
+    its epipolar arc the ray lands; candidates within ``scale`` noise gates
+    of the prediction are matched one-to-one, closest first, until the
+    matches repeat.
+    """
+    ii, jj, phi, across, sig, alpha = cand
+    n1 = r1.shape[0]
+    # each candidate's inverse depth and arc-angle sensitivity
+    rho_c = _inverse_depth(np.minimum(phi, alpha[ii] - 1e-6), alpha[ii])
+    order = np.lexsort((jj, ii))
+    ii, jj, phi, across, sig, rho_c = ii[order], jj[order], phi[order], across[order], sig[order], rho_c[order]
+    pair_id = ii * n2 + jj
+    def lookup(pairs):
+        pid = pairs[:, 0] * n2 + pairs[:, 1]
+        pos = np.searchsorted(pair_id, pid)
+        pos = np.minimum(pos, max(pair_id.size - 1, 0))
+        ok = pair_id.size > 0
+        return pos, (pair_id[pos] == pid) if ok else np.zeros(len(pid), bool)
+    pos, ok = lookup(seeds)
+    pairs = seeds[ok]
+    k_of = pos[ok]
+    sa = np.sin(alpha)
+    for r in range(rounds + 1):
+        last = r == rounds
+        m = pairs.shape[0]
+        if m < 4:
+            return np.empty((0, 2), np.int64)
+        xs = r1[pairs[:, 0]]
+        rho_m = rho_c[k_of]
+        D = 1.0 + 2.0 * rho_m * np.cos(alpha[pairs[:, 0]]) + rho_m ** 2
+        wts = (sa[pairs[:, 0]] / D) ** 2 / sig[k_of] ** 2
+        k = min(neighbours + 1, m)
+        tree = cKDTree(xs)
+        dist, nb = tree.query(r1, k=k)
+        dist, nb = dist.reshape(n1, k), nb.reshape(n1, k)
+        # leave the ray itself out of its own prediction
+        self_hit = pairs[nb, 0] == np.arange(n1)[:, None]
+        keep = ~self_hit
+        keep &= np.cumsum(keep, axis=1) <= k - 1
+        A = xs[nb]                                        # (n1, k, 3)
+        wv = _local_planes(A, rho_m[nb], wts[nb], keep, ridge)
+        rho_pred = np.einsum("ni,ni->n", wv, r1)
+        phi_pred = _arc_angle(rho_pred, alpha)
+        spacing = float(np.median(tree.query(xs, k=2)[0][:, 1])) if m > 1 else 1.0
+        reach = np.where(keep, dist, np.inf).min(axis=1)
+        valid = reach <= 4.0 * spacing
+        s = final_scale if last else scale
+        dd = np.hypot(phi - phi_pred[ii], across)
+        okc = valid[ii] & (dd <= s * GATE_SIGMAS * sig)
+        cp = np.column_stack([ii[okc], jj[okc]])
+        if cp.shape[0] == 0:
+            return cp
+        sel = one_to_one(cp, dd[okc])
+        new = cp[sel]
+        new_k = np.flatnonzero(okc)[sel]
+        o = np.argsort(new[:, 0], kind="stable")
+        new, new_k = new[o], new_k[o]
+        if last:
+            return new
+        if new.shape == pairs.shape and np.array_equal(new, pairs):
+            rounds = r + 1
+        pairs, k_of = new, new_k
+    return pairs
+
+
+_EPI = True
+
+
+def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, shape_tolerance, seed, info):
+    # the pool: local-triangle matches whose rotation lies within the parallax
+    # spread of the densest cluster, plus the seeds of the earlier stages
+    _, _, _, tri = _dominant_rotation(r1, r2, EPI_SHAPE_TOL, EPI_CLUSTER_DEG)
+    pool = np.vstack([seeds.reshape(-1, 2), tri.reshape(-1, 2)])
+    pool, inverse = np.unique(pool, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    groups = inverse[seeds.shape[0]:].reshape(-1, 3) if tri.shape[0] else None
+    info["epi_pool"] = int(pool.shape[0])
+    info["epi_triangles"] = int(tri.shape[0])
+    seeds = pool
+    if seeds.shape[0] < 12:
+        info["epi_reason"] = "fewer than 12 seed pairs"
+        return None
+    x, y = r1[seeds[:, 0]], r2[seeds[:, 1]]
+    sig = np.sqrt(s1[seeds[:, 0]] ** 2 + s2[seeds[:, 1]] ** 2)
+    ests = _estimate_motions(x, y, sig, np.random.default_rng(seed), groups)
+    if not ests:
+        info["epi_reason"] = "no essential matrix"
+        return None
+    best = None
+    for R, t, inl in ests:
+        pairs = seeds[inl]
+        ninl = int(np.count_nonzero(inl))
+        for it in range(EPI_OUTER):
+            cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, EPI_PARALLAX)
+            new = _grow_epipolar(r1, cand, r2.shape[0], pairs)
+            if new.shape[0] < 12 or (it > 0 and new.shape[0] <= pairs.shape[0] and np.array_equal(new, pairs)):
+                pairs = new if new.shape[0] >= pairs.shape[0] else pairs
+                break
+            pairs = new
+            if it + 1 < EPI_OUTER:
+                sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
+                R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
+        info.setdefault("epi_hypotheses", []).append((ninl, int(pairs.shape[0])))
+        if best is None or pairs.shape[0] > best[2].shape[0]:
+            best = (R, t, pairs)
+    R, t, pairs = best
+    return R, t, pairs
+
+
+EPI_OUTER = 3
+IRLS = 3
+IRLS_C = 2.0
+
+
 
 
 def _nonrigid(r1, r2, R, noise, max_parallax, seed, info):

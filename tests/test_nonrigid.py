@@ -94,6 +94,76 @@ def test_bend_gives_a_curve_in_the_joint_space():
     assert precision >= 0.95 and recall >= 0.8
 
 
+def test_hinge_gives_both_rigid_parts():
+    """Piecewise rigid: the two parts are separate surfaces in the joint space;
+    the coarse-to-fine hypothesis matches both, not just the larger one."""
+    x = deform.sample_plane(200, 10.0, seed=9)
+    trial = deform.nonrigid_trial(x, deform.piecewise_rigid(x, 30.0), 0.25, seed=10)
+    m = register(trial.source, trial.target)
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.95 and recall >= 0.8
+    # matches on each side of the hinge (x < 0 stays, x > 0 turns)
+    side = trial.source[m.correspondences[:, 0], 0] > 0
+    moving_true = np.sum(x[:, 0] > 0)
+    assert side.sum() >= 0.7 * moving_true and (~side).sum() >= 0.7 * (len(x) - moving_true)
+    # the local rigid motions of the moving part turn by the hinge angle
+    angles = m.local_angles_deg
+    far = np.abs(trial.source[m.correspondences[:, 0], 0]) > 2.0
+    np.testing.assert_allclose(np.median(angles[far & side]), 30.0, atol=1.0)
+    np.testing.assert_allclose(np.median(angles[far & ~side]), 0.0, atol=1.0)
+
+
+def test_large_rigid_motion_on_top_of_a_twist_needs_the_rigid_hypothesis():
+    """Voting alone fails (the twisted surface is as sparse as the false tokens);
+    the coarse stage started from gatv.register's dominant motion recovers it,
+    by default ("auto") because no other hypothesis beats chance."""
+    x = deform.sample_plane(200, 10.0, seed=3)
+    y = deform.rigid(deform.twist(x, 60.0), 70.0, axis=(1, 1, 0), translation=(3, -2, 1))
+    trial = deform.nonrigid_trial(x, y, 0.25, seed=4)
+    m = register(trial.source, trial.target)
+    assert m.info["hypothesis"] == "rigid" and m.info["prealign"]["support"] >= 10
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.95 and recall >= 0.9
+    assert trial.warp_error(m.warp) < 0.05
+    off = register(trial.source, trial.target, prealign=False)
+    assert not off and "chance" in off.info["reason"]
+    forced = register(trial.source, trial.target, prealign=True)
+    assert correspondence_stats(forced.correspondences, trial.true_pairs)[0] >= 0.95
+
+
+def test_near_identity_deformation_with_sparse_outliers():
+    """Face-like: a displacement of about the point spacing (no rigid part)
+    on a curved surface; the tokens are one dense blob in the joint space and
+    the coarse-to-fine hypothesis wins; every reported pair is verified."""
+    rng = np.random.default_rng(11)
+    u, v = rng.uniform(-1, 1, (2, 300))
+    x = np.column_stack([u, v, 0.4 * (u**2 + v**2)]) * 50.0
+    from scipy.spatial import cKDTree
+
+    sp = float(np.median(cKDTree(x).query(x, k=2)[0][:, 1]))
+    y = x + 1.0 * sp * np.column_stack([np.sin(u * 2), np.cos(v * 3), np.sin(u * v * 4)])
+    trial = deform.nonrigid_trial(x, y, 0.5, seed=12)
+    m = register(trial.source, trial.target)
+    assert m.info["hypothesis"] == "coarse"
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.95 and recall >= 0.7
+
+
+def test_support_below_chance_reports_nothing():
+    """Unrelated clouds: no hypothesis beats chance, so no matches are reported."""
+    rng = np.random.default_rng(5)
+    m = register(rng.uniform(size=(80, 3)), rng.uniform(size=(80, 3)), prealign=False)
+    assert not m and "chance" in m.info["reason"]
+    assert set(m.info["hypotheses"]) <= {"voting", "coarse"}
+
+
+@pytest.mark.parametrize("value", ["yes", 1.5, None])
+def test_bad_prealign_names_the_argument(value):
+    x = deform.sample_plane(20, seed=0)
+    with pytest.raises(ValueError, match="`prealign`"):
+        register(x, x + 0.1, prealign=value)
+
+
 def test_same_seed_same_result(twisted):
     trial, m = twisted
     again = register(trial.source, trial.target, seed=0)
@@ -117,6 +187,7 @@ def test_same_seed_same_result(twisted):
         (None, {"max_displacement": 0.0}, "`max_displacement`"),
         (None, {"noise": float("inf")}, "`noise`"),
         (None, {"seed": -1}, "`seed`"),
+        (None, {"prealign": "always"}, "`prealign`"),
         (None, {"memory_budget": 1.0}, "memory budget"),
     ],
 )

@@ -513,15 +513,37 @@ def _ball_pairs(xs, ys, zs, i, bj, k0, cnt, tab, tscale, acc, counts):
     return s00, s01, s02, s11, s12, s22
 
 
+@njit(cache=True, inline="always")
+def _eig_chunks(acc, vals, e1, cb, ch, nch):
+    """Eigen-analysis of the tokens of chunks ``ch, ch + 1`` (and 0 when ``ch == 1``).
+
+    Called after odd chunk ``ch`` is done: its tokens and those of even chunk
+    ``ch + 1`` (written only by ``ch`` and itself) have their final tensors,
+    and no other iteration of the parallel loop writes them.
+    """
+    c0 = 0 if ch == 1 else ch
+    c1 = min(ch + 2, nch)
+    if c0 < c1:
+        for i in range(cb[c0], cb[c1]):
+            l1, l2, l3, ex, ey, ez = eig3_top(acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5])
+            vals[i, 0] = l1
+            vals[i, 1] = l2
+            vals[i, 2] = l3
+            e1[i, 0] = ex
+            e1[i, 1] = ey
+            e1[i, 2] = ez
+
+
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, cb, acc, counts, nbr, rb, nstart, nup):
+              tab, tscale, cb, acc, vals, e1, counts, nbr, rb, nstart, nup):
     """Sparse ball voting, each pair once (see the section comment).
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
     is included, so a lone token ends with the identity.  ``acc (N, 6)`` and
     ``counts (N,)`` must be zero on entry; they receive the tensors and the
-    number of voters (self included).  ``cb``: token bounds of the chunks.
+    number of voters (self included); ``vals (N, 3)``, ``e1 (N, 3)`` receive
+    the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks.
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -533,51 +555,72 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     nch = cb.shape[0] - 1
     inv_h = 1.0 / h
     for phase in range(2):
-        for c in prange((nch - phase + 1) // 2):
+        for c in prange((nch + 1) // 2):
             ch = 2 * c + phase
-            bj = np.empty(CAP, np.int64)
-            pos = rb[ch] if record else 0
-            lim = rb[ch + 1] if record else 0
-            for i in range(cb[ch], cb[ch + 1]):
-                bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                 lo, h, inv_h, r2, bj)
-                s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
-                                                           acc, counts)
-                acc[i, 0] += 1.0 + s00
-                acc[i, 1] += s01
-                acc[i, 2] += s02
-                acc[i, 3] += 1.0 + s11
-                acc[i, 4] += s12
-                acc[i, 5] += 1.0 + s22
-                counts[i] += 1 + cnt
-                if record:
-                    nup[i] = cnt
-                    if pos + cnt <= lim:
-                        nstart[i] = pos
-                        for k in range(cnt):
-                            nbr[pos + k] = np.int32(bj[k])
-                        pos += cnt
-                    else:
-                        nstart[i] = -1
+            if ch < nch:
+                bj = np.empty(CAP, np.int64)
+                pos = rb[ch] if record else 0
+                lim = rb[ch + 1] if record else 0
+                for i in range(cb[ch], cb[ch + 1]):
+                    bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                     lo, h, inv_h, r2, bj)
+                    s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
+                                                               acc, counts)
+                    acc[i, 0] += 1.0 + s00
+                    acc[i, 1] += s01
+                    acc[i, 2] += s02
+                    acc[i, 3] += 1.0 + s11
+                    acc[i, 4] += s12
+                    acc[i, 5] += 1.0 + s22
+                    counts[i] += 1 + cnt
+                    if record:
+                        nup[i] = cnt
+                        if pos + cnt <= lim:
+                            nstart[i] = pos
+                            for k in range(cnt):
+                                nbr[pos + k] = np.int32(bj[k])
+                            pos += cnt
+                        else:
+                            nstart[i] = -1
+            if phase == 1:
+                _eig_chunks(acc, vals, e1, cb, ch, nch)
+
+
+@njit(cache=True, parallel=True, boundscheck=False)
+def stick_records(xs, ys, zs, nxs, nys, nzs, ws):
+    """``(N, 8)`` rows ``x, y, z, nx, ny, nz, w, 0``: one cache line per voter for the gathers."""
+    n = xs.shape[0]
+    rec = np.empty((n, 8))
+    for i in prange(n):
+        rec[i, 0] = xs[i]
+        rec[i, 1] = ys[i]
+        rec[i, 2] = zs[i]
+        rec[i, 3] = nxs[i]
+        rec[i, 4] = nys[i]
+        rec[i, 5] = nzs[i]
+        rec[i, 6] = ws[i]
+        rec[i, 7] = 0.0
+    return rec
 
 
 @njit(cache=True, inline="always", boundscheck=False)
-def _gather(bj, k0, cnt, xi, yi, zi, xs, ys, zs, nxs, nys, nzs, ws, buf):
+def _gather(bj, k0, cnt, xi, yi, zi, rec, buf):
     """Offsets ``x_i − x_j``, normals and weights of the j's of ``bj[k0 : k0 + cnt]`` to ``buf``.
 
-    ``buf`` rows: dx, dy, dz, nx, ny, nz, w (contiguous, so the vectorised
-    flush needs no gathers).  Returns how many j's have a nonzero weight.
+    ``rec``: see :func:`stick_records`.  ``buf`` rows: dx, dy, dz, nx, ny,
+    nz, w (contiguous, so the vectorised flush needs no gathers).  Returns how
+    many j's have a nonzero weight.
     """
     nv = 0
     for k in range(cnt):
         j = np.uint64(bj[k0 + k])
-        w = ws[j]
-        buf[0, k] = xi - xs[j]
-        buf[1, k] = yi - ys[j]
-        buf[2, k] = zi - zs[j]
-        buf[3, k] = nxs[j]
-        buf[4, k] = nys[j]
-        buf[5, k] = nzs[j]
+        w = rec[j, 6]
+        buf[0, k] = xi - rec[j, 0]
+        buf[1, k] = yi - rec[j, 1]
+        buf[2, k] = zi - rec[j, 2]
+        buf[3, k] = rec[j, 3]
+        buf[4, k] = rec[j, 4]
+        buf[5, k] = rec[j, 5]
         buf[6, k] = w
         nv += w != 0.0
     return nv
@@ -662,13 +705,14 @@ def _scatter(bj, k0, cnt, out, acc, counts):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, cb, acc, counts, nbr, nstart, nup):
+               lo, h, r2, inv_s2, gamma4, lmin2, cb, acc, vals, e1, counts, nbr, nstart, nup):
     """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
     ``ws[j]`` (``ws[j] == 0``: no vote, not counted).  The votee's own stick
     ``ws[i]·nᵢnᵢᵀ`` (self vote, l = 0) is included.  ``gamma4 = 4γ`` and
-    ``lmin2 = (l_min/σ)²``.  ``acc`` and ``counts`` must be zero on entry.
+    ``lmin2 = (l_min/σ)²``.  ``acc`` and ``counts`` must be zero on entry;
+    outputs as in :func:`ball_pass`.
 
     ``nbr, nstart, nup``: upper-neighbour lists recorded by :func:`ball_pass`
     at the same σ; a token with ``nstart[i] ≥ 0`` takes its upper neighbours
@@ -679,54 +723,58 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
     use_nl = nstart.shape[0] == n
     nch = cb.shape[0] - 1
     inv_h = 1.0 / h
+    rec = stick_records(xs, ys, zs, nxs, nys, nzs, ws)
     for phase in range(2):
-        for c in prange((nch - phase + 1) // 2):
+        for c in prange((nch + 1) // 2):
             ch = 2 * c + phase
-            bj = np.empty(CAP, np.int64)
-            buf = np.empty((7, CAP))
-            out = np.empty((6, CAP))
-            for i in range(cb[ch], cb[ch + 1]):
-                wi = ws[i]
-                nix = nxs[i]
-                niy = nys[i]
-                niz = nzs[i]
-                listed = use_nl and nstart[i] >= 0
-                if listed:
-                    k0 = nstart[i]
-                    cnt = nup[i]
-                else:
-                    bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                     lo, h, inv_h, r2, bj)
-                    k0 = 0
-                if cnt > buf.shape[1]:
-                    cap = max(2 * buf.shape[1], cnt)
-                    buf = np.empty((7, cap))
-                    out = np.empty((6, cap))
-                if listed:
-                    nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], xs, ys, zs, nxs, nys, nzs, ws, buf)
-                else:
-                    nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], xs, ys, zs, nxs, nys, nzs, ws, buf)
-                both = wi != 0.0
-                s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
-                                                            inv_s2, gamma4, lmin2, out)
-                if both:
+            if ch < nch:
+                bj = np.empty(CAP, np.int64)
+                buf = np.empty((7, CAP))
+                out = np.empty((6, CAP))
+                for i in range(cb[ch], cb[ch + 1]):
+                    wi = ws[i]
+                    nix = nxs[i]
+                    niy = nys[i]
+                    niz = nzs[i]
+                    listed = use_nl and nstart[i] >= 0
                     if listed:
-                        _scatter(nbr, k0, cnt, out, acc, counts)
+                        k0 = nstart[i]
+                        cnt = nup[i]
                     else:
-                        _scatter(bj, k0, cnt, out, acc, counts)
-                    # own stick (l = 0): w n nᵀ
-                    wx = wi * nix
-                    wy = wi * niy
-                    s00 += wx * nix
-                    s01 += wx * niy
-                    s02 += wx * niz
-                    s11 += wy * niy
-                    s12 += wy * niz
-                    s22 += wi * niz * niz
-                acc[i, 0] += s00
-                acc[i, 1] += s01
-                acc[i, 2] += s02
-                acc[i, 3] += s11
-                acc[i, 4] += s12
-                acc[i, 5] += s22
-                counts[i] += nv + (1 if both else 0)
+                        bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                         lo, h, inv_h, r2, bj)
+                        k0 = 0
+                    if cnt > buf.shape[1]:
+                        cap = max(2 * buf.shape[1], cnt)
+                        buf = np.empty((7, cap))
+                        out = np.empty((6, cap))
+                    if listed:
+                        nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+                    else:
+                        nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+                    both = wi != 0.0
+                    s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
+                                                                inv_s2, gamma4, lmin2, out)
+                    if both:
+                        if listed:
+                            _scatter(nbr, k0, cnt, out, acc, counts)
+                        else:
+                            _scatter(bj, k0, cnt, out, acc, counts)
+                        # own stick (l = 0): w n nᵀ
+                        wx = wi * nix
+                        wy = wi * niy
+                        s00 += wx * nix
+                        s01 += wx * niy
+                        s02 += wx * niz
+                        s11 += wy * niy
+                        s12 += wy * niz
+                        s22 += wi * niz * niz
+                    acc[i, 0] += s00
+                    acc[i, 1] += s01
+                    acc[i, 2] += s02
+                    acc[i, 3] += s11
+                    acc[i, 4] += s12
+                    acc[i, 5] += s22
+                    counts[i] += nv + (1 if both else 0)
+            if phase == 1:
+                _eig_chunks(acc, vals, e1, cb, ch, nch)

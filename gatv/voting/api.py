@@ -224,33 +224,30 @@ class _Engine:
         return (g.cix, g.ciy, g.ciz, g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.mask,
                 g.subdiv, g.lo, g.h, self.radius**2)
 
-    def _finish(self, acc):
+    def _out(self):
         n = self.grid.n
-        vals, e1 = np.empty((n, 3)), np.empty((n, 3))
-        self._K.eig3_top_batch(acc, vals, e1)
-        return vals, e1
+        return np.zeros((n, 6)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, np.int64)
 
     def ball(self, record: bool = False):
         tab = _fields.ball_table4()
         tscale = _fields.BALL_TABLE_SIZE / self.radius**2
         g = self.grid
         n = g.n
-        acc, cnt = np.zeros((n, 6)), np.zeros(n, np.int64)
+        acc, vals, e1, cnt = self._out()
         row = min(self._K.NL_ROW, self.max_pairs // max(n, 1)) if record else 0
         if row > 0:
             nbr = np.empty(n * row, np.int32)
             nstart, nup = np.empty(n, np.int64), np.empty(n, np.int64)
         else:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
-        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, acc, cnt,
-                          nbr, self.cb * row, nstart, nup)
+        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, acc, vals, e1,
+                          cnt, nbr, self.cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
-        return (acc, *self._finish(acc), cnt)
+        return acc, vals, e1, cnt
 
     def stick(self, normals_sorted: np.ndarray, weights_sorted: np.ndarray):
         g = self.grid
-        n = g.n
-        acc, cnt = np.zeros((n, 6)), np.zeros(n, np.int64)
+        acc, vals, e1, cnt = self._out()
         nrm = np.ascontiguousarray(np.asarray(normals_sorted, dtype=np.float64).T)
         if self.lists is None:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
@@ -259,8 +256,8 @@ class _Engine:
         self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
-                           self.cb, acc, cnt, nbr, nstart, nup)
-        return (acc, *self._finish(acc), cnt)
+                           self.cb, acc, vals, e1, cnt, nbr, nstart, nup)
+        return acc, vals, e1, cnt
 
     def drop_lists(self) -> None:
         self.lists = None

@@ -139,6 +139,18 @@ def evaluate(method, trial, f):
     return precision, recall, werr, timer.seconds, error
 
 
+def _write(args, argv, headers, rows, csv_rows):
+    table = markdown_table(headers, rows, "lllrrrrr")
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = shlex.join(argv if argv is not None else sys.argv[1:])
+    (args.out / "nonrigid.md").write_text(
+        f"`python benchmarks/nonrigid.py {command}` ({args.trials} trial(s) per row, medians)\n\n{table}\n")
+    path = write_csv(args.out / "nonrigid.csv",
+                     ["case", "f", "method", "trial", "precision", "recall", "warp_error", "time_s", "error"],
+                     csv_rows)
+    return table, path
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_common_arguments(parser, trials=1)
@@ -200,15 +212,10 @@ def main(argv=None) -> int:
                        sum(bool(r[4]) for r in res)]
                 rows.append(row)
                 print(" | ".join(map(str, row)), flush=True)
-    table = markdown_table(headers, rows, "lllrrrrr")
+            _write(args, argv, headers, rows, csv_rows)  # after every row: a cut-short run keeps what it did
+    table, path = _write(args, argv, headers, rows, csv_rows)
     print()
     print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "nonrigid.md").write_text(f"`python benchmarks/nonrigid.py {shlex.join(argv if argv is not None else sys.argv[1:])}`"
-                                          f" ({args.trials} trial(s) per row, medians)\n\n{table}\n")
-    path = write_csv(args.out / "nonrigid.csv",
-                     ["case", "f", "method", "trial", "precision", "recall", "warp_error", "time_s", "error"],
-                     csv_rows)
     print(f"\nwrote {path}")
     return 0
 

@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 __all__ = ["Grid", "build_grid"]
 
@@ -46,13 +46,28 @@ def cell_hash(cx, cy, cz, mask):
 
 
 @njit(cache=True)
+def _bounds(points):
+    """Per-axis minimum and maximum of ``(N, 3)`` points, one pass."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for k in range(3):
+            v = points[i, k]
+            if v < lo[k]:
+                lo[k] = v
+            if v > hi[k]:
+                hi[k] = v
+    return lo, hi
+
+
+@njit(cache=True, parallel=True)
 def _bin(points, lo, inv_h, nx, ny, nz, hashed, mask):
     n = points.shape[0]
     cix = np.empty(n, np.int64)
     ciy = np.empty(n, np.int64)
     ciz = np.empty(n, np.int64)
     key = np.empty(n, np.int64)
-    for i in range(n):
+    for i in prange(n):
         x = int((points[i, 0] - lo[0]) * inv_h)
         y = int((points[i, 1] - lo[1]) * inv_h)
         z = int((points[i, 2] - lo[2]) * inv_h)
@@ -73,7 +88,7 @@ def _bin(points, lo, inv_h, nx, ny, nz, hashed, mask):
     return cix, ciy, ciz, key
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _counting_sort(key, nkeys, points, cix, ciy, ciz):
     """Stable counting sort by key: returns start (nkeys+1), order, sorted arrays."""
     n = key.shape[0]
@@ -95,7 +110,7 @@ def _counting_sort(key, nkeys, points, cix, ciy, ciz):
     sx = np.empty(n, np.int64)
     sy = np.empty(n, np.int64)
     sz = np.empty(n, np.int64)
-    for j in range(n):
+    for j in prange(n):
         i = order[j]
         ps[j, 0] = points[i, 0]
         ps[j, 1] = points[i, 1]
@@ -138,8 +153,8 @@ class Grid:
 def grid_layout(points: np.ndarray, radius: float, subdiv: int):
     """Cell side, box corner, dims and whether the layout must be hashed."""
     h = radius / subdiv
-    lo = points.min(axis=0)
-    ext = points.max(axis=0) - lo
+    lo, hi = _bounds(points)
+    ext = hi - lo
     cells = ext / h
     if np.any(cells >= MAX_CELLS_PER_AXIS):
         msg = (

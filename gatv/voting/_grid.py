@@ -170,7 +170,7 @@ def grid_layout(points: np.ndarray, radius: float, subdiv: int):
     return h, lo, dims, hashed, nkeys
 
 
-def build_grid(points: np.ndarray, radius: float, subdiv: int = 2) -> Grid:
+def build_grid(points: np.ndarray, radius: float, subdiv: int = 1) -> Grid:
     """Bin and counting-sort ``points`` (C-contiguous float64) by cell."""
     h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv)
     mask = nkeys - 1 if hashed else 0

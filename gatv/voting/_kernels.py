@@ -417,7 +417,7 @@ def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, 
 
 
 @njit(cache=True, inline="always", boundscheck=False)
-def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj):
+def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj, rows):
     """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): ``(bj, cnt)``.
 
     ``bj[:cnt]`` lists them (``bj`` is replaced by a larger buffer if needed).
@@ -425,6 +425,10 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     dz > 0, or dz = 0 and dy > 0, or the own row beyond i.  Hashed layout:
     cells lexicographically after i's by (dz, dy, dx), and j > i within i's
     own cell (all its tokens share one bucket).
+
+    The nonempty runs are found first (into ``rows``, a ``(5, (m+1)(2m+1)²)``
+    scratch: j0, j1, cx, cy, cz) and the first token of each is touched, so
+    their cache misses overlap; then the runs are scanned.
     """
     xi = xs[i]
     yi = ys[i]
@@ -436,7 +440,8 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     iy = ciy[i]
     iz = ciz[i]
     nruns = 2 * m + 1 if hashed else 1
-    cnt = 0
+    nr = 0
+    touch = 0.0
     for dz in range(0, m + 1):
         cz = iz + dz
         if not hashed and cz >= nz:
@@ -450,10 +455,23 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                 j0, j1, cx = _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r2)
                 if own_row and (kx == m or not hashed):
                     j0 = max(j0, i + 1)
-                if j1 - j0 > bj.shape[0] - cnt:
-                    bj = _grown(bj, cnt, cnt + j1 - j0)
-                cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, r2, bj, cnt)
-    return bj, cnt
+                rows[0, nr] = j0
+                rows[1, nr] = j1
+                rows[2, nr] = cx
+                rows[3, nr] = cy
+                rows[4, nr] = cz
+                if j1 > j0:
+                    touch += xs[j0] + ys[j0] + zs[j0]
+                    nr += 1
+    cnt = 0
+    for r in range(nr):
+        j0 = rows[0, r]
+        j1 = rows[1, r]
+        if j1 - j0 > bj.shape[0] - cnt:
+            bj = _grown(bj, cnt, cnt + j1 - j0)
+        cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, rows[2, r], rows[3, r], rows[4, r], j0, j1, xi, yi, zi, r2,
+                       bj, cnt)
+    return bj, cnt + (touch != touch)  # never true (no NaN tokens): keeps the touches
 
 
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
@@ -559,11 +577,12 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
             ch = 2 * c + phase
             if ch < nch:
                 bj = np.empty(CAP, np.int64)
+                rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
                 pos = rb[ch] if record else 0
                 lim = rb[ch + 1] if record else 0
                 for i in range(cb[ch], cb[ch + 1]):
                     bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                     lo, h, inv_h, r2, bj)
+                                     lo, h, inv_h, r2, bj, rows)
                     s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
                                                                acc, counts)
                     acc[i, 0] += 1.0 + s00
@@ -654,6 +673,10 @@ def _stick_pairs(buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
     vote is even in the offset, so both use ``d = x_i − x_j``.  l = 0 gives
     ``s2 = 0``, ``m = n``, ``DF = 1``.
     """
+    # γ(σκ)² = 4γ sin²θ / max(ρ², l_min²/σ²) = s2 · min(4γσ²/l², 4γσ²/l_min²):
+    # one division per pair (1/l², needed anyway) instead of two
+    gs2 = gamma4 / inv_s2
+    gmax = gamma4 / lmin2
     s00 = 0.0
     s01 = 0.0
     s02 = 0.0
@@ -667,9 +690,9 @@ def _stick_pairs(buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
         d2 = dx * dx + dy * dy + dz * dz
         pos = d2 > 0.0
         inv = 1.0 / (d2 if pos else 1.0)
-        inv = inv if pos else 0.0
+        inv = inv if pos else 0.0  # l = 0: s2 = 0, the curvature term vanishes
         rho2 = d2 * inv_s2
-        gl = gamma4 / max(rho2, lmin2)
+        gl = min(gs2 * inv, gmax)
         t00, t01, t02, t11, t12, t22 = _stick_one(dx, dy, dz, d2, inv, rho2, gl,
                                                   buf[3, k], buf[4, k], buf[5, k], buf[6, k])
         s00 += t00
@@ -729,6 +752,7 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
             ch = 2 * c + phase
             if ch < nch:
                 bj = np.empty(CAP, np.int64)
+                rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
                 buf = np.empty((7, CAP))
                 out = np.empty((6, CAP))
                 for i in range(cb[ch], cb[ch + 1]):
@@ -742,7 +766,7 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                         cnt = nup[i]
                     else:
                         bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                         lo, h, inv_h, r2, bj)
+                                         lo, h, inv_h, r2, bj, rows)
                         k0 = 0
                     if cnt > buf.shape[1]:
                         cap = max(2 * buf.shape[1], cnt)

@@ -5,15 +5,19 @@ Public functions: :func:`vote` (one sparse ball or stick pass),
 The voting fields are described in :mod:`gatv.voting._fields`; the numba
 kernels live in :mod:`gatv.voting._kernels` and :mod:`gatv.voting._grid`.
 
-Neighbour search.  A numba uniform grid (cells of side ``r/2`` for voting
-radius ``r = 2σ``, tokens counting-sorted by cell; every token scans the
-half of the 5×5 rows of cells around its own that lie after it, each x-row a
-contiguous run trimmed to the voting sphere, ~60 candidates for ~25 pairs)
-won against
+Neighbour search.  A numba uniform grid (cells of side ``r`` for voting
+radius ``r = 2σ``, tokens counting-sorted by cell; every token scans the 5
+of the 3×3 x-rows of cells around its own that lie after it in cell order,
+each x-row a contiguous run trimmed to the voting sphere: at 250k, 4.8 rows
+and 112 candidates for 25 pairs per token) won against
 ``scipy.spatial.cKDTree``: on 250k tokens (2 shared cores) building the grid
 takes 0.05–0.11 s while ``cKDTree`` build + ``query_ball_point(r,
 workers=2, return_length=True)`` — counts only, no neighbour lists — takes
-7.5–12 s, i.e. ~100× more (``benchmarks/voting.py``).
+7.5–12 s, i.e. ~100× more (``benchmarks/voting.py``).  Cells of side ``r``
+beat ``r/2`` (12.6 rows, 60 candidates; ball pass 0.47 → 0.37 CPU-s median
+at 250k, 1 thread, load avg 4.7): a row costs far more than a candidate (a
+dependent ``start`` lookup and a mispredicted loop exit), so the runs are
+found first and their first tokens touched before any is scanned.
 
 Each pair of tokens is visited once, from its lower sorted index, and its
 votes are added to both tokens (the ball vote is the same both ways; the two
@@ -57,8 +61,8 @@ __all__ = [
     "voting_radius",
 ]
 
-#: Grid cells per voting radius (cell side ``r / GRID_SUBDIV``).
-GRID_SUBDIV = 2
+#: Grid cells per voting radius (cell side ``r / GRID_SUBDIV``); see the module notes.
+GRID_SUBDIV = 1
 #: Bytes of O(N) working storage per token (sorted copy, cells, tensors, eigen output).
 BYTES_PER_TOKEN = 400
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).

@@ -289,6 +289,9 @@ def test_cli_run_writes_json(tmp_path, capsys):
     assert record["success"] and record["support"] >= 55
     assert len(record["correspondences"]) == record["support"]
     assert "correspondences:" in capsys.readouterr().out
+    assert record["options"]["prealign"] == "auto" and record["info"]["hypothesis"] in ("voting", "coarse")
+    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--prealign", "never", "-q"])
+    assert run(args) == 0
 
 
 def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):

@@ -47,6 +47,10 @@ def add_parser(subparsers):
     p.add_argument("--max-displacement", type=float, metavar="DIST",
                    help="bound on how far a point moves, data units")
     p.add_argument("--noise", type=float, metavar="SIGMA", help="point noise, data units")
+    p.add_argument("--prealign", choices=("auto", "always", "never"), default="auto",
+                   help="start a coarse-to-fine hypothesis from the dominant rigid motion: "
+                        "auto (only when nothing else beats chance, bounded search), always, never "
+                        "(default: auto)")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(handler=run)
     return p
@@ -86,6 +90,7 @@ def _run(args) -> int:
         options["max_displacement"] = args.max_displacement
     if args.noise is not None:
         options["noise"] = args.noise
+    options["prealign"] = {"auto": "auto", "always": True, "never": False}[args.prealign]
     start = time.perf_counter()
     motion = register(source, target, seed=args.seed, **options)
     seconds = time.perf_counter() - start
@@ -93,6 +98,7 @@ def _run(args) -> int:
     if not args.quiet:
         print(f"correspondences: {motion.support}")
         print(f"time:            {seconds:.3f} s")
+        print(f"hypothesis:      {motion.info.get('hypothesis')}")
     if not ok:
         print(f"{PROG}: registration failed: {motion.info.get('reason', 'nothing found')}", file=sys.stderr)
     record = {

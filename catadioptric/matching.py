@@ -25,19 +25,39 @@ How it works
    sphere every wrong rotation maps the points onto the same surface, so
    its volumetric chance level accepts wrong trials, and a triangle has
    more congruent partners than the search keeps.
-3. **Rigid or non-rigid.** The rotation's support is compared with the
+3. **Rigid or locally rigid.** The rotation's support is compared with the
    chance level of the sphere (a wrong rotation brings a ray within the
-   gate of a target ray with probability ``n2 π gate² / area``). With a
+   gate of a target ray with probability ``n2 π gate² / area``); when it
+   explains nearly all rays (``rigid_share``) it is the answer. With a
    camera translation the rays move non-rigidly (parallax ``t⊥ / depth``),
-   only locally rigidly: after turning the first view by the dominant
-   rotation, the tokens ``y_j − R x_i`` of the true pairs form a curved
-   surface in the joint space, which the local-constraint mode
-   :func:`gatv.nonrigid.register` extracts with tensor voting and local
-   eq. 41. The non-rigid result is kept when it explains clearly more
-   pairs than the rotation (``nonrigid_gain``), else the rigid one.
+   only locally rigidly: each ray is moved by the rotation of its nearest
+   matched neighbours, grown from the rotation's pairs or from the
+   vertices of a wider cluster of triangle rotations ("local").
+4. **Epipolar geometry.** True pairs satisfy ``y · (t × R x) = 0``: ``y``
+   lies on the great-circle arc from ``R x`` (infinite depth) towards the
+   epipole ``t`` (zero depth). An essential matrix is found by 8-point
+   RANSAC on the sphere, each sample three matched local triangles (nine
+   pairs) from a cluster of triangle rotations as wide as the parallax,
+   scored on those pairs and the local-growth pairs; (R, t) is refined by
+   least squares on the epipolar angles. The rays are then matched along
+   their arcs: the inverse depth ``rho = |t| / d`` of a plane is linear
+   in the ray, ``rho = w · u``, so the plane that most of a ray's matched
+   neighbours agree with (the best of their triples, refitted) predicts
+   where on its arc the ray lands; candidates within the noise gate are
+   matched one-to-one, closest first, growing until the matches repeat,
+   with (R, t) refitted on them. A match whose ray has a second candidate
+   nearly as close (``EPI_RATIO``) is dropped as ambiguous: precision
+   first. Without parallax (a pure rotation, ``t`` undefined) the stage
+   stands aside. The epipolar result is kept when it explains clearly more
+   pairs than the rotation (``nonrigid_gain``) and beats the chance
+   level. ``strategy="nonrigid"`` instead extracts the curved surface of
+   the tokens ``y_j − R x_i`` with tensor voting and local eq. 41
+   (:func:`gatv.nonrigid.register`).
 
 Motion convention: a scene point seen along ray ``x`` in view 1 is seen
-along ``y ≈ R x`` in view 2 (pure rotation), ``y ∝ R X + t`` in general.
+along ``y ≈ R x`` in view 2 (pure rotation), ``y ∝ R X + t`` in general
+(``X = d x`` the point in view 1's frame, the convention of
+:func:`catadioptric.synthetic_views`).
 """
 
 from __future__ import annotations
@@ -86,16 +106,24 @@ class SphereMatch:
     index1, index2 : (M1,), (M2,) ndarray of int
         Input row of each ray: ``rays1[k]`` is ``pixels1[index1[k]]``.
     rotation : (3, 3) ndarray of float or None
-        Dominant rotation ``y ≈ R x`` (view 1 rays to view 2 rays) when its
-        support beats the chance level of the sphere, else None.
+        Camera rotation ``R`` (view 1 rays to view 2 rays). For the
+        ``"epipolar"`` strategy the rotation of the recovered motion
+        ``y ∝ d R x + t``; otherwise the dominant pure rotation ``y ≈ R x``
+        when its support beats the chance level of the sphere, else None.
     rotation_support : int
-        Pairs within the noise gate of ``rotation`` (one-to-one).
-    strategy : {"rigid", "nonrigid", "none"}
+        Pairs within the noise gate of the pure rotation ``y ≈ R x``
+        (one-to-one; 0 when no rotation beat the chance level).
+    strategy : {"rigid", "local", "epipolar", "nonrigid", "none"}
         Which stage gave ``correspondences``.
     noise : float
         Median sphere noise of the rays (unit-sphere units, per axis).
     info : dict
-        Diagnostics: chance level, supports of both stages, timings.
+        Diagnostics: chance level, supports of the stages, timings.
+    translation : (3,) ndarray of float or None
+        Unit direction of the translation ``t`` in ``X2 = R X1 + t`` (the
+        epipole of view 1's centre in view 2) for the ``"epipolar"``
+        strategy; None otherwise (also for a pure rotation, where ``t``
+        is not defined).
     """
 
     correspondences: NDArray[np.int64]
@@ -108,7 +136,6 @@ class SphereMatch:
     strategy: str
     noise: float
     info: dict = field(default_factory=dict)
-    motion_rotation: NDArray[np.float64] | None = None
     translation: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
@@ -118,8 +145,9 @@ class SphereMatch:
             object.__setattr__(self, name, _frozen(getattr(self, name)))
         for name in ("index1", "index2"):
             object.__setattr__(self, name, _frozen(getattr(self, name), np.int64))
-        if self.rotation is not None:
-            object.__setattr__(self, "rotation", _frozen(self.rotation))
+        for name in ("rotation", "translation"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _frozen(getattr(self, name)))
 
     @property
     def support(self) -> int:
@@ -137,6 +165,13 @@ class SphereMatch:
         c = (float(np.trace(self.rotation)) - 1.0) / 2.0
         return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
+    @property
+    def essential(self) -> NDArray[np.float64] | None:
+        """(3, 3) ndarray or None: essential matrix ``E = [t]x R``, ``y^T E x = 0`` for true pairs."""
+        if self.translation is None or self.rotation is None:
+            return None
+        return _essential_from_motion(self.rotation, self.translation)
+
     def to_dict(self) -> dict:
         """JSON-serialisable summary (correspondences as lists of input rows)."""
         return {
@@ -146,6 +181,8 @@ class SphereMatch:
             "rotation": None if self.rotation is None else self.rotation.tolist(),
             "rotation_deg": self.rotation_deg,
             "rotation_support": int(self.rotation_support),
+            "translation": None if self.translation is None else self.translation.tolist(),
+            "essential": None if self.translation is None else self.essential.tolist(),
             "noise": self.noise,
             "n_rays1": int(self.rays1.shape[0]),
             "n_rays2": int(self.rays2.shape[0]),
@@ -462,7 +499,7 @@ def match(
     *,
     noise_px: float = 1.0,
     strategy: str = "auto",
-    max_parallax: float = 0.35,
+    max_parallax: float = 0.5,
     nonrigid_gain: float = 1.15,
     rigid_share: float = 0.9,
     shape_tolerance: float = 0.15,
@@ -484,16 +521,20 @@ def match(
     noise_px : float, default: 1.0
         Assumed corner noise in pixels (standard deviation per
         coordinate); sets every gate through :func:`sphere_noise`.
-    strategy : {"auto", "rigid", "nonrigid"}, default: "auto"
-        ``"rigid"``: pure camera rotation only; ``"nonrigid"``: always the
-        local-constraint mode after the rotation; ``"auto"``: the
-        non-rigid result when it has at least ``nonrigid_gain`` times the
-        rotation's support, else the rigid one.
-    max_parallax : float, default: 0.35
-        Largest displacement of a ray left after the dominant rotation
+    strategy : {"auto", "rigid", "local", "epipolar", "nonrigid"}, default: "auto"
+        ``"rigid"``: pure camera rotation only; ``"local"``: locally rigid
+        growth after the rotation; ``"epipolar"``: matching along the
+        epipolar arcs of a recovered motion (R, t); ``"nonrigid"``: the
+        local-constraint mode of :func:`gatv.nonrigid.register` after the
+        rotation; ``"auto"``: the rotation when it explains nearly all
+        rays, else the epipolar result when it has at least
+        ``nonrigid_gain`` times the rotation's support, else the local
+        one under the same rule, else the rotation.
+    max_parallax : float, default: 0.5
+        Largest displacement of a ray left after the camera rotation
         (chord on the unit sphere, ~radians): the camera translation over
-        the nearest depth. Bounds the candidate pairs of the non-rigid
-        stage.
+        the nearest depth. Bounds the candidate pairs of the epipolar and
+        non-rigid stages.
     nonrigid_gain : float, default: 1.15
         See ``strategy``.
     shape_tolerance : float, default: 0.15
@@ -561,7 +602,7 @@ def match(
             info["reason"] = reason
         info["time_s"] = time.perf_counter() - t_start
         return SphereMatch(out, r1, r2, index1, index2, rotation, rot_support, used, noise, info,
-                           *(motion if motion is not None else (None, None)))
+                           translation=motion)
 
     if r1.shape[0] < 3 or r2.shape[0] < 3:
         return result([], None, 0, "none", "fewer than 3 liftable pixels in a view")
@@ -605,16 +646,20 @@ def match(
         local = _grow_local(r1, r2, tree2, s1, s2, seeds)
     info["time_local_s"] = time.perf_counter() - t0
     info["local_support"] = int(local.shape[0])
-    if strategy in ("auto", "epipolar") and _EPI:
+    if strategy in ("auto", "epipolar"):
+        # Stage 4: epipolar geometry (camera translation).
         t0 = time.perf_counter()
         seeds_e = local if local.shape[0] >= rigid.shape[0] else rigid
-        epi = _epipolar_stage(r1, r2, tree2, s1, s2, seeds_e, shape_tolerance, seed, info)
+        epi = _epipolar_stage(r1, r2, tree2, s1, s2, seeds_e, noise, max_parallax, seed, info)
         info["time_epipolar_s"] = time.perf_counter() - t0
         if epi is not None:
             Re, te, pe = epi
-            info["epi_support"] = int(pe.shape[0])
-            if strategy == "epipolar" or pe.shape[0] >= max(nonrigid_gain * rigid.shape[0], chance):
-                return result(pe, R, rot_support, "epipolar", motion=(Re, te))
+            info["epipolar_support"] = int(pe.shape[0])
+            if pe.shape[0] >= max(nonrigid_gain * rigid.shape[0], chance):
+                return result(pe, Re, rot_support, "epipolar", motion=te)
+            info.setdefault("epipolar_reason", "fewer pairs than the rotation or the chance level")
+        if strategy == "epipolar":
+            return result([], R, rot_support, "none", info.get("epipolar_reason", "nothing matched"))
     if strategy != "auto" or local.shape[0] >= max(nonrigid_gain * rigid.shape[0], chance):
         if local.shape[0] == 0:
             return result([], R, rot_support, "none", info.get("nonrigid_reason", "nothing matched"))
@@ -624,13 +669,14 @@ def match(
     return result(rigid, R, rot_support, "rigid")
 
 
-EPI_PARALLAX = 0.5
 EPI_CLUSTER_DEG = 15.0
 EPI_SHAPE_TOL = 0.25
 EPI_RANSAC = 2000
 EPI_HYPOTHESES = 3
 EPI_RIVAL = 0.75
 EPI_FINAL = 0.9
+EPI_RATIO = 0.6
+EPI_MIN_PARALLAX = 3.0
 
 
 # --------------------------------------------------------------- epipolar stage
@@ -852,7 +898,7 @@ def _solve3(M, b):
                             np.einsum("ni,ni->n", b, c2)]) / det[:, None]
 
 
-def _grow_epipolar(r1, cand, n2, seeds, neighbours=8, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3):
+def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3):
     """Match along the epipolar arcs, each ray at the inverse depth of its matched neighbours.
 
     The inverse depth of a plane is linear in the ray, ``rho(u) = w . u``:
@@ -915,6 +961,23 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=8, scale=2.0, rounds=15, fina
         o = np.argsort(new[:, 0], kind="stable")
         new, new_k = new[o], new_k[o]
         if last:
+            if EPI_RATIO < 1.0 and new.shape[0]:
+                # ambiguity: another candidate of either ray nearly as close
+                d_ok = dd[okc]
+                second = np.full(new.shape[0], np.inf)
+                for col in (0, 1):
+                    key = cp[:, col]
+                    order = np.argsort(key, kind="stable")
+                    # smallest distance per key among the candidates that are not the chosen pair
+                    chosen = np.zeros(cp.shape[0], bool)
+                    chosen[sel] = True
+                    dmask = np.where(chosen, np.inf, d_ok)
+                    uk, start = np.unique(key[order], return_index=True)
+                    mins = np.minimum.reduceat(dmask[order], start)
+                    look = np.searchsorted(uk, new[:, col])
+                    second = np.minimum(second, mins[np.minimum(look, uk.size - 1)])
+                good = dd[new_k] <= EPI_RATIO * second
+                new = new[good]
             return new
         if new.shape == pairs.shape and np.array_equal(new, pairs):
             rounds = r + 1
@@ -922,35 +985,35 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=8, scale=2.0, rounds=15, fina
     return pairs
 
 
-_EPI = True
+def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, info):
+    """Motion (R, t) and the pairs matched along its epipolar arcs, or None (``info["epipolar_reason"]``).
 
-
-def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, shape_tolerance, seed, info):
-    # the pool: local-triangle matches whose rotation lies within the parallax
-    # spread of the densest cluster, plus the seeds of the earlier stages
+    The RANSAC pool: local-triangle matches whose rotation lies within the
+    parallax spread of the densest cluster (three pairs each, sampled as
+    a unit), plus the pairs of the earlier stages.
+    """
     _, _, _, tri = _dominant_rotation(r1, r2, EPI_SHAPE_TOL, EPI_CLUSTER_DEG)
     pool = np.vstack([seeds.reshape(-1, 2), tri.reshape(-1, 2)])
     pool, inverse = np.unique(pool, axis=0, return_inverse=True)
     inverse = inverse.ravel()
     groups = inverse[seeds.shape[0]:].reshape(-1, 3) if tri.shape[0] else None
-    info["epi_pool"] = int(pool.shape[0])
-    info["epi_triangles"] = int(tri.shape[0])
+    info["epipolar_pool"] = int(pool.shape[0])
     seeds = pool
     if seeds.shape[0] < 12:
-        info["epi_reason"] = "fewer than 12 seed pairs"
+        info["epipolar_reason"] = "fewer than 12 candidate pairs for the essential matrix"
         return None
     x, y = r1[seeds[:, 0]], r2[seeds[:, 1]]
     sig = np.sqrt(s1[seeds[:, 0]] ** 2 + s2[seeds[:, 1]] ** 2)
     ests = _estimate_motions(x, y, sig, np.random.default_rng(seed), groups)
     if not ests:
-        info["epi_reason"] = "no essential matrix"
+        info["epipolar_reason"] = "no essential matrix with 8 or more supporting pairs"
         return None
     best = None
     for R, t, inl in ests:
         pairs = seeds[inl]
         ninl = int(np.count_nonzero(inl))
         for it in range(EPI_OUTER):
-            cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, EPI_PARALLAX)
+            cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
             new = _grow_epipolar(r1, cand, r2.shape[0], pairs)
             if new.shape[0] < 12 or (it > 0 and new.shape[0] <= pairs.shape[0] and np.array_equal(new, pairs)):
                 pairs = new if new.shape[0] >= pairs.shape[0] else pairs
@@ -959,10 +1022,16 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, shape_tolerance, seed, info):
             if it + 1 < EPI_OUTER:
                 sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
                 R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
-        info.setdefault("epi_hypotheses", []).append((ninl, int(pairs.shape[0])))
+        info.setdefault("epipolar_hypotheses", []).append((ninl, int(pairs.shape[0])))
         if best is None or pairs.shape[0] > best[2].shape[0]:
             best = (R, t, pairs)
     R, t, pairs = best
+    # no parallax: a pure rotation, whose t is arbitrary (the rigid stage's case)
+    phi, _, _ = _arc_coordinates(r1[pairs[:, 0]] @ R.T, t, r2[pairs[:, 1]]) if pairs.size else (np.zeros(1),) * 3
+    info["epipolar_median_parallax"] = float(np.median(phi))
+    if not np.median(phi) > EPI_MIN_PARALLAX * noise:
+        info["epipolar_reason"] = "no parallax: the views differ by a rotation only"
+        return None
     return R, t, pairs
 
 

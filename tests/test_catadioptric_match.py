@@ -35,6 +35,84 @@ def test_translation_reaches_good_precision():
     assert precision >= 0.9 and recall >= 0.7
 
 
+def _bench_views(xi, rot, tpct, outliers, seed):
+    """A pair of the benchmark's kind: translation ``tpct`` % of the median depth, random direction."""
+    rng = np.random.default_rng(seed)
+    probe = synthetic_views(200, xi=xi, rotation_deg=0.0, translation=(0, 0, 0), noise_px=0.0, seed=seed)
+    depth = float(np.median(np.linalg.norm(probe.points, axis=1)))
+    d = rng.normal(size=3)
+    t = tpct / 100.0 * depth * d / np.linalg.norm(d)
+    return synthetic_views(200, xi=xi, rotation_deg=rot, translation=t, noise_px=1.0,
+                           outlier_fraction=outliers, seed=seed + 1)
+
+
+def _angle_deg(a, b):
+    return float(np.degrees(np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def test_translation_with_outliers_recovers_the_epipolar_geometry():
+    v = _bench_views(1.0, 30.0, 15.0, 0.5, seed=7)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    precision, recall = correspondence_stats(m.correspondences, v.pairs)
+    assert m.strategy == "epipolar"
+    assert precision >= 0.95 and recall >= 0.75
+    assert _angle_deg(m.translation, v.translation) < 3.0
+    assert np.linalg.norm(m.translation) == pytest.approx(1.0)
+    assert rotation_error_deg(m.rotation, v.rotation) < 1.0
+    # matched rays satisfy y^T E x = 0 within the noise
+    r1, r2 = m.rays1, m.rays2
+    row1 = {int(k): n for n, k in enumerate(m.index1)}
+    row2 = {int(k): n for n, k in enumerate(m.index2)}
+    x = r1[[row1[i] for i in m.correspondences[:, 0]]]
+    y = r2[[row2[j] for j in m.correspondences[:, 1]]]
+    residual = np.abs(np.einsum("ni,ij,nj->n", y, m.essential, x))
+    assert np.median(residual) < 3.0 * m.noise
+    record = m.to_dict()
+    assert record["strategy"] == "epipolar" and len(record["translation"]) == 3
+    assert not m.translation.flags.writeable
+
+
+def test_swapping_the_views_gives_the_inverse_motion():
+    v = _bench_views(0.8, 40.0, 12.0, 0.3, seed=11)
+    ab = match(v.pixels1, v.pixels2, v.camera1)
+    ba = match(v.pixels2, v.pixels1, v.camera1)
+    assert ab.strategy == ba.strategy == "epipolar"
+    # X1 = R^T X2 - R^T t: the inverse motion is (R^T, -R^T t)
+    assert rotation_error_deg(ba.rotation, ab.rotation.T) < 0.5
+    assert _angle_deg(ba.translation, -ab.rotation.T @ ab.translation) < 2.0
+    forward = {tuple(p) for p in ab.correspondences.tolist()}
+    backward = {tuple(p[::-1]) for p in ba.correspondences.tolist()}
+    assert len(forward & backward) >= 0.85 * max(len(forward), len(backward))
+    for m in (ab, ba):
+        precision, _ = correspondence_stats(m.correspondences, v.pairs if m is ab else v.pairs[:, ::-1])
+        assert precision >= 0.95
+
+
+def test_pure_rotation_has_no_translation():
+    v = synthetic_views(150, xi=0.8, rotation_deg=35.0, translation=(0, 0, 0), noise_px=1.0,
+                        outlier_fraction=0.5, seed=3)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    assert m.strategy == "rigid" and m.translation is None and m.essential is None
+    forced = match(v.pixels1, v.pixels2, v.camera1, strategy="epipolar")
+    assert not forced and forced.strategy == "none"
+    assert "no parallax" in forced.info["reason"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("xi", [0.8, 1.0])
+@pytest.mark.parametrize("rot", [30.0, 90.0])
+@pytest.mark.parametrize("tpct", [10.0, 20.0])
+def test_translation_sweep(xi, rot, tpct):
+    ps, rs = [], []
+    for k in range(3):
+        v = _bench_views(xi, rot, tpct, 0.5, seed=100 + 10 * k)
+        m = match(v.pixels1, v.pixels2, v.camera1)
+        p, r = correspondence_stats(m.correspondences, v.pairs)
+        ps.append(p)
+        rs.append(r)
+    assert np.mean(ps) >= 0.93 and np.mean(rs) >= 0.7
+
+
 def test_output_is_one_to_one_and_in_input_rows():
     v = synthetic_views(120, rotation_deg=20.0, translation=(0, 0, 0), outlier_fraction=0.5, seed=4)
     m = match(v.pixels1, v.pixels2, v.camera1)
@@ -77,6 +155,7 @@ def test_sphere_noise_at_the_centre():
         ({"camera2": "cam.json"}, "`camera2` to be a catadioptric.UnifiedCamera"),
         ({"noise_px": -1.0}, "`noise_px`"),
         ({"strategy": "magic"}, "`strategy`"),
+        ({"max_parallax": 0.0}, "`max_parallax`"),
     ],
 )
 def test_bad_input(kwargs, match_text):

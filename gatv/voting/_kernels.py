@@ -15,7 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 _TWO_PI_3 = 2.0 * math.pi / 3.0
 
@@ -323,8 +324,11 @@ def exp_neg_small(x):
 # ``reach = m·(nx·ny + nx + 1)`` cell keys ahead of its own.  The tokens are
 # cut into *chunks* of ``reach`` consecutive keys; two chunks of the same
 # parity never write the same row, so the even chunks run in parallel, then
-# the odd ones.  The order of every sum is fixed by the chunking alone (it
-# does not depend on the number of threads), so results are reproducible.
+# the odd ones; threads take the next chunk of a phase from an atomic
+# counter (dynamic scheduling: a thread the OS preempts on a shared machine
+# does not hold back a fixed half of the work).  The order of every sum is
+# fixed by the chunking alone (not by the thread that runs a chunk, nor by
+# the number of threads), so results are reproducible.
 # The hashed layout (rare: huge boxes) runs as one chunk.
 #
 # Per votee the upper neighbours are first *collected* into a buffer of
@@ -347,6 +351,21 @@ NL_ROW = 48
 # 1e-15, far below the 1e-12 budget), and the result stays identical from run
 # to run (the code path does not depend on the number of threads).
 _FLUSH_FLAGS = {"reassoc", "contract"}
+
+
+@intrinsic
+def _fetch_add(typingctx, arr, idx, val):
+    """Atomic ``arr[idx] += val`` returning the old value (int64 array)."""
+    if not (isinstance(arr, types.Array) and arr.dtype == types.int64):
+        return None
+    sig = types.int64(arr, types.intp, types.int64)
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        ptr = builder.gep(ary.data, [args[1]])
+        return builder.atomic_rmw("add", ptr, args[2], "seq_cst")
+
+    return sig, codegen
 
 
 @njit(cache=True, inline="always")
@@ -554,14 +573,16 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, cb, acc, vals, e1, counts, nbr, rb, nstart, nup):
+              tab, tscale, cb, nth, acc, vals, e1, counts, nbr, rb, nstart, nup):
     """Sparse ball voting, each pair once (see the section comment).
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
     is included, so a lone token ends with the identity.  ``acc (N, 6)`` and
     ``counts (N,)`` must be zero on entry; they receive the tensors and the
     number of voters (self included); ``vals (N, 3)``, ``e1 (N, 3)`` receive
-    the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks.
+    the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks;
+    ``nth``: number of numba threads (passed in: calling
+    ``numba.get_num_threads`` here would make the function uncachable).
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -572,37 +593,42 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     record = nstart.shape[0] == n
     nch = cb.shape[0] - 1
     inv_h = 1.0 / h
+    ctr = np.zeros(2, np.int64)  # next chunk of each phase (dynamic scheduling)
     for phase in range(2):
-        for c in prange((nch + 1) // 2):
-            ch = 2 * c + phase
-            if ch < nch:
-                bj = np.empty(CAP, np.int64)
-                rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
-                pos = rb[ch] if record else 0
-                lim = rb[ch + 1] if record else 0
-                for i in range(cb[ch], cb[ch + 1]):
-                    bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                     lo, h, inv_h, r2, bj, rows)
-                    s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
-                                                               acc, counts)
-                    acc[i, 0] += 1.0 + s00
-                    acc[i, 1] += s01
-                    acc[i, 2] += s02
-                    acc[i, 3] += 1.0 + s11
-                    acc[i, 4] += s12
-                    acc[i, 5] += 1.0 + s22
-                    counts[i] += 1 + cnt
-                    if record:
-                        nup[i] = cnt
-                        if pos + cnt <= lim:
-                            nstart[i] = pos
-                            for k in range(cnt):
-                                nbr[pos + k] = np.int32(bj[k])
-                            pos += cnt
-                        else:
-                            nstart[i] = -1
-            if phase == 1:
-                _eig_chunks(acc, vals, e1, cb, ch, nch)
+        for _t in prange(nth):
+            while True:
+                c = _fetch_add(ctr, phase, 1)
+                if c >= (nch + 1) // 2:
+                    break
+                ch = 2 * c + phase
+                if ch < nch:
+                    bj = np.empty(CAP, np.int64)
+                    rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
+                    pos = rb[ch] if record else 0
+                    lim = rb[ch + 1] if record else 0
+                    for i in range(cb[ch], cb[ch + 1]):
+                        bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                         lo, h, inv_h, r2, bj, rows)
+                        s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
+                                                                   acc, counts)
+                        acc[i, 0] += 1.0 + s00
+                        acc[i, 1] += s01
+                        acc[i, 2] += s02
+                        acc[i, 3] += 1.0 + s11
+                        acc[i, 4] += s12
+                        acc[i, 5] += 1.0 + s22
+                        counts[i] += 1 + cnt
+                        if record:
+                            nup[i] = cnt
+                            if pos + cnt <= lim:
+                                nstart[i] = pos
+                                for k in range(cnt):
+                                    nbr[pos + k] = np.int32(bj[k])
+                                pos += cnt
+                            else:
+                                nstart[i] = -1
+                if phase == 1:
+                    _eig_chunks(acc, vals, e1, cb, ch, nch)
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
@@ -728,7 +754,7 @@ def _scatter(bj, k0, cnt, out, acc, counts):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, cb, acc, vals, e1, counts, nbr, nstart, nup):
+               lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, acc, vals, e1, counts, nbr, nstart, nup):
     """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
@@ -747,58 +773,63 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
     nch = cb.shape[0] - 1
     inv_h = 1.0 / h
     rec = stick_records(xs, ys, zs, nxs, nys, nzs, ws)
+    ctr = np.zeros(2, np.int64)  # next chunk of each phase (dynamic scheduling)
     for phase in range(2):
-        for c in prange((nch + 1) // 2):
-            ch = 2 * c + phase
-            if ch < nch:
-                bj = np.empty(CAP, np.int64)
-                rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
-                buf = np.empty((7, CAP))
-                out = np.empty((6, CAP))
-                for i in range(cb[ch], cb[ch + 1]):
-                    wi = ws[i]
-                    nix = nxs[i]
-                    niy = nys[i]
-                    niz = nzs[i]
-                    listed = use_nl and nstart[i] >= 0
-                    if listed:
-                        k0 = nstart[i]
-                        cnt = nup[i]
-                    else:
-                        bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                         lo, h, inv_h, r2, bj, rows)
-                        k0 = 0
-                    if cnt > buf.shape[1]:
-                        cap = max(2 * buf.shape[1], cnt)
-                        buf = np.empty((7, cap))
-                        out = np.empty((6, cap))
-                    if listed:
-                        nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
-                    else:
-                        nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
-                    both = wi != 0.0
-                    s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
-                                                                inv_s2, gamma4, lmin2, out)
-                    if both:
+        for _t in prange(nth):
+            while True:
+                c = _fetch_add(ctr, phase, 1)
+                if c >= (nch + 1) // 2:
+                    break
+                ch = 2 * c + phase
+                if ch < nch:
+                    bj = np.empty(CAP, np.int64)
+                    rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
+                    buf = np.empty((7, CAP))
+                    out = np.empty((6, CAP))
+                    for i in range(cb[ch], cb[ch + 1]):
+                        wi = ws[i]
+                        nix = nxs[i]
+                        niy = nys[i]
+                        niz = nzs[i]
+                        listed = use_nl and nstart[i] >= 0
                         if listed:
-                            _scatter(nbr, k0, cnt, out, acc, counts)
+                            k0 = nstart[i]
+                            cnt = nup[i]
                         else:
-                            _scatter(bj, k0, cnt, out, acc, counts)
-                        # own stick (l = 0): w n nᵀ
-                        wx = wi * nix
-                        wy = wi * niy
-                        s00 += wx * nix
-                        s01 += wx * niy
-                        s02 += wx * niz
-                        s11 += wy * niy
-                        s12 += wy * niz
-                        s22 += wi * niz * niz
-                    acc[i, 0] += s00
-                    acc[i, 1] += s01
-                    acc[i, 2] += s02
-                    acc[i, 3] += s11
-                    acc[i, 4] += s12
-                    acc[i, 5] += s22
-                    counts[i] += nv + (1 if both else 0)
-            if phase == 1:
-                _eig_chunks(acc, vals, e1, cb, ch, nch)
+                            bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                             lo, h, inv_h, r2, bj, rows)
+                            k0 = 0
+                        if cnt > buf.shape[1]:
+                            cap = max(2 * buf.shape[1], cnt)
+                            buf = np.empty((7, cap))
+                            out = np.empty((6, cap))
+                        if listed:
+                            nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+                        else:
+                            nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+                        both = wi != 0.0
+                        s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
+                                                                    inv_s2, gamma4, lmin2, out)
+                        if both:
+                            if listed:
+                                _scatter(nbr, k0, cnt, out, acc, counts)
+                            else:
+                                _scatter(bj, k0, cnt, out, acc, counts)
+                            # own stick (l = 0): w n nᵀ
+                            wx = wi * nix
+                            wy = wi * niy
+                            s00 += wx * nix
+                            s01 += wx * niy
+                            s02 += wx * niz
+                            s11 += wy * niy
+                            s12 += wy * niz
+                            s22 += wi * niz * niz
+                        acc[i, 0] += s00
+                        acc[i, 1] += s01
+                        acc[i, 2] += s02
+                        acc[i, 3] += s11
+                        acc[i, 4] += s12
+                        acc[i, 5] += s22
+                        counts[i] += nv + (1 if both else 0)
+                if phase == 1:
+                    _eig_chunks(acc, vals, e1, cb, ch, nch)

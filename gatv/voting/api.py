@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import get_num_threads
 
 from gatv._validation import _memory_budget, as_points, as_vectors, check_memory, check_positive
 from gatv.voting import _fields
@@ -244,7 +245,8 @@ class _Engine:
             nstart, nup = np.empty(n, np.int64), np.empty(n, np.int64)
         else:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
-        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, acc, vals, e1,
+        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, get_num_threads(),
+                          acc, vals, e1,
                           cnt, nbr, self.cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
         return acc, vals, e1, cnt
@@ -260,7 +262,7 @@ class _Engine:
         self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
-                           self.cb, acc, vals, e1, cnt, nbr, nstart, nup)
+                           self.cb, get_num_threads(), acc, vals, e1, cnt, nbr, nstart, nup)
         return acc, vals, e1, cnt
 
     def drop_lists(self) -> None:

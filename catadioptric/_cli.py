@@ -52,7 +52,7 @@ def add_parser(subparsers):
                    help="corner noise in pixels (default: 1.0)")
     p.add_argument("--max-corners", type=int, default=400, metavar="N",
                    help="corners detected per image (default: 400)")
-    p.add_argument("--strategy", choices=("auto", "rigid", "local", "nonrigid"), default="auto",
+    p.add_argument("--strategy", choices=("auto", "rigid", "local", "epipolar", "nonrigid"), default="auto",
                    help="matching strategy (default: auto)")
     p.add_argument("--seed", type=int, default=0, help="seed (default: 0)")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
@@ -104,6 +104,8 @@ def _run(args) -> int:
         print(f"correspondences: {result.support}")
         if result.rotation is not None:
             print(f"rotation:        {result.rotation_deg:.3f} deg ({result.rotation_support} pairs)")
+        if result.translation is not None:
+            print(f"translation dir: {' '.join(f'{v:+.4f}' for v in result.translation)}")
         print(f"time:            {seconds:.3f} s")
     if not ok:
         print(f"{PROG}: matching failed: {result.info.get('reason', 'nothing matched')}", file=sys.stderr)

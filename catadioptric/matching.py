@@ -669,13 +669,24 @@ def match(
     return result(rigid, R, rot_support, "rigid")
 
 
+#: Epipolar stage. Radius (degrees) of the cluster of triangle rotations
+#: whose triangles feed the RANSAC (as wide as the parallax turns them) and
+#: its shape tolerance on log side lengths.
 EPI_CLUSTER_DEG = 15.0
 EPI_SHAPE_TOL = 0.25
+#: RANSAC samples (three triangles each), motions grown at most, and the
+#: share of the best sample's support a rival needs to be grown too.
 EPI_RANSAC = 2000
 EPI_HYPOTHESES = 3
 EPI_RIVAL = 0.75
-EPI_FINAL = 0.9
+#: Growth rounds with (R, t) refitted between them.
+EPI_OUTER = 6
+#: Final gate (in noise gates) and ambiguity ratio: a match is dropped when
+#: its distance exceeds EPI_RATIO times that of a rival candidate of either ray.
+EPI_FINAL = 1.0
 EPI_RATIO = 0.6
+#: Median arc angle of the matches, in sphere noise, below which the views
+#: differ by a rotation only (t undefined).
 EPI_MIN_PARALLAX = 3.0
 
 
@@ -1010,22 +1021,27 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         return None
     best = None
     for R, t, inl in ests:
-        pairs = seeds[inl]
-        ninl = int(np.count_nonzero(inl))
+        pairs, grown = seeds[inl], np.empty((0, 2), np.int64)
         for it in range(EPI_OUTER):
             cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
             new = _grow_epipolar(r1, cand, r2.shape[0], pairs)
-            if new.shape[0] < 12 or (it > 0 and new.shape[0] <= pairs.shape[0] and np.array_equal(new, pairs)):
-                pairs = new if new.shape[0] >= pairs.shape[0] else pairs
+            if new.shape[0] < 12:
                 break
-            pairs = new
-            if it + 1 < EPI_OUTER:
-                sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
-                R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
-        info.setdefault("epipolar_hypotheses", []).append((ninl, int(pairs.shape[0])))
-        if best is None or pairs.shape[0] > best[2].shape[0]:
-            best = (R, t, pairs)
+            converged = it > 0 and np.array_equal(new, grown)
+            grown = pairs = new
+            if converged or it + 1 == EPI_OUTER:
+                break
+            sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
+            R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
+        info.setdefault("epipolar_hypotheses", []).append((int(np.count_nonzero(inl)), int(grown.shape[0])))
+        if grown.shape[0] and (best is None or grown.shape[0] > best[2].shape[0]):
+            best = (R, t, grown)
+    if best is None:
+        info["epipolar_reason"] = "growth along the epipolar arcs found fewer than 12 pairs"
+        return None
     R, t, pairs = best
+    sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
+    R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
     # no parallax: a pure rotation, whose t is arbitrary (the rigid stage's case)
     phi, _, _ = _arc_coordinates(r1[pairs[:, 0]] @ R.T, t, r2[pairs[:, 1]]) if pairs.size else (np.zeros(1),) * 3
     info["epipolar_median_parallax"] = float(np.median(phi))
@@ -1034,8 +1050,6 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         return None
     return R, t, pairs
 
-
-EPI_OUTER = 3
 IRLS = 3
 IRLS_C = 2.0
 

@@ -5,8 +5,9 @@ Fig. 15: corner correspondences between two catadioptric images
 The corners of two catadioptric images are lifted to the unit sphere and
 matched there (paper, end of section 5.1 and Fig. 15) with
 :func:`catadioptric.match`: a dominant rotation from local triangles, then,
-when the camera also moved, the curved surface of the tokens in the joint
-space by tensor voting and local eq. 41 (:func:`gatv.nonrigid.register`).
+when the camera also moved, the epipolar geometry of the pair (an
+essential matrix from matched local triangles) and matches along the
+epipolar arcs at the inverse depth of locally planar neighbourhoods.
 
 Panel (a): a synthetic pair from :func:`catadioptric.synthetic_views` (a
 parabolic mirror in a room, the camera turned by 30 degrees and moved,
@@ -99,6 +100,14 @@ def _deg(angle) -> str:
     return "none (below chance)" if angle is None else f"{angle:.2f} deg"
 
 
+def _tdeg(estimate, truth) -> str:
+    """Angle between an estimated translation direction and the true translation."""
+    if estimate is None:
+        return "not estimated"
+    c = float(np.dot(estimate, truth) / np.linalg.norm(truth))
+    return f"{np.degrees(np.arccos(min(1.0, max(-1.0, c)))):.2f} deg off"
+
+
 def _mirror_mask(camera: UnifiedCamera, shape) -> np.ndarray:
     """Pixels the camera can lift (the mirror's disc)."""
     h, w = shape
@@ -129,7 +138,7 @@ def main(out_dir, size=SIZE, data_dir=None) -> dict:
     right_syn = np.array([tuple(r) in true for r in syn.correspondences.tolist()], bool)
     print(f"synthetic: {len(views.pixels1)} / {len(views.pixels2)} corners, {len(views.pairs)} true pairs; "
           f"catadioptric.match ({t_syn:.2f} s, strategy '{syn.strategy}', rotation {_deg(syn.rotation_deg)} "
-          f"vs 30.00): {syn.support} matches, {int(right_syn.sum())} right; precision {p_syn:.3f}, "
+          f"vs 30.00, translation direction {_tdeg(syn.translation, views.translation)}): {syn.support} matches, {int(right_syn.sum())} right; precision {p_syn:.3f}, "
           f"recall {r_syn:.3f}")
     result.update(synthetic_precision=p_syn, synthetic_recall=r_syn, synthetic_support=syn.support)
 

@@ -64,8 +64,12 @@ __all__ = [
 
 #: Grid cells per voting radius (cell side ``r / GRID_SUBDIV``); see the module notes.
 GRID_SUBDIV = 1
-#: Bytes of O(N) working storage per token (sorted copy, cells, tensors, eigen output).
-BYTES_PER_TOKEN = 400
+#: Bytes of O(N) working storage per token at the peak of :func:`extract_surfaces`
+#: (first stick pass): grid 80 (sorted copy and coordinates, order, cells), ball
+#: pass 104 (tensor, eigen output, counts) kept sorted plus 104 unsorted for the
+#: result, list starts and lengths 16, stick inputs 96 (weights, normals, the
+#: (N, 8) voter records) and outputs 104.
+BYTES_PER_TOKEN = 512
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
 NL_BYTES_PER_PAIR = 4
 

@@ -843,7 +843,14 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypoth
 
 
 def _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax):
-    """Candidate pairs near the epipolar arcs: ``(i, j, phi, alpha_i, sigma)`` arrays."""
+    """Candidate pairs near the epipolar arcs of the motion (R, t).
+
+    Returns ``(i, j, phi, across, sigma, alpha)``: per candidate the rows,
+    the arc angle and the distance from the arc (:func:`_arc_coordinates`)
+    and the pair's noise; ``alpha`` per ray of view 1 (angle to the epipole).
+    A candidate lies within the noise gate of the arc from ``R x`` to the
+    epipole and within ``max_parallax`` (chord) of ``R x``.
+    """
     Rx = r1 @ R.T
     lists = tree2.query_ball_point(Rx, max_parallax)
     lens = np.fromiter((len(a) for a in lists), np.int64, len(lists))
@@ -917,22 +924,21 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     ``neighbours`` matched rays nearest to each ray, and predicts where on
     its epipolar arc the ray lands; candidates within ``scale`` noise gates
     of the prediction are matched one-to-one, closest first, until the
-    matches repeat.
+    matches repeat; the last round uses ``final_scale`` and drops ambiguous
+    matches (``EPI_RATIO``). A ray farther than 4 match spacings from every
+    match is not predicted.
     """
     ii, jj, phi, across, sig, alpha = cand
     n1 = r1.shape[0]
-    # each candidate's inverse depth and arc-angle sensitivity
+    # each candidate's inverse depth
     rho_c = _inverse_depth(np.minimum(phi, alpha[ii] - 1e-6), alpha[ii])
     order = np.lexsort((jj, ii))
     ii, jj, phi, across, sig, rho_c = ii[order], jj[order], phi[order], across[order], sig[order], rho_c[order]
+    # the seeds that are candidates, and their rows among the candidates
     pair_id = ii * n2 + jj
-    def lookup(pairs):
-        pid = pairs[:, 0] * n2 + pairs[:, 1]
-        pos = np.searchsorted(pair_id, pid)
-        pos = np.minimum(pos, max(pair_id.size - 1, 0))
-        ok = pair_id.size > 0
-        return pos, (pair_id[pos] == pid) if ok else np.zeros(len(pid), bool)
-    pos, ok = lookup(seeds)
+    pid = seeds[:, 0] * n2 + seeds[:, 1]
+    pos = np.minimum(np.searchsorted(pair_id, pid), max(pair_id.size - 1, 0))
+    ok = (pair_id[pos] == pid) if pair_id.size else np.zeros(len(pid), bool)
     pairs = seeds[ok]
     k_of = pos[ok]
     sa = np.sin(alpha)
@@ -974,15 +980,14 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
         if last:
             if EPI_RATIO < 1.0 and new.shape[0]:
                 # ambiguity: another candidate of either ray nearly as close
-                d_ok = dd[okc]
+                chosen = np.zeros(cp.shape[0], bool)
+                chosen[sel] = True
+                dmask = np.where(chosen, np.inf, dd[okc])   # the rivals' distances
                 second = np.full(new.shape[0], np.inf)
                 for col in (0, 1):
                     key = cp[:, col]
                     order = np.argsort(key, kind="stable")
-                    # smallest distance per key among the candidates that are not the chosen pair
-                    chosen = np.zeros(cp.shape[0], bool)
-                    chosen[sel] = True
-                    dmask = np.where(chosen, np.inf, d_ok)
+                    # nearest rival per ray
                     uk, start = np.unique(key[order], return_index=True)
                     mins = np.minimum.reduceat(dmask[order], start)
                     look = np.searchsorted(uk, new[:, col])
@@ -1049,11 +1054,6 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         info["epipolar_reason"] = "no parallax: the views differ by a rotation only"
         return None
     return R, t, pairs
-
-IRLS = 3
-IRLS_C = 2.0
-
-
 
 
 def _nonrigid(r1, r2, R, noise, max_parallax, seed, info):

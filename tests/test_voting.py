@@ -534,3 +534,28 @@ def test_eigensolver_triple_eigenvalue_off_by_one_ulp():
     assert np.all(np.isfinite(vecs))
     np.testing.assert_allclose(vecs[0].T @ vecs[0], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(vals[0], np.diag(a[0])[::-1], rtol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [(1.0, 1.0, 0.0), (1.0, 0.02, 1.0), (0.0, 0.0, 1.0)])
+def test_flat_clouds_are_chunked_along_their_longest_axis_and_match_reference(scale):
+    # the parallel loop runs over layers of cells along the grid's last axis;
+    # a flat cloud gets its longest axis there (kernels in permuted axes,
+    # outputs permuted back) so it still splits into many chunks
+    from gatv.voting.api import _Engine
+
+    rng = np.random.default_rng(8)
+    p = rng.uniform(0.0, 1.0, (500, 3)) * np.array(scale)
+    p[:30] = p[30:60]  # coincident pairs
+    normals = rng.normal(size=p.shape)
+    sal = rng.uniform(0.0, 1.0, len(p))
+    sigma = 0.03
+    assert _Engine(p, sigma).cb.size - 1 >= 8  # 17 cells along the longest axis (1 if not permuted)
+    tv = vote(p, sigma)
+    ref = _reference.ball_pass(p, sigma)
+    np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    w = np.linalg.eigh(ref)[1][:, :, -1]
+    clear = tv.surfaceness > 1e-6 * tv.eigenvalues[:, 0]  # e1 defined (not on a line)
+    assert np.all(_angle_deg(tv.normals, w)[clear] < 1e-4)
+    tv = vote(p, sigma, normals, saliency=sal)
+    ref = _reference.stick_pass(p, normals, sal, sigma)
+    np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())

@@ -321,7 +321,7 @@ def exp_neg_small(x):
 # scattered to their rows.
 #
 # Races.  In the dense layout a token only writes rows of cells at most
-# ``reach = m·(nx·ny + nx + 1)`` cell keys ahead of its own.  The tokens are
+# ``reach ≤ m·(nx·ny + nx + 1)`` cell keys ahead of its own.  The tokens are
 # cut into *chunks* of ``reach`` consecutive keys; two chunks of the same
 # parity never write the same row, so the even chunks run in parallel, then
 # the odd ones; threads take the next chunk of a phase from an atomic

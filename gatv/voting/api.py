@@ -38,7 +38,7 @@ Later stick passes grow σ, so they scan the grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -192,7 +192,7 @@ class SurfaceResult:
 def _chunks(grid: Grid) -> np.ndarray:
     """Token bounds of the chunks of the kernels' race-free parallel loop.
 
-    Dense layout: runs of ``reach = m·(nx·ny + nx + 1)`` consecutive cell keys,
+    Dense layout: runs of ``reach ≤ m·(nx·ny + nx + 1)`` consecutive cell keys,
     the farthest a token's upper neighbours can lie ahead of its own cell, so
     chunks of the same parity never write the same token.  Hashed layout: one
     chunk (serial).
@@ -201,7 +201,8 @@ def _chunks(grid: Grid) -> np.ndarray:
         return np.array([0, grid.n], np.int64)
     nx, ny, nz = grid.dims
     m = grid.subdiv
-    reach = m * (nx * ny + nx + 1)
+    # farthest key offset of an upper neighbour (no offset along a 1-cell axis)
+    reach = max(1, min(m, nz - 1) * nx * ny + min(m, ny - 1) * nx + min(m, nx - 1))
     ncells = nx * ny * nz
     keys = np.append(np.arange(0, ncells, reach), ncells)
     return np.ascontiguousarray(grid.start[keys])
@@ -223,10 +224,33 @@ class _Engine:
         self._K = K
         self.sigma = sigma
         self.radius = voting_radius(sigma)
-        self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV)
+        # The chunks of the parallel loop are layers of cells along the grid's
+        # slowest key axis (the third); flat data (a plane z = const) would make
+        # a single chunk, so the axis with the most cells goes last.  The
+        # kernels then work in that axis order; outputs are permuted back.
+        _, _, dims, _, _ = grid_layout(points, self.radius, GRID_SUBDIV)
+        big = int(np.argmax(dims))
+        self.perm = None if dims[2] == dims[big] else np.array([a for a in range(3) if a != big] + [big])
+        if self.perm is None:
+            self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV)
+        else:
+            grid = build_grid(np.ascontiguousarray(points[:, self.perm]), self.radius, GRID_SUBDIV)
+            self.grid = replace(grid, points=np.ascontiguousarray(points[grid.order]))
+            inv = np.argsort(self.perm)
+            comp = {(0, 0): 0, (0, 1): 1, (0, 2): 2, (1, 1): 3, (1, 2): 4, (2, 2): 5}
+            self._t6_back = np.array([comp[tuple(sorted((inv[i], inv[j])))]
+                                      for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))])
+            self._inv = inv
         self.cb = _chunks(self.grid)
         self.max_pairs = int(max_pairs)
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
+
+    def _back(self, acc, vals, e1, cnt):
+        """Outputs of a kernel in the original axis order."""
+        if self.perm is None:
+            return acc, vals, e1, cnt
+        return (np.ascontiguousarray(acc[:, self._t6_back]), vals,
+                np.ascontiguousarray(e1[:, self._inv]), cnt)
 
     def _cells(self):
         g = self.grid
@@ -253,12 +277,13 @@ class _Engine:
                           acc, vals, e1,
                           cnt, nbr, self.cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
-        return acc, vals, e1, cnt
+        return self._back(acc, vals, e1, cnt)
 
     def stick(self, normals_sorted: np.ndarray, weights_sorted: np.ndarray):
         g = self.grid
         acc, vals, e1, cnt = self._out()
-        nrm = np.ascontiguousarray(np.asarray(normals_sorted, dtype=np.float64).T)
+        nrm = np.asarray(normals_sorted, dtype=np.float64)
+        nrm = np.ascontiguousarray((nrm if self.perm is None else nrm[:, self.perm]).T)
         if self.lists is None:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
         else:
@@ -267,7 +292,7 @@ class _Engine:
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
                            self.cb, get_num_threads(), acc, vals, e1, cnt, nbr, nstart, nup)
-        return acc, vals, e1, cnt
+        return self._back(acc, vals, e1, cnt)
 
     def drop_lists(self) -> None:
         self.lists = None

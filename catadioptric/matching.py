@@ -677,8 +677,9 @@ EPI_SHAPE_TOL = 0.25
 #: RANSAC samples (three triangles each), motions grown at most, and the
 #: share of the best sample's support a rival needs to be grown too.
 EPI_RANSAC = 2000
-EPI_HYPOTHESES = 3
-EPI_RIVAL = 0.75
+EPI_HYPOTHESES = 6
+EPI_RIVAL = 0.5
+EPI_TRIANGLE_SCORE = True
 #: Growth rounds with (R, t) refitted between them.
 EPI_OUTER = 6
 #: Final gate (in noise gates) and ambiguity ratio: a match is dropped when
@@ -793,7 +794,7 @@ def _refine_motion(R, t, x, y, sig):
     return unpack(sol.x)
 
 
-def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypotheses=EPI_HYPOTHESES):
+def _estimate_motions(x, y, sig, rng, groups=None, iterations=None, hypotheses=None):
     """Robust motions (R, t) from candidate pairs: 8-point RANSAC on the sphere, then least squares.
 
     ``groups`` (G, 3) rows of ``x, y``: the vertex pairs of matched local
@@ -802,6 +803,8 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypoth
     ``hypotheses`` distinct ``(R, t, inlier mask)``, best supported first
     (the caller keeps the one that explains most rays).
     """
+    iterations = EPI_RANSAC if iterations is None else iterations
+    hypotheses = EPI_HYPOTHESES if hypotheses is None else hypotheses
     k = x.shape[0]
     if k < 12:
         return []
@@ -819,11 +822,15 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypoth
         d = np.maximum(num / np.linalg.norm(ex, axis=2), num / np.linalg.norm(ey, axis=2))
     inl_all = np.nan_to_num(d, nan=np.inf) <= gate
     score = inl_all.sum(axis=1)
+    if EPI_TRIANGLE_SCORE and groups is not None and groups.shape[0] >= 3:
+        # whole triangles consistent with the motion: a wrong E gathers
+        # single near-miss pairs along its epipolar circles more easily
+        score = np.all(inl_all[:, groups], axis=2).sum(axis=1) * (k + 1) + score
     out = []
     for h in np.argsort(-score, kind="stable"):
-        if len(out) >= hypotheses or score[h] < 8 or (out and score[h] < EPI_RIVAL * np.count_nonzero(out[0][3])):
+        if len(out) >= hypotheses or np.count_nonzero(inl_all[h]) < 8 or (out and score[h] < EPI_RIVAL * out[0][4]):
             break
-        if any(np.count_nonzero(inl_all[h] & o[3]) > 0.5 * score[h] for o in out):
+        if any(np.count_nonzero(inl_all[h] & o[3]) > 0.5 * np.count_nonzero(inl_all[h]) for o in out):
             continue
         inl = inl_all[h]
         cands = [(int(np.count_nonzero(_cheirality(Rm, tv, x[inl], y[inl]))), i, Rm, tv)
@@ -838,7 +845,7 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=EPI_RANSAC, hypoth
                 ok = False
                 break
         if ok:
-            out.append((R, t, inl, inl_all[h]))
+            out.append((R, t, inl, inl_all[h], score[h]))
     return [o[:3] for o in out]
 
 
@@ -1047,6 +1054,14 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
     R, t, pairs = best
     sig_p = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
     R, t = _refine_motion(R, t, r1[pairs[:, 0]], r2[pairs[:, 1]], sig_p)
+    # growth cannot jump gaps wider than its reach: grow once more from the
+    # matches and every pool pair consistent with the final motion
+    consistent = (_epipolar_distance(_essential_from_motion(R, t), x, y) <= GATE_SIGMAS * sig) & _cheirality(R, t, x, y)
+    cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
+    again = _grow_epipolar(r1, cand, r2.shape[0], np.unique(np.vstack([pairs, seeds[consistent]]), axis=0))
+    info["epipolar_regrown"] = int(again.shape[0])
+    if again.shape[0] > pairs.shape[0]:
+        pairs = again
     # no parallax: a pure rotation, whose t is arbitrary (the rigid stage's case)
     phi, _, _ = _arc_coordinates(r1[pairs[:, 0]] @ R.T, t, r2[pairs[:, 1]]) if pairs.size else (np.zeros(1),) * 3
     info["epipolar_median_parallax"] = float(np.median(phi))

@@ -125,6 +125,51 @@ def test_output_is_one_to_one_and_in_input_rows():
     assert not c.flags.writeable and m.rays1.shape == (len(m.index1), 3)
 
 
+def _shifted_grid_views(seed, rotation_deg, n_outliers=5):
+    """A 10 x 7 planar grid (0.25 squares, 2 units away): view 1 sees columns 0-8,
+    view 2, rotated, columns 1-9, so the grid shifted by one square explains
+    more corners (9 x 7) than the truth (8 x 7); a few outlier corners in both."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    cam = synthetic_views(10, xi=1.0, seed=0).camera1
+    gx, gy = np.meshgrid(np.arange(10), np.arange(7), indexing="ij")
+    pts = np.column_stack([(gx.ravel() - 4.5) * 0.25, (gy.ravel() - 3.0) * 0.25, np.full(gx.size, 2.0)])
+    ids1, ids2 = np.flatnonzero(gx.ravel() <= 8), np.flatnonzero(gx.ravel() >= 1)
+    axis = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
+    R = Rotation.from_rotvec(np.radians(rotation_deg) * axis).as_matrix()
+    clutter = lambda: cam.project(rng.normal(size=(n_outliers, 3)) * [1.0, 1.0, 0.2] + [0.0, 0.0, 1.0])
+    p1 = np.vstack([cam.project(pts[ids1]) + rng.normal(0.0, 0.5, (len(ids1), 2)), clutter()])
+    p2 = np.vstack([cam.project(pts[ids2] @ R.T) + rng.normal(0.0, 0.5, (len(ids2), 2)), clutter()])
+    perm = rng.permutation(len(p2))
+    id2 = np.concatenate([ids2, np.full(n_outliers, -1)])[perm]
+    row2 = {int(k): r for r, k in enumerate(id2) if k >= 0}
+    truth = np.array([[r, row2[int(k)]] for r, k in enumerate(ids1) if int(k) in row2])
+    return p1, p2[perm], cam, truth
+
+
+@pytest.mark.parametrize(("seed", "rotation_deg"), [(0, 20.0), (1, 60.0)])
+def test_repeated_grid_gives_no_wrong_matches(seed, rotation_deg, monkeypatch):
+    import catadioptric.matching as matching
+
+    p1, p2, cam, truth = _shifted_grid_views(seed, rotation_deg)
+    m = match(p1, p2, cam)
+    if m:
+        assert correspondence_stats(m.correspondences, truth)[0] >= 0.95
+    else:
+        assert m.strategy == "none" and m.info["reason"].startswith("ambiguous (repeated structure)")
+        assert m.info["rival_support"] >= matching.RIVAL_RATIO * m.info["ambiguous_support"]
+    # without the ambiguity test the shifted grid wins: the test is what saves it
+    monkeypatch.setattr(matching, "RIVAL_RATIO", float("inf"))
+    assert correspondence_stats(match(p1, p2, cam).correspondences, truth)[0] < 0.5
+
+
+def test_scattered_corners_have_no_close_rival():
+    v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.5, seed=6)
+    m = match(v.pixels1, v.pixels2, v.camera1)
+    assert m.strategy == "rigid" and m.info["rival_support"] < 0.4 * m.support
+
+
 def test_invalid_pixels_are_dropped_and_rows_kept():
     v = synthetic_views(120, rotation_deg=25.0, translation=(0, 0, 0), seed=5)
     cam = v.camera1

@@ -9,7 +9,10 @@ Real rows (skipped when the shared data are absent): the para-catadioptric
 images of ``omni_mei_paracatadioptric``. ``board`` rows match the 48
 provided board corners of two images (ground truth: the index; the board
 moved, so the rays move non-rigidly, and the grid is regular, which makes
-a shifted grid an equally good match for any method without appearance).
+a shifted grid an equally good match for any method without appearance;
+:func:`catadioptric.match` then finds a rival with other partners nearly
+as strong as its answer and reports nothing, reason "ambiguous (repeated
+structure)").
 ``detected`` rows match the corners of :func:`catadioptric.detect_corners`;
 ground truth there is the identity for corners of the static corridor
 (same pixel within 1.5 px in both images, away from the board in both)

@@ -783,7 +783,6 @@ EPI_SHAPE_TOL = 0.25
 EPI_RANSAC = 2000
 EPI_HYPOTHESES = 6
 EPI_RIVAL = 0.5
-EPI_TRIANGLE_SCORE = True
 #: Growth rounds with (R, t) refitted between them.
 EPI_OUTER = 6
 #: Final gate (in noise gates) and ambiguity ratio: a match is dropped when
@@ -926,7 +925,7 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=None, hypotheses=N
         d = np.maximum(num / np.linalg.norm(ex, axis=2), num / np.linalg.norm(ey, axis=2))
     inl_all = np.nan_to_num(d, nan=np.inf) <= gate
     score = inl_all.sum(axis=1)
-    if EPI_TRIANGLE_SCORE and groups is not None and groups.shape[0] >= 3:
+    if groups is not None and groups.shape[0] >= 3:
         # whole triangles consistent with the motion: a wrong E gathers
         # single near-miss pairs along its epipolar circles more easily
         score = np.all(inl_all[:, groups], axis=2).sum(axis=1) * (k + 1) + score

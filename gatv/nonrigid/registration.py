@@ -307,14 +307,9 @@ def _grow(X, Y, tree_y, seeds, gate, max_iter=30):
     pairs = seeds
     for _ in range(max_iter):
         warp = ThinPlateWarp(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])
-        moved = warp(X)
-        dist, j = tree_y.query(moved, k=1, distance_upper_bound=gate)
-        ok = np.flatnonzero(np.isfinite(dist))
-        if ok.size < 4:
+        new, n_within = _match(warp(X), tree_y, gate)
+        if n_within < 4:
             break
-        cand = np.stack([ok, j[ok]], axis=1)
-        new = cand[one_to_one(cand, dist[ok])]
-        new = new[np.argsort(new[:, 0], kind="stable")]
         if new.shape == pairs.shape and np.array_equal(new, pairs):
             break
         pairs = new
@@ -346,14 +341,18 @@ def _target_scale(Y, tree_y):
 
 
 def _match(moved, tree_y, gate):
-    """Nearest target of each moved source point within ``gate``, one-to-one."""
+    """Nearest target of each moved source point within ``gate``, one-to-one.
+
+    Returns the pairs (sorted by source row) and how many source points had
+    a target within the gate before the one-to-one selection.
+    """
     dist, j = tree_y.query(moved, k=1, distance_upper_bound=gate)
     ok = np.flatnonzero(np.isfinite(dist))
     cand = np.stack([ok, j[ok]], axis=1).astype(np.int64)
     if ok.size == 0:
-        return cand
+        return cand, 0
     new = cand[one_to_one(cand, dist[ok])]
-    return new[np.argsort(new[:, 0], kind="stable")]
+    return new[np.argsort(new[:, 0], kind="stable")], int(ok.size)
 
 
 def _coarse_to_fine(X, Y, tree_y, warp, scale, extent2, floor):
@@ -368,7 +367,7 @@ def _coarse_to_fine(X, Y, tree_y, warp, scale, extent2, floor):
     pairs = np.empty((0, 2), np.int64)
     for g, rel in COARSE_TO_FINE:
         gate = g * scale + floor
-        pairs = _match(warp(X), tree_y, gate)
+        pairs, _ = _match(warp(X), tree_y, gate)
         if pairs.shape[0] < 5:
             return np.empty((0, 2), np.int64)
         xs, ys = X[pairs[:, 0]], Y[pairs[:, 1]]
@@ -740,7 +739,7 @@ def register(
         hypotheses["coarse"] = _coarse_to_fine(X, Y, tree_y, lambda p: p, scale, extent2, noise_floor)
         t0 = time.perf_counter()
         span = max(median_spacing(X), spacing)
-        hypotheses["anneal"] = _match(_anneal(X, Y, span, seed)(X), tree_y, 0.5 * scale + noise_floor)
+        hypotheses["anneal"], _ = _match(_anneal(X, Y, span, seed)(X), tree_y, 0.5 * scale + noise_floor)
         info["time_anneal_s"] = time.perf_counter() - t0
 
     def judge(found):

@@ -14,8 +14,11 @@ from __future__ import annotations
 
 import math
 
+import llvmlite.binding as llvm
 import numpy as np
+from llvmlite import ir
 from numba import njit, prange, types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 _TWO_PI_3 = 2.0 * math.pi / 3.0
@@ -333,15 +336,16 @@ def exp_neg_small(x):
 #
 # Per votee the upper neighbours are first *collected* into a buffer of
 # indices (branch-free compaction: always store at ``cnt``, then
-# ``cnt += inside``), grown when a run would not fit, then the votes are
-# evaluated over the buffer.
+# ``cnt += inside``), then the votes are evaluated over the buffer.  The
+# buffers are allocated once per chunk with room for every token of the
+# half-shell runs (``cap``, see :func:`half_shell_capacity`): an array
+# variable reassigned inside the token loop would cost numba's atomic
+# reference counting on every token (measured: +45 % on the neighbour scan).
 # ---------------------------------------------------------------------------
 
 _H1 = 73856093
 _H2 = 19349663
 _H3 = 83492791
-#: Initial capacity of the per-chunk neighbour buffers (grown on demand).
-CAP = 256
 #: Upper-neighbour list entries reserved per token when a ball pass records
 #: the lists for the stick pass (int32; the mean is ~k/2 at the default σ).
 NL_ROW = 48
@@ -351,6 +355,74 @@ NL_ROW = 48
 # 1e-15, far below the 1e-12 budget), and the result stays identical from run
 # to run (the code path does not depend on the number of threads).
 _FLUSH_FLAGS = {"reassoc", "contract"}
+
+
+#: Whether the neighbour scan uses the 8-lane compress-store of :func:`_collect_simd`
+#: (AVX-512 hosts; elsewhere LLVM would expand it lane by lane, slower than the
+#: scalar :func:`_collect`).  Fixed per host, like numba's cache.
+SIMD_COLLECT = "avx512f" in llvm.get_host_cpu_features().flatten()
+_W = 8
+
+
+@intrinsic
+def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, cnt):
+    """:func:`_collect` for the dense layout, 8 candidates at a time (AVX-512).
+
+    Per block of 8 sorted tokens: masked loads (lanes at or past ``j1`` are
+    off and never read), ``d² = ((dx² + dy²) + dz²)`` in the same order and
+    precision as the scalar test, and an LLVM compress-store of the indices
+    of the lanes inside the sphere to ``bj[cnt:]``.  Same output as
+    :func:`_collect`; ~2× faster on the whole scan (measured at 250k tokens).
+    """
+    if not all(isinstance(a, types.Array) and a.dtype == types.float64 for a in (xs, ys, zs)):
+        return None
+    if not (isinstance(bj, types.Array) and bj.dtype == types.int64):
+        return None
+    sig = types.int64(xs, ys, zs, types.int64, types.int64, types.float64, types.float64, types.float64,
+                      types.float64, bj, types.int64)
+
+    def codegen(context, builder, signature, args):
+        axs, ays, azs, aj0, aj1, vxi, vyi, vzi, vr2, abj, acnt = args
+        ptrs = [context.make_array(signature.args[k])(context, builder, args[k]).data for k in (0, 1, 2)]
+        pbj = context.make_array(signature.args[9])(context, builder, abj).data
+        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
+        vd, vi, vm = ir.VectorType(f64, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
+        mask_t = ir.IntType(_W)
+        mod = builder.module
+        mload = cgutils.get_or_insert_function(
+            mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
+        cstore = cgutils.get_or_insert_function(
+            mod, ir.FunctionType(ir.VoidType(), [vi, i64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}i64")
+        ctpop = cgutils.get_or_insert_function(mod, ir.FunctionType(mask_t, [mask_t]), f"llvm.ctpop.i{_W}")
+
+        def splat(v, ty):
+            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
+            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+
+        centre = [splat(v, vd) for v in (vxi, vyi, vzi)]
+        vr2s = splat(vr2, vd)
+        end = splat(aj1, vi)
+        iota = ir.Constant(vi, list(range(_W)))
+        zero = ir.Constant(vd, [0.0] * _W)
+        cntp = cgutils.alloca_once_value(builder, acnt)
+        with cgutils.for_range_slice(builder, aj0, aj1, ir.Constant(i64, _W), inc=True) as (base, _):
+            idx = builder.add(splat(base, vi), iota)
+            lane = builder.icmp_signed("<", idx, end)
+            sq = []
+            for p, c in zip(ptrs, centre):
+                v = builder.call(mload, [builder.bitcast(builder.gep(p, [base]), vd.as_pointer()),
+                                         ir.Constant(i32, 8), lane, zero])
+                d = builder.fsub(c, v)
+                sq.append(builder.fmul(d, d))
+            d2 = builder.fadd(builder.fadd(sq[0], sq[1]), sq[2])
+            inside = builder.and_(builder.fcmp_ordered("<", d2, vr2s), lane)
+            c = builder.load(cntp)
+            builder.call(cstore, [idx, builder.gep(pbj, [c]), inside])
+            k = builder.zext(builder.call(ctpop, [builder.bitcast(inside, mask_t)]), i64)
+            builder.store(builder.add(c, k), cntp)
+        return builder.load(cntp)
+
+    return sig, codegen
 
 
 @intrinsic
@@ -405,13 +477,41 @@ def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r
     return start[base + x0], start[base + x1 + 1], -1
 
 
-@njit(cache=True, boundscheck=False)
-def _grown(a, keep, need):
-    """A copy of ``a[:keep]`` in an array of at least ``need`` entries (doubling)."""
-    b = np.empty(max(2 * a.shape[0], need), a.dtype)
-    for k in range(keep):
-        b[k] = a[k]
-    return b
+@njit(cache=True, parallel=True)
+def half_shell_capacity(start, nx, ny, nz, hashed, m):
+    """Most tokens that the half-shell runs of one votee can hold (before the distance test).
+
+    Dense layout: the maximum over occupied cells of the tokens in the runs
+    :func:`_upper` visits (x-windows ``[ix − m, ix + m]`` of the rows with
+    dz > 0, or dz = 0 and dy ≥ 0).  Hashed layout: ``(m + 1)(2m + 1)²``
+    times the fullest bucket.  The per-chunk neighbour buffers get this size.
+    """
+    if hashed:
+        best = 0
+        for b in range(start.shape[0] - 1):
+            best = max(best, start[b + 1] - start[b])
+        return best * (m + 1) * (2 * m + 1) ** 2
+    zbest = np.zeros(nz, np.int64)
+    for iz in prange(nz):
+        best = 0
+        for iy in range(ny):
+            for ix in range(nx):
+                c = ix + nx * (iy + ny * iz)
+                if start[c + 1] == start[c]:
+                    continue
+                x0 = max(ix - m, 0)
+                x1 = min(ix + m, nx - 1)
+                tot = 0
+                for dz in range(0, min(m, nz - 1 - iz) + 1):
+                    for dy in range(-m if dz > 0 else 0, m + 1):
+                        cy = iy + dy
+                        if cy < 0 or cy >= ny:
+                            continue
+                        base = nx * (cy + ny * (iz + dz))
+                        tot += start[base + x1 + 1] - start[base + x0]
+                best = max(best, tot)
+        zbest[iz] = best
+    return max(1, zbest.max())
 
 
 @njit(cache=True, inline="always", boundscheck=False)
@@ -437,9 +537,9 @@ def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, 
 
 @njit(cache=True, inline="always", boundscheck=False)
 def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj, rows):
-    """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): ``(bj, cnt)``.
+    """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): their number ``cnt``.
 
-    ``bj[:cnt]`` lists them (``bj`` is replaced by a larger buffer if needed).
+    ``bj[:cnt]`` lists them; ``bj`` must hold :func:`half_shell_capacity` entries.
     Dense layout: sorted order is cell-key order, so j > i means a row with
     dz > 0, or dz = 0 and dy > 0, or the own row beyond i.  Hashed layout:
     cells lexicographically after i's by (dz, dy, dx), and j > i within i's
@@ -484,13 +584,12 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                     nr += 1
     cnt = 0
     for r in range(nr):
-        j0 = rows[0, r]
-        j1 = rows[1, r]
-        if j1 - j0 > bj.shape[0] - cnt:
-            bj = _grown(bj, cnt, cnt + j1 - j0)
-        cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, rows[2, r], rows[3, r], rows[4, r], j0, j1, xi, yi, zi, r2,
-                       bj, cnt)
-    return bj, cnt + (touch != touch)  # never true (no NaN tokens): keeps the touches
+        if SIMD_COLLECT and not hashed:
+            cnt = _collect_simd(xs, ys, zs, rows[0, r], rows[1, r], xi, yi, zi, r2, bj, cnt)
+        else:
+            cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, rows[2, r], rows[3, r], rows[4, r], rows[0, r],
+                           rows[1, r], xi, yi, zi, r2, bj, cnt)
+    return cnt + (touch != touch)  # never true (no NaN tokens): keeps the touches
 
 
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
@@ -573,7 +672,7 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, cb, nth, acc, vals, e1, counts, nbr, rb, nstart, nup):
+              tab, tscale, cb, nth, cap, acc, vals, e1, counts, nbr, rb, nstart, nup):
     """Sparse ball voting, each pair once (see the section comment).
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
@@ -582,7 +681,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     number of voters (self included); ``vals (N, 3)``, ``e1 (N, 3)`` receive
     the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks;
     ``nth``: number of numba threads (passed in: calling
-    ``numba.get_num_threads`` here would make the function uncachable).
+    ``numba.get_num_threads`` here would make the function uncachable);
+    ``cap``: :func:`half_shell_capacity`.
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -602,13 +702,13 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                     break
                 ch = 2 * c + phase
                 if ch < nch:
-                    bj = np.empty(CAP, np.int64)
+                    bj = np.empty(cap, np.int64)
                     rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
                     pos = rb[ch] if record else 0
                     lim = rb[ch + 1] if record else 0
                     for i in range(cb[ch], cb[ch + 1]):
-                        bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                         lo, h, inv_h, r2, bj, rows)
+                        cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                     lo, h, inv_h, r2, bj, rows)
                         s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
                                                                    acc, counts)
                         acc[i, 0] += 1.0 + s00
@@ -754,7 +854,7 @@ def _scatter(bj, k0, cnt, out, acc, counts):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, acc, vals, e1, counts, nbr, nstart, nup):
+               lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, cap, acc, vals, e1, counts, nbr, nstart, nup):
     """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
@@ -782,10 +882,10 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                     break
                 ch = 2 * c + phase
                 if ch < nch:
-                    bj = np.empty(CAP, np.int64)
+                    bj = np.empty(cap, np.int64)
                     rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
-                    buf = np.empty((7, CAP))
-                    out = np.empty((6, CAP))
+                    buf = np.empty((7, cap))
+                    out = np.empty((6, cap))
                     for i in range(cb[ch], cb[ch + 1]):
                         wi = ws[i]
                         nix = nxs[i]
@@ -796,13 +896,9 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                             k0 = nstart[i]
                             cnt = nup[i]
                         else:
-                            bj, cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                             lo, h, inv_h, r2, bj, rows)
+                            cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                                         lo, h, inv_h, r2, bj, rows)
                             k0 = 0
-                        if cnt > buf.shape[1]:
-                            cap = max(2 * buf.shape[1], cnt)
-                            buf = np.empty((7, cap))
-                            out = np.empty((6, cap))
                         if listed:
                             nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
                         else:

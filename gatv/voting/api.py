@@ -72,6 +72,10 @@ GRID_SUBDIV = 1
 BYTES_PER_TOKEN = 512
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
 NL_BYTES_PER_PAIR = 4
+#: Bytes per entry of a thread's scratch buffers, sized by
+#: :func:`gatv.voting._kernels.half_shell_capacity`: an int64 index, 7 stick
+#: inputs and 6 outputs (float64).
+SCRATCH_BYTES = 8 * (1 + 7 + 6)
 
 
 def voting_radius(sigma: float) -> float:
@@ -214,8 +218,10 @@ class _Engine:
     ``ball(record=True)`` also keeps each token's upper-neighbour list (CSR,
     int32; see :func:`gatv.voting._kernels.ball_pass`) that the next
     :meth:`stick` at the same σ reuses instead of scanning the grid again;
-    ``max_pairs`` (from the memory budget) caps their length; tokens whose
-    list does not fit are scanned as usual.
+    ``max_pairs`` (from the memory budget, less the kernels' per-thread
+    scratch buffers of :func:`~gatv.voting._kernels.half_shell_capacity`
+    entries) caps their length; tokens whose list does not fit are scanned
+    as usual.
     """
 
     def __init__(self, points: np.ndarray, sigma: float, max_pairs: int = 0):
@@ -242,7 +248,12 @@ class _Engine:
                                       for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))])
             self._inv = inv
         self.cb = _chunks(self.grid)
-        self.max_pairs = int(max_pairs)
+        g = self.grid
+        self.cap = int(K.half_shell_capacity(g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.subdiv))
+        # the kernels' per-thread buffers (indices, stick inputs and outputs:
+        # SCRATCH_BYTES per entry) come out of the neighbour lists' share
+        scratch = get_num_threads() * self.cap * SCRATCH_BYTES
+        self.max_pairs = max(0, int(max_pairs) - scratch // NL_BYTES_PER_PAIR)
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
 
     def _back(self, acc, vals, e1, cnt):
@@ -273,7 +284,7 @@ class _Engine:
             nstart, nup = np.empty(n, np.int64), np.empty(n, np.int64)
         else:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
-        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, get_num_threads(),
+        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, get_num_threads(), self.cap,
                           acc, vals, e1,
                           cnt, nbr, self.cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
@@ -291,7 +302,7 @@ class _Engine:
         self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
-                           self.cb, get_num_threads(), acc, vals, e1, cnt, nbr, nstart, nup)
+                           self.cb, get_num_threads(), self.cap, acc, vals, e1, cnt, nbr, nstart, nup)
         return self._back(acc, vals, e1, cnt)
 
     def drop_lists(self) -> None:

@@ -458,10 +458,10 @@ def test_simd_collect_equals_scalar_collect(seed, n, r):
         pytest.skip("host without AVX-512: the scalar scan is the only one compiled")
 
     @njit
-    def both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b):
+    def both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b, da, dbb):
         c = np.zeros(3, np.int64)
-        ca = K._collect_simd(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, 0)
-        cb = K._collect(xs, ys, zs, c, c, c, False, 0, 0, 0, j0, j1, xi, yi, zi, r2, b, 0)
+        ca = K._collect_simd(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, da, 0)
+        cb = K._collect(xs, ys, zs, c, c, c, False, 0, 0, 0, j0, j1, xi, yi, zi, r2, b, dbb, 0)
         return ca, cb
 
     rng = np.random.default_rng(seed)
@@ -471,11 +471,15 @@ def test_simd_collect_equals_scalar_collect(seed, n, r):
     j1 = int(rng.integers(j0, n + 1))
     a = np.full(n, -1)
     b = np.full(n, -1)
-    ca, cb = both(p[0], p[1], p[2], j0, j1, 0.25, 0.25, 0.25, r * r, a, b)
+    da = np.full((4, n), np.nan)
+    dbb = np.full((4, n), np.nan)
+    ca, cb = both(p[0], p[1], p[2], j0, j1, 0.25, 0.25, 0.25, r * r, a, b, da, dbb)
     d2 = ((p[:, j0:j1] - 0.25) ** 2).sum(axis=0)
     assert ca == cb == int((d2 < r * r).sum())
     np.testing.assert_array_equal(a[:ca], b[:cb])
-    assert (a[ca:] == -1).all()  # nothing written past the count
+    np.testing.assert_array_equal(da[:, :ca], dbb[:, :cb])  # offsets and d², bit for bit
+    np.testing.assert_array_equal(da[:3, :ca], 0.25 - p[:, a[:ca]])
+    assert (a[ca:] == -1).all() and np.isnan(da[:, ca:]).all()  # nothing written past the count
 
 
 @pytest.mark.parametrize("sigma", [0.02, 0.1, 0.6])
@@ -526,8 +530,9 @@ def test_crowded_votees_match_reference():
         np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("simd", [False, True])
 @pytest.mark.parametrize("row", [0, 10, 10**6])
-def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row):
+def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row, simd):
     # the ball pass records the upper-neighbour lists that the stick pass at the
     # same σ reuses; tokens whose list does not fit their chunk's share (a dense
     # cluster, or a small max_pairs) scan the grid instead: every mix must give
@@ -551,6 +556,9 @@ def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row):
     scratch = get_num_threads() * _Engine(p, sigma).cap * SCRATCH_BYTES // NL_BYTES_PER_PAIR
     eng = _Engine(p, sigma, max_pairs + scratch if row else 0)
     assert eng.max_pairs == max_pairs
+    if simd and not eng.simd:
+        pytest.skip("host without AVX-512")
+    eng.simd = simd  # both neighbour scans
     t6, _, _, cnt = eng.ball(record=True)
     if max_pairs:
         nbr, nstart, _ = eng.lists

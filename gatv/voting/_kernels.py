@@ -365,26 +365,32 @@ _W = 8
 
 
 @intrinsic
-def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, cnt):
+def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
     """:func:`_collect` for the dense layout, 8 candidates at a time (AVX-512).
 
     Per block of 8 sorted tokens: masked loads (lanes at or past ``j1`` are
     off and never read), ``d² = ((dx² + dy²) + dz²)`` in the same order and
-    precision as the scalar test, and an LLVM compress-store of the indices
-    of the lanes inside the sphere to ``bj[cnt:]``.  Same output as
+    precision as the scalar test, and LLVM compress-stores of the lanes
+    inside the sphere: indices to ``bj[cnt:]``, dx, dy, dz, d² to
+    ``db[:4, cnt:]`` (a C-contiguous float64 array).  Same output as
     :func:`_collect`; ~2× faster on the whole scan (measured at 250k tokens).
     """
     if not all(isinstance(a, types.Array) and a.dtype == types.float64 for a in (xs, ys, zs)):
         return None
-    if not (isinstance(bj, types.Array) and bj.dtype == types.int64):
+    if not (isinstance(bj, types.Array) and bj.dtype == types.int64 and bj.ndim == 1):
+        return None
+    if not (isinstance(db, types.Array) and db.dtype == types.float64 and db.ndim == 2 and db.layout == "C"):
         return None
     sig = types.int64(xs, ys, zs, types.int64, types.int64, types.float64, types.float64, types.float64,
-                      types.float64, bj, types.int64)
+                      types.float64, bj, db, types.int64)
 
     def codegen(context, builder, signature, args):
-        axs, ays, azs, aj0, aj1, vxi, vyi, vzi, vr2, abj, acnt = args
+        axs, ays, azs, aj0, aj1, vxi, vyi, vzi, vr2, abj, adb, acnt = args
         ptrs = [context.make_array(signature.args[k])(context, builder, args[k]).data for k in (0, 1, 2)]
         pbj = context.make_array(signature.args[9])(context, builder, abj).data
+        dba = context.make_array(signature.args[10])(context, builder, adb)
+        pdb = dba.data
+        row = cgutils.unpack_tuple(builder, dba.shape, 2)[1]  # C order: row r starts at r * shape[1]
         f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
         vd, vi, vm = ir.VectorType(f64, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
         mask_t = ir.IntType(_W)
@@ -393,6 +399,8 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, cnt):
             mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
         cstore = cgutils.get_or_insert_function(
             mod, ir.FunctionType(ir.VoidType(), [vi, i64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}i64")
+        cstore_d = cgutils.get_or_insert_function(
+            mod, ir.FunctionType(ir.VoidType(), [vd, f64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}f64")
         ctpop = cgutils.get_or_insert_function(mod, ir.FunctionType(mask_t, [mask_t]), f"llvm.ctpop.i{_W}")
 
         def splat(v, ty):
@@ -408,16 +416,19 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, cnt):
         with cgutils.for_range_slice(builder, aj0, aj1, ir.Constant(i64, _W), inc=True) as (base, _):
             idx = builder.add(splat(base, vi), iota)
             lane = builder.icmp_signed("<", idx, end)
-            sq = []
+            offs = []
             for p, c in zip(ptrs, centre):
                 v = builder.call(mload, [builder.bitcast(builder.gep(p, [base]), vd.as_pointer()),
                                          ir.Constant(i32, 8), lane, zero])
-                d = builder.fsub(c, v)
-                sq.append(builder.fmul(d, d))
-            d2 = builder.fadd(builder.fadd(sq[0], sq[1]), sq[2])
-            inside = builder.and_(builder.fcmp_ordered("<", d2, vr2s), lane)
+                offs.append(builder.fsub(c, v))
+            sq = [builder.fmul(d, d) for d in offs]
+            offs.append(builder.fadd(builder.fadd(sq[0], sq[1]), sq[2]))
+            inside = builder.and_(builder.fcmp_ordered("<", offs[3], vr2s), lane)
             c = builder.load(cntp)
             builder.call(cstore, [idx, builder.gep(pbj, [c]), inside])
+            for r, d in enumerate(offs):
+                at = builder.add(builder.mul(ir.Constant(i64, r), row), c)
+                builder.call(cstore_d, [d, builder.gep(pdb, [at]), inside])
             k = builder.zext(builder.call(ctpop, [builder.bitcast(inside, mask_t)]), i64)
             builder.store(builder.add(c, k), cntp)
         return builder.load(cntp)
@@ -515,10 +526,12 @@ def half_shell_capacity(start, nx, ny, nz, hashed, m):
 
 
 @njit(cache=True, inline="always", boundscheck=False)
-def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, r2, bj, cnt):
-    """Append the indices of the tokens of ``[j0, j1)`` inside the voting sphere to ``bj``.
+def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, r2, bj, db, cnt):
+    """Append the tokens of ``[j0, j1)`` inside the voting sphere to ``bj`` and ``db``.
 
-    Branch-free compaction; the caller guarantees room for ``j1 − j0`` more.
+    ``bj[c]`` gets the index, ``db[:4, c]`` the offset ``x_i − x_j`` and its
+    squared length.  Branch-free compaction (always store at ``c``, then
+    ``c += inside``); the caller guarantees room for ``j1 − j0`` more.
     Unsigned indices spare numba's negative-index wraparound code.
     """
     c = np.uint64(cnt)
@@ -528,6 +541,10 @@ def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, 
         dz = zi - zs[j]
         d2 = dx * dx + dy * dy + dz * dz
         bj[c] = j
+        db[0, c] = dx
+        db[1, c] = dy
+        db[2, c] = dz
+        db[3, c] = d2
         ok = d2 < r2
         if hashed:
             ok = ok & (cix[j] == cx) & (ciy[j] == cy) & (ciz[j] == cz)
@@ -536,10 +553,14 @@ def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, 
 
 
 @njit(cache=True, inline="always", boundscheck=False)
-def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj, rows):
+def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj, db, rows,
+           simd):
     """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): their number ``cnt``.
 
-    ``bj[:cnt]`` lists them; ``bj`` must hold :func:`half_shell_capacity` entries.
+    ``bj[:cnt]`` lists them and ``db[:4, :cnt]`` holds their offsets
+    ``x_i − x_j`` and squared lengths (see :func:`_collect`); both must hold
+    :func:`half_shell_capacity` entries.  ``simd``: use :func:`_collect_simd`
+    (dense layout).
     Dense layout: sorted order is cell-key order, so j > i means a row with
     dz > 0, or dz = 0 and dy > 0, or the own row beyond i.  Hashed layout:
     cells lexicographically after i's by (dz, dy, dx), and j > i within i's
@@ -584,37 +605,35 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                     nr += 1
     cnt = 0
     for r in range(nr):
-        if SIMD_COLLECT and not hashed:
-            cnt = _collect_simd(xs, ys, zs, rows[0, r], rows[1, r], xi, yi, zi, r2, bj, cnt)
+        if simd and not hashed:
+            cnt = _collect_simd(xs, ys, zs, rows[0, r], rows[1, r], xi, yi, zi, r2, bj, db, cnt)
         else:
             cnt = _collect(xs, ys, zs, cix, ciy, ciz, hashed, rows[2, r], rows[3, r], rows[4, r], rows[0, r],
-                           rows[1, r], xi, yi, zi, r2, bj, cnt)
+                           rows[1, r], xi, yi, zi, r2, bj, db, cnt)
     return cnt + (touch != touch)  # never true (no NaN tokens): keeps the touches
 
 
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
-def _ball_pairs(xs, ys, zs, i, bj, k0, cnt, tab, tscale, acc, counts):
-    """Ball votes of the pairs (i, ``bj[k0 + k]``), ``k < cnt``: scattered to the j's, summed for i.
+def _ball_pairs(db, cnt, tab, tscale, out):
+    """Ball votes of i's upper neighbours from their offsets ``db[:4, :cnt]`` (see :func:`_upper`).
 
-    ``tab[k] = (A[k], A[k+1] − A[k], B[k], B[k+1] − B[k])`` (see
-    :func:`ball_table4`): one cache line per lookup, same interpolant as
-    ``A[k] + (A[k+1] − A[k])·f``.  Returns i's sum.
+    The vote of each pair goes to ``out[:, k]`` (for :func:`_scatter`) and
+    their sum, i's share, is returned.  ``tab[k] = (A[k], A[k+1] − A[k],
+    B[k], B[k+1] − B[k])`` (see :func:`ball_table4`): one cache line per
+    lookup, same interpolant as ``A[k] + (A[k+1] − A[k])·f``.  No scatter in
+    this loop, so it vectorises.
     """
-    xi = xs[i]
-    yi = ys[i]
-    zi = zs[i]
     s00 = 0.0
     s01 = 0.0
     s02 = 0.0
     s11 = 0.0
     s12 = 0.0
     s22 = 0.0
-    for k in range(np.uint64(k0), np.uint64(k0 + cnt)):
-        j = np.uint64(bj[k])
-        dx = xi - xs[j]
-        dy = yi - ys[j]
-        dz = zi - zs[j]
-        d2 = dx * dx + dy * dy + dz * dz
+    for k in range(cnt):
+        dx = db[0, k]
+        dy = db[1, k]
+        dz = db[2, k]
+        d2 = db[3, k]
         q = d2 * tscale
         t = np.uint64(q)
         f = q - t
@@ -639,13 +658,12 @@ def _ball_pairs(xs, ys, zs, i, bj, k0, cnt, tab, tscale, acc, counts):
         s11 += t11
         s12 += t12
         s22 += t22
-        acc[j, 0] += t00
-        acc[j, 1] += t01
-        acc[j, 2] += t02
-        acc[j, 3] += t11
-        acc[j, 4] += t12
-        acc[j, 5] += t22
-        counts[j] += 1
+        out[0, k] = t00
+        out[1, k] = t01
+        out[2, k] = t02
+        out[3, k] = t11
+        out[4, k] = t12
+        out[5, k] = t22
     return s00, s01, s02, s11, s12, s22
 
 
@@ -672,7 +690,7 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
-              tab, tscale, cb, nth, cap, acc, vals, e1, counts, nbr, rb, nstart, nup):
+              tab, tscale, cb, nth, cap, simd, acc, vals, e1, counts, nbr, rb, nstart, nup):
     """Sparse ball voting, each pair once (see the section comment).
 
     Every token is a unit ball voter; the votee's own ball (self vote, l = 0)
@@ -682,7 +700,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks;
     ``nth``: number of numba threads (passed in: calling
     ``numba.get_num_threads`` here would make the function uncachable);
-    ``cap``: :func:`half_shell_capacity`.
+    ``cap``: :func:`half_shell_capacity`; ``simd``: scan with
+    :func:`_collect_simd` (pass :data:`SIMD_COLLECT`).
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -703,14 +722,16 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                 ch = 2 * c + phase
                 if ch < nch:
                     bj = np.empty(cap, np.int64)
+                    db = np.empty((4, cap))
+                    out = np.empty((6, cap))
                     rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
                     pos = rb[ch] if record else 0
                     lim = rb[ch + 1] if record else 0
                     for i in range(cb[ch], cb[ch + 1]):
                         cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                     lo, h, inv_h, r2, bj, rows)
-                        s00, s01, s02, s11, s12, s22 = _ball_pairs(xs, ys, zs, i, bj, 0, cnt, tab, tscale,
-                                                                   acc, counts)
+                                     lo, h, inv_h, r2, bj, db, rows, simd)
+                        s00, s01, s02, s11, s12, s22 = _ball_pairs(db, cnt, tab, tscale, out)
+                        _scatter(bj, 0, cnt, out, acc, counts)
                         acc[i, 0] += 1.0 + s00
                         acc[i, 1] += s01
                         acc[i, 2] += s02
@@ -854,7 +875,7 @@ def _scatter(bj, k0, cnt, out, acc, counts):
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-               lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, cap, acc, vals, e1, counts, nbr, nstart, nup):
+               lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, cap, simd, acc, vals, e1, counts, nbr, nstart, nup):
     """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
     Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
@@ -896,8 +917,9 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                             k0 = nstart[i]
                             cnt = nup[i]
                         else:
+                            # buf's first rows take the offsets; _gather overwrites them
                             cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                         lo, h, inv_h, r2, bj, rows)
+                                         lo, h, inv_h, r2, bj, buf, rows, simd)
                             k0 = 0
                         if listed:
                             nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)

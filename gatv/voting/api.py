@@ -74,7 +74,7 @@ BYTES_PER_TOKEN = 512
 NL_BYTES_PER_PAIR = 4
 #: Bytes per entry of a thread's scratch buffers, sized by
 #: :func:`gatv.voting._kernels.half_shell_capacity`: an int64 index, 7 stick
-#: inputs and 6 outputs (float64).
+#: inputs (4 offsets in the ball pass) and 6 outputs (float64).
 SCRATCH_BYTES = 8 * (1 + 7 + 6)
 
 
@@ -254,6 +254,7 @@ class _Engine:
         # SCRATCH_BYTES per entry) come out of the neighbour lists' share
         scratch = get_num_threads() * self.cap * SCRATCH_BYTES
         self.max_pairs = max(0, int(max_pairs) - scratch // NL_BYTES_PER_PAIR)
+        self.simd = K.SIMD_COLLECT  # tests switch it off to check the scalar scan
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
 
     def _back(self, acc, vals, e1, cnt):
@@ -285,7 +286,7 @@ class _Engine:
         else:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
         self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, get_num_threads(), self.cap,
-                          acc, vals, e1,
+                          self.simd, acc, vals, e1,
                           cnt, nbr, self.cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
         return self._back(acc, vals, e1, cnt)
@@ -302,7 +303,8 @@ class _Engine:
         self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
                            np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
                            1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
-                           self.cb, get_num_threads(), self.cap, acc, vals, e1, cnt, nbr, nstart, nup)
+                           self.cb, get_num_threads(), self.cap, self.simd, acc, vals, e1, cnt, nbr, nstart,
+                           nup)
         return self._back(acc, vals, e1, cnt)
 
     def drop_lists(self) -> None:

@@ -254,7 +254,7 @@ class _Engine:
         # SCRATCH_BYTES per entry) come out of the neighbour lists' share
         scratch = get_num_threads() * self.cap * SCRATCH_BYTES
         self.max_pairs = max(0, int(max_pairs) - scratch // NL_BYTES_PER_PAIR)
-        self.simd = K.SIMD_COLLECT  # tests switch it off to check the scalar scan
+        self.simd = K.SIMD  # tests switch it off to check the scalar loops
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
 
     def _back(self, acc, vals, e1, cnt):

@@ -599,14 +599,14 @@ def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row, simd):
         assert (nstart >= 0).sum() > n // 2
     else:
         assert eng.lists is None
-    ref = _reference.components(_reference.ball_pass(eng.grid.points, sigma))
+    ref = _reference.components(_reference.ball_pass(eng.points, sigma))
     np.testing.assert_allclose(t6, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
     t6, _, _, cnt = eng.stick(eng.to_sorted(normals), eng.to_sorted(sal))
-    ref = _reference.components(_reference.stick_pass(eng.grid.points, eng.to_sorted(normals),
+    ref = _reference.components(_reference.stick_pass(eng.points, eng.to_sorted(normals),
                                                       eng.to_sorted(sal), sigma))
     np.testing.assert_allclose(t6, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
     ws = eng.to_sorted(sal)
-    d2 = ((eng.grid.points[:, None] - eng.grid.points[None]) ** 2).sum(-1)
+    d2 = ((eng.points[:, None] - eng.points[None]) ** 2).sum(-1)
     np.testing.assert_array_equal(cnt, ((d2 < (2 * sigma) ** 2) & (ws[None] != 0)).sum(1))
 
 

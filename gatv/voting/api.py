@@ -38,7 +38,7 @@ Later stick passes grow σ, so they scan the grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -240,8 +240,7 @@ class _Engine:
         if self.perm is None:
             self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV)
         else:
-            grid = build_grid(np.ascontiguousarray(points[:, self.perm]), self.radius, GRID_SUBDIV)
-            self.grid = replace(grid, points=np.ascontiguousarray(points[grid.order]))
+            self.grid = build_grid(np.ascontiguousarray(points[:, self.perm]), self.radius, GRID_SUBDIV)
             inv = np.argsort(self.perm)
             comp = {(0, 0): 0, (0, 1): 1, (0, 2): 2, (1, 1): 3, (1, 2): 4, (2, 2): 5}
             self._t6_back = np.array([comp[tuple(sorted((inv[i], inv[j])))]
@@ -256,6 +255,13 @@ class _Engine:
         self.max_pairs = max(0, int(max_pairs) - scratch // NL_BYTES_PER_PAIR)
         self.simd = K.SIMD  # tests switch it off to check the scalar loops
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
+
+    @property
+    def points(self) -> np.ndarray:
+        """``(N, 3)`` tokens in sorted order and the caller's axis order (a new array)."""
+        g = self.grid
+        cols = (g.xs, g.ys, g.zs)  # kernel axis k is the caller's axis perm[k]
+        return np.column_stack(cols if self.perm is None else [cols[k] for k in self._inv])
 
     def _back(self, acc, vals, e1, cnt):
         """Outputs of a kernel in the original axis order."""
@@ -603,7 +609,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     ball = _votes(eng, "ball", res)
     _, vals, e1, _ = res  # sorted order
     idx = eng.grid.order.copy()  # original index of each current token
-    cur_pts = eng.grid.points
+    cur_pts = eng.points
     counts = []
     s = sigma
     for p in range(n_stick_passes):
@@ -627,7 +633,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         else:
             star = int(np.argmax(sal))
             keep = (vals[:, 0] >= tau1 * vals[star, 0]) & (sal >= tau2 * sal[star])
-        cur_pts = np.ascontiguousarray(eng.grid.points[keep])
+        cur_pts = np.ascontiguousarray(eng.points[keep])
         e1 = np.ascontiguousarray(e1[keep])
         vals = vals[keep]
         sal = sal[keep]

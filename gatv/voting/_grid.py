@@ -45,18 +45,31 @@ def cell_hash(cx, cy, cz, mask):
     return ((cx * _H1) ^ (cy * _H2) ^ (cz * _H3)) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _bounds(points):
-    """Per-axis minimum and maximum of ``(N, 3)`` points, one pass."""
-    lo = points[0].copy()
-    hi = points[0].copy()
-    for i in range(1, points.shape[0]):
+    """Per-axis minimum and maximum of ``(N, 3)`` points (N ≥ 1), one parallel pass."""
+    n = points.shape[0]
+    nb = min(n, 64)
+    blo = np.empty((nb, 3))
+    bhi = np.empty((nb, 3))
+    for b in prange(nb):
+        i0 = b * n // nb
+        i1 = (b + 1) * n // nb
         for k in range(3):
-            v = points[i, k]
-            if v < lo[k]:
-                lo[k] = v
-            if v > hi[k]:
-                hi[k] = v
+            lo = points[i0, k]
+            hi = lo
+            for i in range(i0 + 1, i1):
+                v = points[i, k]
+                lo = min(lo, v)
+                hi = max(hi, v)
+            blo[b, k] = lo
+            bhi[b, k] = hi
+    lo = blo[0].copy()
+    hi = bhi[0].copy()
+    for b in range(1, nb):
+        for k in range(3):
+            lo[k] = min(lo[k], blo[b, k])
+            hi[k] = max(hi[k], bhi[b, k])
     return lo, hi
 
 
@@ -172,9 +185,12 @@ def grid_layout(points: np.ndarray, radius: float, subdiv: int):
     return h, lo, dims, hashed, nkeys
 
 
-def build_grid(points: np.ndarray, radius: float, subdiv: int = 1) -> Grid:
-    """Bin and counting-sort ``points`` (C-contiguous float64) by cell."""
-    h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv)
+def build_grid(points: np.ndarray, radius: float, subdiv: int = 1, layout=None) -> Grid:
+    """Bin and counting-sort ``points`` (C-contiguous float64) by cell.
+
+    ``layout``: :func:`grid_layout` of these points, when the caller has it.
+    """
+    h, lo, dims, hashed, nkeys = grid_layout(points, radius, subdiv) if layout is None else layout
     mask = nkeys - 1 if hashed else 0
     lo = np.ascontiguousarray(lo, dtype=np.float64)
     key = _bin(points, lo, 1.0 / h, dims[0], dims[1], dims[2], hashed, mask)

@@ -234,13 +234,14 @@ class _Engine:
         # slowest key axis (the third); flat data (a plane z = const) would make
         # a single chunk, so the axis with the most cells goes last.  The
         # kernels then work in that axis order; outputs are permuted back.
-        _, _, dims, _, _ = grid_layout(points, self.radius, GRID_SUBDIV)
+        h, lo, dims, hashed, nkeys = grid_layout(points, self.radius, GRID_SUBDIV)
         big = int(np.argmax(dims))
         self.perm = None if dims[2] == dims[big] else np.array([a for a in range(3) if a != big] + [big])
         if self.perm is None:
-            self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV)
+            self.grid: Grid = build_grid(points, self.radius, GRID_SUBDIV, (h, lo, dims, hashed, nkeys))
         else:
-            self.grid = build_grid(np.ascontiguousarray(points[:, self.perm]), self.radius, GRID_SUBDIV)
+            layout = (h, lo[self.perm], tuple(dims[a] for a in self.perm), hashed, nkeys)
+            self.grid = build_grid(np.ascontiguousarray(points[:, self.perm]), self.radius, GRID_SUBDIV, layout)
             inv = np.argsort(self.perm)
             comp = {(0, 0): 0, (0, 1): 1, (0, 2): 2, (1, 1): 3, (1, 2): 4, (2, 2): 5}
             self._t6_back = np.array([comp[tuple(sorted((inv[i], inv[j])))]

@@ -756,7 +756,7 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
-def stick_records(xs, ys, zs, nxs, nys, nzs, ws):
+def stick_records(xs, ys, zs, normals, ws):
     """``(N, 8)`` rows ``x, y, z, nx, ny, nz, w, 0``: one cache line per voter for the gathers."""
     n = xs.shape[0]
     rec = np.empty((n, 8))
@@ -764,9 +764,9 @@ def stick_records(xs, ys, zs, nxs, nys, nzs, ws):
         rec[i, 0] = xs[i]
         rec[i, 1] = ys[i]
         rec[i, 2] = zs[i]
-        rec[i, 3] = nxs[i]
-        rec[i, 4] = nys[i]
-        rec[i, 5] = nzs[i]
+        rec[i, 3] = normals[i, 0]
+        rec[i, 4] = normals[i, 1]
+        rec[i, 5] = normals[i, 2]
         rec[i, 6] = ws[i]
         rec[i, 7] = 0.0
     return rec
@@ -1036,11 +1036,11 @@ def _scatter(bj, k0, cnt, out, acc, counts):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
-def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+def stick_pass(xs, ys, zs, normals, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
                lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, cap, simd, acc, vals, e1, counts, nbr, nstart, nup):
     """Sparse stick voting (eq. 44), each pair once (see the section comment).
 
-    Voter ``j`` votes with unit normal ``(nxs[j], nys[j], nzs[j])`` and weight
+    Voter ``j`` votes with unit normal ``normals[j]`` and weight
     ``ws[j]`` (``ws[j] == 0``: no vote, not counted).  The votee's own stick
     ``ws[i]·nᵢnᵢᵀ`` (self vote, l = 0) is included.  ``gamma4 = 4γ`` and
     ``lmin2 = (l_min/σ)²``.  ``acc`` and ``counts`` must be zero on entry;
@@ -1058,7 +1058,7 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
     use_nl = nstart.shape[0] == n
     nch = cb.shape[0] - 1
     inv_h = 1.0 / h
-    rec = stick_records(xs, ys, zs, nxs, nys, nzs, ws)
+    rec = stick_records(xs, ys, zs, normals, ws)
     ctr = np.zeros(2, np.int64)  # next chunk of each phase (dynamic scheduling)
     for phase in range(2):
         for _t in prange(nth):
@@ -1074,9 +1074,9 @@ def stick_pass(xs, ys, zs, nxs, nys, nzs, ws, cix, ciy, ciz, start, nx, ny, nz, 
                     out = np.empty((6, cap))
                     for i in range(cb[ch], cb[ch + 1]):
                         wi = ws[i]
-                        nix = nxs[i]
-                        niy = nys[i]
-                        niz = nzs[i]
+                        nix = rec[i, 3]
+                        niy = rec[i, 4]
+                        niz = rec[i, 5]
                         listed = use_nl and nstart[i] >= 0
                         if listed:
                             k0 = nstart[i]

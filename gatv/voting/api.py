@@ -302,14 +302,13 @@ class _Engine:
         g = self.grid
         acc, vals, e1, cnt = self._out()
         nrm = np.asarray(normals_sorted, dtype=np.float64)
-        nrm = np.ascontiguousarray((nrm if self.perm is None else nrm[:, self.perm]).T)
+        nrm = np.ascontiguousarray(nrm if self.perm is None else nrm[:, self.perm])
         if self.lists is None:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
         else:
             nbr, nstart, nup = self.lists
-        self._K.stick_pass(g.xs, g.ys, g.zs, nrm[0], nrm[1], nrm[2],
-                           np.ascontiguousarray(weights_sorted, dtype=np.float64), *self._cells(),
-                           1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
+        w = np.ascontiguousarray(weights_sorted, dtype=np.float64)
+        self._K.stick_pass(g.xs, g.ys, g.zs, nrm, w, *self._cells(), 1.0 / self.sigma**2, 4.0 * _fields.GAMMA, 1.0 / _fields.SIGMA_REF**2,
                            self.cb, get_num_threads(), self.cap, self.simd, acc, vals, e1, cnt, nbr, nstart,
                            nup)
         return self._back(acc, vals, e1, cnt)

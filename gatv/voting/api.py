@@ -34,6 +34,15 @@ the stick pass sums over them instead of scanning the grid again.  The lists
 get the memory budget left after the O(N) storage; tokens whose list does
 not fit their chunk's share are scanned as before, with the same results.
 Later stick passes grow σ, so they scan the grid.
+
+Eight lanes.  On x86 hosts with AVX2 or AVX-512 (``_kernels.SIMD``) the
+distance test of the scan and the stick votes run on 8 tokens at a time
+through explicit LLVM vectors: the scan compress-stores the indices and
+offsets of the tokens inside the sphere, so the ball votes read contiguous
+offsets and vectorise; the stick flush keeps two 4-wide dependency chains in
+flight.  Same arithmetic as the scalar loops (property tests; the scalar
+loops stay, for other hosts and for the tests).  At 250k tokens, one thread:
+scan 0.19 → 0.085 CPU-s, stick loop 17 → 10 ns a pair.
 """
 
 from __future__ import annotations

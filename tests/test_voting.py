@@ -517,6 +517,53 @@ def test_simd_stick_pairs_equal_scalar_stick_pairs(seed, cnt, both, sigma):
         assert np.isnan(out_v).all()
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 50), st.sampled_from([0.0, 1e-15, 1e-9, 1e-4, 1.0]))
+def test_simd_eigen_rows_equal_eig3_top(seed, n, split):
+    # random symmetric tensors, a share with a double eigenvalue split by `split`
+    # (top or bottom pair), zeros and multiples of the identity
+    from numba import njit
+
+    from gatv.voting import _kernels as K
+
+    @njit
+    def both(t6, v_new, e_new, v_old, e_old):
+        K._eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
+        for i in range(t6.shape[0]):
+            r = K.eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
+            for k in range(3):
+                v_old[i, k] = r[k]
+                e_old[i, k] = r[3 + k]
+
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(n, 3, 3))
+    m = m + m.transpose(0, 2, 1)
+    q = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    d = np.stack([np.full(n, 2.0), np.full(n, 2.0 + split), rng.normal(size=n)], axis=1)
+    d[::2] = -d[::2]  # the double pair at the bottom
+    pick = rng.uniform(size=n) < 0.5
+    m[pick] = (q @ (d[:, :, None] * q.transpose(0, 2, 1)))[pick]
+    m[rng.uniform(size=n) < 0.1] = 0.0
+    m[rng.uniform(size=n) < 0.1] = 3.0 * np.eye(3)
+    t6 = np.ascontiguousarray(m[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]])
+    v_new, e_new, v_old, e_old = (np.full((n, 3), np.nan) for _ in range(4))
+    both(t6, v_new, e_new, v_old, e_old)
+    scale = np.maximum(np.abs(m).max(axis=(1, 2)), 1e-300)[:, None]
+    exact = np.linalg.eigvalsh(m)[:, ::-1]
+    # both trigonometric solvers lose ~sqrt(eps) at near-double eigenvalues
+    np.testing.assert_array_less(np.abs(v_new - exact) / scale, 1e-7)
+    np.testing.assert_array_less(np.abs(v_new - v_old) / scale, 1e-7)
+    well = np.abs(exact[:, 0] - exact[:, 1]) > 1e-3 * scale[:, 0]
+    well &= np.abs(exact[:, 1] - exact[:, 2]) > 1e-3 * scale[:, 0]
+    np.testing.assert_allclose(v_new[well], v_old[well], rtol=0, atol=1e-13 * scale.max())
+    np.testing.assert_allclose(np.linalg.norm(e_new, axis=1), 1.0, atol=1e-14)
+    gap = (exact[:, 0] - exact[:, 1]) / scale[:, 0]
+    sep = gap > 1e-6
+    assert (np.abs((e_new[sep] * e_old[sep]).sum(axis=1)) > 1 - 1e-12).all()
+    resid = np.einsum("nij,nj->ni", m, e_new) - v_new[:, :1] * e_new
+    np.testing.assert_array_less(np.linalg.norm(resid, axis=1) / scale[:, 0], 1e-6)
+
+
 @pytest.mark.parametrize("sigma", [0.02, 0.1, 0.6])
 def test_half_shell_capacity_bounds_every_votee(sigma):
     from scipy.spatial import cKDTree

@@ -227,8 +227,17 @@ def eig3_batch(t6, vals, vecs):
 
 
 @njit(cache=True, parallel=True)
-def eig3_top_batch(t6, vals, e1):
-    """Eigenvalues (descending) and e1 of ``(N, 6)`` tensors (unfused variant)."""
+def eig3_top_batch(t6, vals, e1, simd=False):
+    """Eigenvalues (descending) and e1 of ``(N, 6)`` C-contiguous tensors (unfused variant).
+
+    ``simd``: blocks of 256 tokens through :func:`_eig_rows_simd`, as the
+    fused passes do when :data:`SIMD` is on.
+    """
+    if simd:
+        nb = (t6.shape[0] + 255) // 256
+        for b in prange(nb):
+            _eig_rows_simd(t6, vals, e1, 256 * b, min(256 * (b + 1), t6.shape[0]))
+        return
     for i in prange(t6.shape[0]):
         l1, l2, l3, ex, ey, ez = eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
         vals[i, 0] = l1

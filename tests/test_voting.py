@@ -517,6 +517,34 @@ def test_simd_stick_pairs_equal_scalar_stick_pairs(seed, cnt, both, sigma):
         assert np.isnan(out_v).all()
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 40), st.floats(1e-3, 10.0))
+def test_simd_ball_pairs_equal_scalar_ball_pairs(seed, cnt, spread):
+    from numba import njit
+
+    from gatv.voting import _kernels as K
+
+    tab = _fields.ball_table4()
+
+    @njit
+    def run(db, cnt, tscale, out_v, out_s):
+        return K._ball_pairs_simd(db, cnt, tab, tscale, out_v), K._ball_pairs(db, cnt, tab, tscale, out_s)
+
+    rng = np.random.default_rng(seed)
+    cap = cnt + 9
+    db = np.empty((4, cap))
+    db[:3] = rng.normal(0.0, spread, (3, cap))
+    db[:3, rng.uniform(size=cap) < 0.15] = 0.0  # l = 0: the identity
+    db[3] = (db[:3] ** 2).sum(axis=0)
+    r2 = max(db[3, :cnt].max(initial=0.0), spread**2) * 1.0001  # every offset inside the radius
+    out_v = np.full((6, cap), np.nan)
+    out_s = np.full((6, cap), np.nan)
+    a, b = run(db, cnt, _fields.BALL_TABLE_SIZE / r2, out_v, out_s)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * max(np.abs(b).max(), 1.0))
+    np.testing.assert_allclose(out_v[:, :cnt], out_s[:, :cnt], rtol=0, atol=1e-14)
+    assert np.isnan(out_v[:, cnt:]).all()
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(1, 50), st.sampled_from([0.0, 1e-15, 1e-9, 1e-4, 1.0]))
 def test_simd_eigen_rows_equal_eig3_top(seed, n, split):

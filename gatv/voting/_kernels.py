@@ -367,7 +367,7 @@ _FLUSH_FLAGS = {"reassoc", "contract"}
 
 
 #: Whether the kernels take their explicit 8-lane paths (:func:`_collect_simd`,
-#: :func:`_stick_pairs_simd`, :func:`_eig_rows_simd`).  They are correct on any target (LLVM expands
+#: :func:`_ball_pairs_simd`, :func:`_stick_pairs_simd`, :func:`_eig_rows_simd`).  They are correct on any target (LLVM expands
 #: what the CPU lacks), but faster than the scalar code was measured only for
 #: x86 code with AVX2 or AVX-512, so other hosts keep the scalar loops.  Fixed
 #: per host, as numba's cache is.
@@ -715,8 +715,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks;
     ``nth``: number of numba threads (passed in: calling
     ``numba.get_num_threads`` here would make the function uncachable);
-    ``cap``: :func:`half_shell_capacity`; ``simd``: scan with
-    :func:`_collect_simd` (pass :data:`SIMD`).
+    ``cap``: :func:`half_shell_capacity`; ``simd``: the 8-lane scan, votes
+    and eigen-analysis (pass :data:`SIMD`).
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -745,7 +745,10 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                     for i in range(cb[ch], cb[ch + 1]):
                         cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
                                      lo, h, inv_h, r2, bj, db, rows, simd)
-                        s00, s01, s02, s11, s12, s22 = _ball_pairs(db, cnt, tab, tscale, out)
+                        if simd:
+                            s00, s01, s02, s11, s12, s22 = _ball_pairs_simd(db, cnt, tab, tscale, out)
+                        else:
+                            s00, s01, s02, s11, s12, s22 = _ball_pairs(db, cnt, tab, tscale, out)
                         _scatter(bj, 0, cnt, out, acc, counts)
                         acc[i, 0] += 1.0 + s00
                         acc[i, 1] += s01
@@ -1249,6 +1252,91 @@ def _eig_rows_simd(typingctx, acc, vals, e1, i0, i1):
                 builder.call(scatter, [o.v(res[c]), ptrs(1, 3, c), ir.Constant(i32, 8), lane])
                 builder.call(scatter, [o.v(res[3 + c]), ptrs(2, 3, c), ir.Constant(i32, 8), lane])
         return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
+    """:func:`_ball_pairs` on 8 pairs at a time (explicit LLVM vectors, table rows gathered).
+
+    LLVM leaves the scalar loop unvectorised (the table lookup); here the
+    four entries of each lane's table row are gathered.  Lanes at or past
+    ``cnt`` add nothing and store nothing.  Same arithmetic as
+    :func:`_ball_pairs`, up to FMA contraction; sums reduced lane 0 to 7.
+    """
+    f64 = types.float64
+    for a in (db, tab, out):
+        if not (isinstance(a, types.Array) and a.ndim == 2 and a.layout == "C" and a.dtype == f64):
+            return None
+    sig = types.UniTuple(f64, 6)(db, types.int64, tab, f64, out)
+
+    def codegen(context, builder, signature, args):
+        adb, acnt, atab, vts, aout = args
+        dba = context.make_array(signature.args[0])(context, builder, adb)
+        taba = context.make_array(signature.args[2])(context, builder, atab)
+        outa = context.make_array(signature.args[4])(context, builder, aout)
+        drow = cgutils.unpack_tuple(builder, dba.shape, 2)[1]
+        orow = cgutils.unpack_tuple(builder, outa.shape, 2)[1]
+        dt, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
+        vd, vi, vm = ir.VectorType(dt, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
+        vpd = ir.VectorType(dt.as_pointer(), _W)
+        mod = builder.module
+        mload = cgutils.get_or_insert_function(
+            mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
+        mstore = cgutils.get_or_insert_function(
+            mod, ir.FunctionType(ir.VoidType(), [vd, vd.as_pointer(), i32, vm]),
+            f"llvm.masked.store.v{_W}f64.p0v{_W}f64")
+        gather = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vpd, i32, vm, vd]),
+                                                f"llvm.masked.gather.v{_W}f64.v{_W}p0f64")
+        o = _Ops(builder, mod)
+
+        def splat(v, ty=vd):
+            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
+            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+
+        end = splat(acnt, vi)
+        iota = ir.Constant(vi, list(range(_W)))
+        zero = ir.Constant(vd, [0.0] * _W)
+        tsc = splat(vts)
+        tbase = splat(builder.ptrtoint(taba.data, i64), vi)
+        sums = [cgutils.alloca_once_value(builder, zero) for _ in range(6)]
+        with cgutils.for_range_slice(builder, ir.Constant(i64, 0), acnt, ir.Constant(i64, _W), inc=True) as (k, _):
+            lane = builder.icmp_signed("<", builder.add(splat(k, vi), iota), end)
+
+            def row_ptr(arr, rowlen, r):
+                at = builder.add(builder.mul(ir.Constant(i64, r), rowlen), k)
+                return builder.bitcast(builder.gep(arr.data, [at]), vd.as_pointer())
+
+            dx, dy, dz, d2 = (o.L(builder.call(mload, [row_ptr(dba, drow, r), ir.Constant(i32, 8), lane, zero]))
+                              for r in range(4))
+            q = d2 * o.L(tsc)
+            t = builder.fptoui(q.v, vi)
+            f = q - o.L(builder.uitofp(t, vd))
+            row = builder.add(tbase, builder.mul(t, ir.Constant(vi, [32] * _W)))
+            tv = [o.L(builder.call(gather, [builder.inttoptr(builder.add(row, ir.Constant(vi, [8 * c] * _W)), vpd),
+                                            ir.Constant(i32, 8), lane, zero])) for c in range(4)]
+            a = tv[0] + tv[1] * f
+            b = tv[2] + tv[3] * f
+            pos = o.cmp(">", d2, 0.0)
+            # l = 0: the isotropic average, exactly the identity
+            g = o.sel(pos, o.div(a - b, o.sel(pos, d2, 1.0)), 0.0)
+            b = o.sel(pos, b, 1.0)
+            cx = g * dx
+            cy = g * dy
+            tt = (b + cx * dx, cx * dy, cx * dz, b + cy * dy, cy * dz, b + g * dz * dz)
+            for r in range(6):
+                builder.call(mstore, [tt[r].v, row_ptr(outa, orow, r), ir.Constant(i32, 8), lane])
+                part = o.sel(lane, tt[r], 0.0)
+                builder.store((o.L(builder.load(sums[r])) + part).v, sums[r])
+        res = []
+        for r in range(6):
+            v = builder.load(sums[r])
+            acc = builder.extract_element(v, ir.Constant(i32, 0))
+            for j in range(1, _W):
+                acc = builder.fadd(acc, builder.extract_element(v, ir.Constant(i32, j)))
+            res.append(acc)
+        return context.make_tuple(builder, signature.return_type, res)
 
     return sig, codegen
 

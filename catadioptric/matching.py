@@ -1125,13 +1125,17 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
         new, new_k = new[o], new_k[o]
         if last:
             if EPI_RATIO < 1.0 and new.shape[0]:
-                # ambiguity: another candidate of either ray nearly as close
-                chosen = np.zeros(cp.shape[0], bool)
-                chosen[sel] = True
-                dmask = np.where(chosen, np.inf, dd[okc])   # the rivals' distances
+                # ambiguity: another candidate of either ray nearly as close;
+                # a rival just outside the gate counts too (the ratio test
+                # must not be cut short by the gate)
+                wide = valid[ii] & (dd <= s * GATE_SIGMAS * sig / EPI_RATIO)
+                chosen = np.zeros(ii.shape[0], bool)
+                chosen[new_k] = True
+                cw = np.column_stack([ii[wide], jj[wide]])
+                dmask = np.where(chosen[wide], np.inf, dd[wide])   # the rivals' distances
                 second = np.full(new.shape[0], np.inf)
                 for col in (0, 1):
-                    key = cp[:, col]
+                    key = cw[:, col]
                     order = np.argsort(key, kind="stable")
                     # nearest rival per ray
                     uk, start = np.unique(key[order], return_index=True)

@@ -33,8 +33,12 @@ _TWO_PI_3 = 2.0 * math.pi / 3.0
 
 
 @njit(cache=True, inline="always")
-def _evec_single(a00, a01, a02, a11, a12, a22, lam):
-    """Unit eigenvector for an eigenvalue of multiplicity one (max cross product)."""
+def _row_crosses(a00, a01, a02, a11, a12, a22, lam):
+    """Cross products of the rows of A − λI and their squared lengths.
+
+    Plain arithmetic: :func:`_evec_single` and the 8-lane
+    :func:`_eig_rows_simd` (through ``py_func``) share it.
+    """
     r00 = a00 - lam
     r11 = a11 - lam
     r22 = a22 - lam
@@ -51,6 +55,13 @@ def _evec_single(a00, a01, a02, a11, a12, a22, lam):
     d0 = c0x * c0x + c0y * c0y + c0z * c0z
     d1 = c1x * c1x + c1y * c1y + c1z * c1z
     d2 = c2x * c2x + c2y * c2y + c2z * c2z
+    return c0x, c0y, c0z, c1x, c1y, c1z, c2x, c2y, c2z, d0, d1, d2
+
+
+@njit(cache=True, inline="always")
+def _evec_single(a00, a01, a02, a11, a12, a22, lam):
+    """Unit eigenvector for an eigenvalue of multiplicity one (max cross product)."""
+    c0x, c0y, c0z, c1x, c1y, c1z, c2x, c2y, c2z, d0, d1, d2 = _row_crosses(a00, a01, a02, a11, a12, a22, lam)
     if d0 == 0.0 and d1 == 0.0 and d2 == 0.0:
         # A − λI vanished in rounding (λ is, to the last bit, a triple
         # eigenvalue that the exact test of _eigvals missed): every unit
@@ -67,14 +78,11 @@ def _evec_single(a00, a01, a02, a11, a12, a22, lam):
 
 
 @njit(cache=True, inline="always")
-def _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
-    """Unit eigenvector for ``lam`` orthogonal to the unit eigenvector ``w``."""
-    if abs(wx) > abs(wy):
-        s = 1.0 / math.sqrt(wx * wx + wz * wz)
-        ux, uy, uz = -wz * s, 0.0, wx * s
-    else:
-        s = 1.0 / math.sqrt(wy * wy + wz * wz)
-        ux, uy, uz = 0.0, wz * s, -wy * s
+def _complement_2x2(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam):
+    """``v = w × u`` and the 2×2 matrix of A − λI on the plane (u, v): ``(v, m00, m01, m11)``.
+
+    Plain arithmetic, shared with the 8-lane :func:`_eig_rows_simd`.
+    """
     vx = wy * uz - wz * uy
     vy = wz * ux - wx * uz
     vz = wx * uy - wy * ux
@@ -87,6 +95,19 @@ def _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
     m00 = ux * aux + uy * auy + uz * auz - lam
     m01 = vx * aux + vy * auy + vz * auz
     m11 = vx * avx + vy * avy + vz * avz - lam
+    return vx, vy, vz, m00, m01, m11
+
+
+@njit(cache=True, inline="always")
+def _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
+    """Unit eigenvector for ``lam`` orthogonal to the unit eigenvector ``w``."""
+    if abs(wx) > abs(wy):
+        s = 1.0 / math.sqrt(wx * wx + wz * wz)
+        ux, uy, uz = -wz * s, 0.0, wx * s
+    else:
+        s = 1.0 / math.sqrt(wy * wy + wz * wz)
+        ux, uy, uz = 0.0, wz * s, -wy * s
+    vx, vy, vz, m00, m01, m11 = _complement_2x2(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam)
     b00 = abs(m00)
     b01 = abs(m01)
     b11 = abs(m11)
@@ -375,6 +396,33 @@ SIMD = bool(llvm.get_host_cpu_features().get("avx2", False))
 _W = 8
 
 
+def _splat(builder, value, vty):
+    """``value`` in every lane of a vector of type ``vty``."""
+    i32 = ir.IntType(32)
+    u = builder.insert_element(ir.Constant(vty, ir.Undefined), value, ir.Constant(i32, 0))
+    return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, vty.count), [0] * vty.count))
+
+
+def _lane_sums(builder, slots):
+    """The lanes of each vector in ``slots`` (allocas) summed from lane 0 to the last: a fixed order."""
+    i32 = ir.IntType(32)
+    out = []
+    for slot in slots:
+        v = builder.load(slot)
+        acc = builder.extract_element(v, ir.Constant(i32, 0))
+        for q in range(1, v.type.count):
+            acc = builder.fadd(acc, builder.extract_element(v, ir.Constant(i32, q)))
+        out.append(acc)
+    return out
+
+
+def _row_vector_ptr(builder, arr, rowlen, r, k, vty):
+    """Pointer to the vector at ``arr[r, k : k + lanes]`` of a C-contiguous 2-D array with rows of ``rowlen``."""
+    i64 = ir.IntType(64)
+    at = builder.add(builder.mul(ir.Constant(i64, r), rowlen), k)
+    return builder.bitcast(builder.gep(arr.data, [at]), vty.as_pointer())
+
+
 @intrinsic
 def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
     """:func:`_collect` for the dense layout, 8 candidates at a time.
@@ -416,8 +464,7 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
         ctpop = cgutils.get_or_insert_function(mod, ir.FunctionType(mask_t, [mask_t]), f"llvm.ctpop.i{_W}")
 
         def splat(v, ty):
-            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
-            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+            return _splat(builder, v, ty)
 
         centre = [splat(v, vd) for v in (vxi, vyi, vzi)]
         vr2s = splat(vr2, vd)
@@ -625,6 +672,17 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     return cnt + (touch != touch)  # never true (no NaN tokens): keeps the touches
 
 
+@njit(cache=True, inline="always", boundscheck=False)
+def _put6(out, k, t00, t01, t02, t11, t12, t22):
+    """Tensor components to column ``k`` of ``out`` (6 rows)."""
+    out[0, k] = t00
+    out[1, k] = t01
+    out[2, k] = t02
+    out[3, k] = t11
+    out[4, k] = t12
+    out[5, k] = t22
+
+
 @njit(cache=True, fastmath=_FLUSH_FLAGS, error_model="numpy", boundscheck=False)
 def _ball_pairs(db, cnt, tab, tscale, out):
     """Ball votes of i's upper neighbours from their offsets ``db[:4, :cnt]`` (see :func:`_upper`).
@@ -670,12 +728,7 @@ def _ball_pairs(db, cnt, tab, tscale, out):
         s11 += t11
         s12 += t12
         s22 += t22
-        out[0, k] = t00
-        out[1, k] = t01
-        out[2, k] = t02
-        out[3, k] = t11
-        out[4, k] = t12
-        out[5, k] = t22
+        _put6(out, k, t00, t01, t02, t11, t12, t22)
     return s00, s01, s02, s11, s12, s22
 
 
@@ -868,12 +921,7 @@ def _stick_pairs(buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
         s22 += t22
         if both:
             t00, t01, t02, t11, t12, t22 = _stick_one(dx, dy, dz, d2, inv, rho2, gl, nix, niy, niz, wi)
-            out[0, k] = t00
-            out[1, k] = t01
-            out[2, k] = t02
-            out[3, k] = t11
-            out[4, k] = t12
-            out[5, k] = t22
+            _put6(out, k, t00, t01, t02, t11, t12, t22)
     return s00, s01, s02, s11, s12, s22
 
 
@@ -959,8 +1007,7 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
             mod, ir.FunctionType(ir.VoidType(), [vd, vd.as_pointer(), i32, vm]), f"llvm.masked.store.v{_W}f64.p0v{_W}f64")
 
         def splat(v, ty=vd):
-            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
-            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+            return _splat(builder, v, ty)
 
         def L(v):
             return _Lanes(builder, v)
@@ -1006,8 +1053,7 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
             lane = builder.icmp_signed("<", builder.add(splat(k, vi), iota), end)
 
             def row_ptr(arr, rowlen, r):
-                return builder.bitcast(builder.gep(arr.data, [builder.add(builder.mul(ir.Constant(i64, r), rowlen), k)]),
-                                       vd.as_pointer())
+                return _row_vector_ptr(builder, arr, rowlen, r, k, vd)
 
             col = [L(builder.call(mload, [row_ptr(bufa, brow, r), ir.Constant(i32, 8), lane, idle[r]]))
                    for r in range(7)]
@@ -1024,14 +1070,7 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
                 t = stick_one(d, d2, inv, rho2, gl, ni, wiv)
                 for r in range(6):
                     builder.call(mstore, [t[r].v, row_ptr(outa, orow, r), ir.Constant(i32, 8), lane])
-        res = []
-        for r in range(6):
-            v = builder.load(sums[r])
-            acc = builder.extract_element(v, ir.Constant(i32, 0))
-            for q in range(1, _W):
-                acc = builder.fadd(acc, builder.extract_element(v, ir.Constant(i32, q)))
-            res.append(acc)
-        return context.make_tuple(builder, signature.return_type, res)
+        return context.make_tuple(builder, signature.return_type, _lane_sums(builder, sums))
 
     return sig, codegen
 
@@ -1110,13 +1149,9 @@ class _Ops:
 
 
 def _evec_single_lanes(o, a00, a01, a02, a11, a12, a22, lam):
-    r00 = a00 - lam
-    r11 = a11 - lam
-    r22 = a22 - lam
-    c0 = (a01 * a12 - a02 * r11, a02 * a01 - r00 * a12, r00 * r11 - a01 * a01)
-    c1 = (a01 * r22 - a02 * a12, a02 * a02 - r00 * r22, r00 * a12 - a01 * a02)
-    c2 = (r11 * r22 - a12 * a12, a12 * a02 - a01 * r22, a01 * a12 - r11 * a02)
-    d0, d1, d2 = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in (c0, c1, c2))
+    r = _row_crosses.py_func(a00, a01, a02, a11, a12, a22, lam)
+    c0, c1, c2 = r[0:3], r[3:6], r[6:9]
+    d0, d1, d2 = r[9:12]
     zero = o.and_(o.cmp("==", d0, 0.0), o.cmp("==", d1, 0.0), o.cmp("==", d2, 0.0))
     pick0 = o.and_(o.cmp(">=", d0, d1), o.cmp(">=", d0, d2))
     pick1 = o.cmp(">=", d1, d2)
@@ -1133,18 +1168,7 @@ def _evec_complement_lanes(o, a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
     ux = o.sel(big, (0.0 - wz) * sa, 0.0)
     uy = o.sel(big, 0.0, wz * sb)
     uz = o.sel(big, wx * sa, (0.0 - wy) * sb)
-    vx = wy * uz - wz * uy
-    vy = wz * ux - wx * uz
-    vz = wx * uy - wy * ux
-    aux = a00 * ux + a01 * uy + a02 * uz
-    auy = a01 * ux + a11 * uy + a12 * uz
-    auz = a02 * ux + a12 * uy + a22 * uz
-    avx = a00 * vx + a01 * vy + a02 * vz
-    avy = a01 * vx + a11 * vy + a12 * vz
-    avz = a02 * vx + a12 * vy + a22 * vz
-    m00 = ux * aux + uy * auy + uz * auz - lam
-    m01 = vx * aux + vy * auy + vz * auz
-    m11 = vx * avx + vy * avy + vz * avz - lam
+    vx, vy, vz, m00, m01, m11 = _complement_2x2.py_func(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam)
     b00 = o.abs(m00)
     b01 = o.abs(m01)
     b11 = o.abs(m11)
@@ -1229,8 +1253,7 @@ def _eig_rows_simd(typingctx, acc, vals, e1, i0, i1):
                                                  f"llvm.masked.scatter.v{_W}f64.v{_W}p0f64")
 
         def splat(v, ty):
-            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
-            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+            return _splat(builder, v, ty)
 
         o = _Ops(builder, mod)
         iota = ir.Constant(vi, list(range(_W)))
@@ -1292,8 +1315,7 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
         o = _Ops(builder, mod)
 
         def splat(v, ty=vd):
-            u = builder.insert_element(ir.Constant(ty, ir.Undefined), v, ir.Constant(i32, 0))
-            return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, _W), [0] * _W))
+            return _splat(builder, v, ty)
 
         end = splat(acnt, vi)
         iota = ir.Constant(vi, list(range(_W)))
@@ -1305,8 +1327,7 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
             lane = builder.icmp_signed("<", builder.add(splat(k, vi), iota), end)
 
             def row_ptr(arr, rowlen, r):
-                at = builder.add(builder.mul(ir.Constant(i64, r), rowlen), k)
-                return builder.bitcast(builder.gep(arr.data, [at]), vd.as_pointer())
+                return _row_vector_ptr(builder, arr, rowlen, r, k, vd)
 
             dx, dy, dz, d2 = (o.L(builder.call(mload, [row_ptr(dba, drow, r), ir.Constant(i32, 8), lane, zero]))
                               for r in range(4))
@@ -1329,14 +1350,7 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
                 builder.call(mstore, [tt[r].v, row_ptr(outa, orow, r), ir.Constant(i32, 8), lane])
                 part = o.sel(lane, tt[r], 0.0)
                 builder.store((o.L(builder.load(sums[r])) + part).v, sums[r])
-        res = []
-        for r in range(6):
-            v = builder.load(sums[r])
-            acc = builder.extract_element(v, ir.Constant(i32, 0))
-            for j in range(1, _W):
-                acc = builder.fadd(acc, builder.extract_element(v, ir.Constant(i32, j)))
-            res.append(acc)
-        return context.make_tuple(builder, signature.return_type, res)
+        return context.make_tuple(builder, signature.return_type, _lane_sums(builder, sums))
 
     return sig, codegen
 

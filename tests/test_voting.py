@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 from scipy.stats import rankdata
 
 from gatv.voting import (
@@ -25,6 +26,7 @@ from gatv.voting import (
     vote,
 )
 from gatv.voting import _fields, _reference
+from gatv.voting import _kernels as K
 from gatv.voting._kernels import eig3_batch
 
 seeds = st.integers(0, 2**32 - 1)
@@ -447,20 +449,45 @@ def test_exp_neg_small_matches_math_exp():
     assert EXP_NEG_MAX >= RADIUS_FACTOR**2 * (math.pi / 4) ** 2 / 0.5 + 4 * _fields.GAMMA * 0.5 * _fields.SIGMA_REF**2
 
 
+# The 8-lane kernels against their scalar twins: each pair runs in one jitted
+# helper, compiled once for all hypothesis examples.
+
+
+@njit
+def _collect_both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b, da, dbb):
+    c = np.zeros(3, np.int64)
+    ca = K._collect_simd(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, da, 0)
+    cb = K._collect(xs, ys, zs, c, c, c, False, 0, 0, 0, j0, j1, xi, yi, zi, r2, b, dbb, 0)
+    return ca, cb
+
+
+@njit
+def _stick_both(buf, cnt, n, wi, both, inv_s2, out_v, out_s):
+    g4 = 4.0 * _fields.GAMMA
+    lm2 = 1.0 / _fields.SIGMA_REF**2
+    a = K._stick_pairs_simd(buf, cnt, n[0], n[1], n[2], wi, both, inv_s2, g4, lm2, out_v)
+    b = K._stick_pairs(buf, cnt, n[0], n[1], n[2], wi, both, inv_s2, g4, lm2, out_s)
+    return a, b
+
+
+@njit
+def _ball_both(db, cnt, tab, tscale, out_v, out_s):
+    return K._ball_pairs_simd(db, cnt, tab, tscale, out_v), K._ball_pairs(db, cnt, tab, tscale, out_s)
+
+
+@njit
+def _eig_both(t6, v_new, e_new, v_old, e_old):
+    K._eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
+    for i in range(t6.shape[0]):
+        r = K.eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
+        for k in range(3):
+            v_old[i, k] = r[k]
+            e_old[i, k] = r[3 + k]
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(1, 70), st.floats(0.01, 1.5))
 def test_simd_collect_equals_scalar_collect(seed, n, r):
-    from numba import njit
-
-    from gatv.voting import _kernels as K
-
-    @njit
-    def both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b, da, dbb):
-        c = np.zeros(3, np.int64)
-        ca = K._collect_simd(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, da, 0)
-        cb = K._collect(xs, ys, zs, c, c, c, False, 0, 0, 0, j0, j1, xi, yi, zi, r2, b, dbb, 0)
-        return ca, cb
-
     rng = np.random.default_rng(seed)
     p = rng.uniform(-1.0, 1.0, (3, n))
     p[:, rng.uniform(size=n) < 0.2] = 0.25  # ties with the centre: d = 0
@@ -470,7 +497,7 @@ def test_simd_collect_equals_scalar_collect(seed, n, r):
     b = np.full(n, -1)
     da = np.full((4, n), np.nan)
     dbb = np.full((4, n), np.nan)
-    ca, cb = both(p[0], p[1], p[2], j0, j1, 0.25, 0.25, 0.25, r * r, a, b, da, dbb)
+    ca, cb = _collect_both(p[0], p[1], p[2], j0, j1, 0.25, 0.25, 0.25, r * r, a, b, da, dbb)
     d2 = ((p[:, j0:j1] - 0.25) ** 2).sum(axis=0)
     assert ca == cb == int((d2 < r * r).sum())
     np.testing.assert_array_equal(a[:ca], b[:cb])
@@ -482,18 +509,6 @@ def test_simd_collect_equals_scalar_collect(seed, n, r):
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 40), st.booleans(), st.floats(0.05, 20.0))
 def test_simd_stick_pairs_equal_scalar_stick_pairs(seed, cnt, both, sigma):
-    from numba import njit
-
-    from gatv.voting import _kernels as K
-
-    @njit
-    def run(buf, cnt, n, wi, both, inv_s2, out_v, out_s):
-        a = K._stick_pairs_simd(buf, cnt, n[0], n[1], n[2], wi, both, inv_s2, 4.0 * _fields.GAMMA,
-                                1.0 / _fields.SIGMA_REF**2, out_v)
-        b = K._stick_pairs(buf, cnt, n[0], n[1], n[2], wi, both, inv_s2, 4.0 * _fields.GAMMA,
-                           1.0 / _fields.SIGMA_REF**2, out_s)
-        return a, b
-
     rng = np.random.default_rng(seed)
     cap = cnt + 9
     buf = np.empty((7, cap))
@@ -506,7 +521,7 @@ def test_simd_stick_pairs_equal_scalar_stick_pairs(seed, cnt, both, sigma):
     ni /= np.linalg.norm(ni)
     out_v = np.full((6, cap), np.nan)
     out_s = np.full((6, cap), np.nan)
-    a, b = run(buf, cnt, ni, 0.7, both, 1.0 / sigma**2, out_v, out_s)
+    a, b = _stick_both(buf, cnt, ni, 0.7, both, 1.0 / sigma**2, out_v, out_s)
     scale = max(np.abs(b).max(), 1e-300)
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * scale)
     if both:
@@ -520,16 +535,6 @@ def test_simd_stick_pairs_equal_scalar_stick_pairs(seed, cnt, both, sigma):
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 40), st.floats(1e-3, 10.0))
 def test_simd_ball_pairs_equal_scalar_ball_pairs(seed, cnt, spread):
-    from numba import njit
-
-    from gatv.voting import _kernels as K
-
-    tab = _fields.ball_table4()
-
-    @njit
-    def run(db, cnt, tscale, out_v, out_s):
-        return K._ball_pairs_simd(db, cnt, tab, tscale, out_v), K._ball_pairs(db, cnt, tab, tscale, out_s)
-
     rng = np.random.default_rng(seed)
     cap = cnt + 9
     db = np.empty((4, cap))
@@ -539,7 +544,7 @@ def test_simd_ball_pairs_equal_scalar_ball_pairs(seed, cnt, spread):
     r2 = max(db[3, :cnt].max(initial=0.0), spread**2) * 1.0001  # every offset inside the radius
     out_v = np.full((6, cap), np.nan)
     out_s = np.full((6, cap), np.nan)
-    a, b = run(db, cnt, _fields.BALL_TABLE_SIZE / r2, out_v, out_s)
+    a, b = _ball_both(db, cnt, _fields.ball_table4(), _fields.BALL_TABLE_SIZE / r2, out_v, out_s)
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * max(np.abs(b).max(), 1.0))
     np.testing.assert_allclose(out_v[:, :cnt], out_s[:, :cnt], rtol=0, atol=1e-14)
     assert np.isnan(out_v[:, cnt:]).all()
@@ -550,19 +555,6 @@ def test_simd_ball_pairs_equal_scalar_ball_pairs(seed, cnt, spread):
 def test_simd_eigen_rows_equal_eig3_top(seed, n, split):
     # random symmetric tensors, a share with a double eigenvalue split by `split`
     # (top or bottom pair), zeros and multiples of the identity
-    from numba import njit
-
-    from gatv.voting import _kernels as K
-
-    @njit
-    def both(t6, v_new, e_new, v_old, e_old):
-        K._eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
-        for i in range(t6.shape[0]):
-            r = K.eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
-            for k in range(3):
-                v_old[i, k] = r[k]
-                e_old[i, k] = r[3 + k]
-
     rng = np.random.default_rng(seed)
     m = rng.normal(size=(n, 3, 3))
     m = m + m.transpose(0, 2, 1)
@@ -575,7 +567,7 @@ def test_simd_eigen_rows_equal_eig3_top(seed, n, split):
     m[rng.uniform(size=n) < 0.1] = 3.0 * np.eye(3)
     t6 = np.ascontiguousarray(m[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]])
     v_new, e_new, v_old, e_old = (np.full((n, 3), np.nan) for _ in range(4))
-    both(t6, v_new, e_new, v_old, e_old)
+    _eig_both(t6, v_new, e_new, v_old, e_old)
     scale = np.maximum(np.abs(m).max(axis=(1, 2)), 1e-300)[:, None]
     exact = np.linalg.eigvalsh(m)[:, ::-1]
     # both trigonometric solvers lose ~sqrt(eps) at near-double eigenvalues

@@ -1158,11 +1158,26 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
     parallax spread of the densest cluster (three pairs each, sampled as
     a unit), plus the pairs of the earlier stages.
     """
-    _, _, _, tri = _dominant_rotation(r1, r2, EPI_SHAPE_TOL, EPI_CLUSTER_DEG, EPI_MATCHES)
-    pool = np.vstack([seeds.reshape(-1, 2), tri.reshape(-1, 2)])
+    Rd, _, _, tri = _dominant_rotation(r1, r2, EPI_SHAPE_TOL, EPI_CLUSTER_DEG, EPI_MATCHES)
+    sets = [tri]
+    # the deeper retrieval brings more true triangles but also more chance
+    # ones, which can form a denser wrong cluster: when the densest cluster
+    # of the 8 most similar triangles (the rotation search's retrieval)
+    # lies elsewhere, its triangles give hypotheses too, and growth decides
+    R8, _, _, tri8 = _dominant_rotation(r1, r2, EPI_SHAPE_TOL, EPI_CLUSTER_DEG)
+    if Rd is not None and R8 is not None and tri8.shape[0]:
+        c = (float(np.trace(Rd.T @ R8)) - 1.0) / 2.0
+        if math.degrees(math.acos(min(1.0, max(-1.0, c)))) > EPI_CLUSTER_DEG:
+            sets.append(tri8)
+    info["epipolar_clusters"] = len(sets)
+    pool = np.vstack([seeds.reshape(-1, 2)] + [t.reshape(-1, 2) for t in sets])
     pool, inverse = np.unique(pool, axis=0, return_inverse=True)
     inverse = inverse.ravel()
-    groups = inverse[seeds.shape[0]:].reshape(-1, 3) if tri.shape[0] else None
+    group_sets, start = [], seeds.shape[0]
+    for t in sets:
+        n = t.shape[0] * 3
+        group_sets.append(inverse[start:start + n].reshape(-1, 3) if n else None)
+        start += n
     info["epipolar_pool"] = int(pool.shape[0])
     seeds = pool
     if seeds.shape[0] < 12:
@@ -1170,7 +1185,8 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         return None
     x, y = r1[seeds[:, 0]], r2[seeds[:, 1]]
     sig = np.sqrt(s1[seeds[:, 0]] ** 2 + s2[seeds[:, 1]] ** 2)
-    ests = _estimate_motions(x, y, sig, np.random.default_rng(seed), groups)
+    rng = np.random.default_rng(seed)
+    ests = [e for groups in group_sets for e in _estimate_motions(x, y, sig, rng, groups)]
     if not ests:
         info["epipolar_reason"] = "no essential matrix with 8 or more supporting pairs"
         return None

@@ -1009,17 +1009,11 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
         def splat(v, ty=vd):
             return _splat(builder, v, ty)
 
-        def L(v):
-            return _Lanes(builder, v)
-
-        def const(x):
-            return ir.Constant(vd, [float(x)] * _W)
-
-        def sel(c, a, b):
-            return L(builder.select(c, a.v if isinstance(a, _Lanes) else a, b.v if isinstance(b, _Lanes) else b))
-
-        def vmin(a, b):  # min(a, b) as numba's: a unless b < a
-            return sel(builder.fcmp_ordered("<", b.v, a.v), b, a)
+        o = _Ops(builder, mod)
+        L = o.L
+        const = o.v
+        sel = o.sel
+        vmin = o.min
 
         # γ(σκ)² = s2 · min(4γσ²/l², 4γσ²/l_min²), as in _stick_pairs
         gs2 = L(splat(builder.fdiv(vg4, vis2)))
@@ -1112,7 +1106,12 @@ class _Ops:
         self._fabs = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vd]), f"llvm.fabs.v{_W}f64")
 
     def v(self, a):
-        return a.v if isinstance(a, _Lanes) else ir.Constant(self.vd, [float(a)] * _W)
+        """The LLVM vector of lanes, an LLVM value as it is, or a float in every lane."""
+        if isinstance(a, _Lanes):
+            return a.v
+        if isinstance(a, ir.Value):
+            return a
+        return ir.Constant(self.vd, [float(a)] * _W)
 
     def L(self, x):
         return _Lanes(self.b, x)

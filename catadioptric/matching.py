@@ -39,17 +39,25 @@ How it works
    RANSAC on the sphere, each sample three matched local triangles (nine
    pairs; the 32 most similar target triangles of each source triangle,
    as parallax reorders their shapes) from a cluster of triangle rotations as wide as the parallax,
-   scored on those pairs and the local-growth pairs; (R, t) is refined by
-   least squares on the epipolar angles. The rays are then matched along
+   scored on those pairs and the local-growth pairs. A minimal sample's
+   essential matrix is rough (at 20% translation, 8-point fits to 8 or
+   even 9 true pairs were off by about 10 degrees in R): the samples are
+   ranked with a twice wider gate, and the best 24 are refitted on all
+   their pairs and polished by least squares on the epipolar angles before
+   they compete (LO-RANSAC). The rays are then matched along
    their arcs: the inverse depth ``rho = |t| / d`` of a plane is linear
    in the ray, ``rho = w · u``, so the plane that most of a ray's matched
    neighbours agree with (the best of their triples, refitted) predicts
    where on its arc the ray lands; candidates within the noise gate (along
    the arc widened by the prediction's own standard error, from the plane
    fit's covariance) are matched one-to-one, closest first, growing until the matches repeat,
-   with (R, t) refitted on them. A match whose ray has a second candidate
-   nearly as close (``EPI_RATIO``) is dropped as ambiguous: precision
-   first. Without parallax (a pure rotation, ``t`` undefined) the stage
+   with (R, t) refitted on them. In the last round a ray is also
+   predicted by every other plane that two thirds of its neighbours agree
+   with (both sides of a crease); a match whose ray has a second candidate
+   nearly as close (``EPI_RATIO``) is dropped as ambiguous, and a match is
+   kept only when its posterior probability of being the true partner
+   rather than a chance ray of view 2 is at least ``EPI_POSTERIOR`` (0.9;
+   :func:`_posterior`): precision first. Without parallax (a pure rotation, ``t`` undefined) the stage
    stands aside. The epipolar result is kept when it explains clearly more
    pairs than the rotation (``nonrigid_gain``) and beats the chance
    level. ``strategy="nonrigid"`` instead extracts the curved surface of
@@ -785,6 +793,10 @@ EPI_SHAPE_TOL = 0.25
 EPI_RANSAC = 2000
 EPI_HYPOTHESES = 6
 EPI_RIVAL = 0.5
+#: LO-RANSAC: samples polished on all the pairs within EPI_LO_GATE noise gates
+#: of their essential matrix (the best EPI_LO by that wider score).
+EPI_LO = 24
+EPI_LO_GATE = 2.0
 #: Growth rounds with (R, t) refitted between them.
 EPI_OUTER = 6
 #: Final gate (in noise gates) and ambiguity ratio: a match is dropped when
@@ -802,6 +814,13 @@ EPI_MIN_PARALLAX = 3.0
 #: rotation search only 20-40 true triangles entered the pool in the trials
 #: whose motion was lost (held-out seeds, 90 degrees, 20%, 50% outliers).
 EPI_MATCHES = 32
+#: Last round: a ray is also predicted by every plane of its neighbours that
+#: at least this share of them agree with (both sides of a crease of the
+#: scene; see :func:`_supported_planes`).
+EPI_SHARE = 2.0 / 3.0
+#: Last round: a match is kept when its posterior probability of being the
+#: ray's true partner, against a chance ray of view 2, reaches this.
+EPI_POSTERIOR = 0.9
 
 
 # --------------------------------------------------------------- epipolar stage
@@ -933,21 +952,27 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=None, hypotheses=N
     num = np.abs(np.einsum("ni,kni->kn", y, ex))
     with np.errstate(divide="ignore", invalid="ignore"):
         d = np.maximum(num / np.linalg.norm(ex, axis=2), num / np.linalg.norm(ey, axis=2))
-    inl_all = np.nan_to_num(d, nan=np.inf) <= gate
-    score = inl_all.sum(axis=1)
-    if groups is not None and groups.shape[0] >= 3:
+    # a minimal sample's E is rough (the problem is ill-conditioned at small
+    # parallax): samples are ranked with a wider gate, and the best are
+    # polished on all their pairs before they compete (LO-RANSAC)
+    inl_wide = np.nan_to_num(d, nan=np.inf) <= EPI_LO_GATE * gate
+    whole = groups is not None and groups.shape[0] >= 3
+
+    def score_of(inl):
         # whole triangles consistent with the motion: a wrong E gathers
         # single near-miss pairs along its epipolar circles more easily
-        score = np.all(inl_all[:, groups], axis=2).sum(axis=1) * (k + 1) + score
-    out = []
-    for h in np.argsort(-score, kind="stable"):
-        if len(out) >= hypotheses or np.count_nonzero(inl_all[h]) < 8 or (out and score[h] < EPI_RIVAL * out[0][4]):
-            break
-        if any(np.count_nonzero(inl_all[h] & o[3]) > 0.5 * np.count_nonzero(inl_all[h]) for o in out):
+        s = np.count_nonzero(inl, axis=-1)
+        return np.all(inl[..., groups], axis=-1).sum(axis=-1) * (k + 1) + s if whole else s
+
+    score = score_of(inl_wide)
+    polished = []
+    for h in np.argsort(-score, kind="stable")[:EPI_LO]:
+        inl = inl_wide[h]
+        if np.count_nonzero(inl) < 8:
             continue
-        inl = inl_all[h]
+        E = _batched_essentials(x[inl][None], y[inl][None])[0]
         cands = [(int(np.count_nonzero(_cheirality(Rm, tv, x[inl], y[inl]))), i, Rm, tv)
-                 for i, (Rm, tv) in enumerate(_motions(Es[h]))]
+                 for i, (Rm, tv) in enumerate(_motions(E))]
         _, _, R, t = max(cands, key=lambda c: (c[0], -c[1]))
         ok = True
         for _ in range(3):
@@ -958,7 +983,14 @@ def _estimate_motions(x, y, sig, rng, groups=None, iterations=None, hypotheses=N
                 ok = False
                 break
         if ok:
-            out.append((R, t, inl, inl_all[h], score[h]))
+            polished.append((R, t, inl, score_of(inl)))
+    out = []
+    for R, t, inl, sc in sorted(polished, key=lambda o: -o[3]):
+        if out and (len(out) >= hypotheses or sc < EPI_RIVAL * out[0][3]):
+            break
+        if any(np.count_nonzero(inl & o[2]) > 0.5 * np.count_nonzero(inl) for o in out):
+            continue
+        out.append((R, t, inl, sc))
     return [o[:3] for o in out]
 
 
@@ -1030,6 +1062,39 @@ def _local_planes(A, rn, wts, keep, ridge, support_gate=GATE_SIGMAS):
     return _solve3(Mt, b), Mt
 
 
+def _supported_planes(A, rn, wts, keep, ridge, share, support_gate=GATE_SIGMAS):
+    """Every well-supported inverse-depth plane of each ray's neighbours (a crease has two).
+
+    Each triple of usable neighbours gives an exact plane; those that at
+    least ``share`` of the ray's usable neighbours agree with (within
+    ``support_gate`` noise units, as in :func:`_local_planes`) are refitted
+    by weighted least squares on their agreeing neighbours. Returns the
+    planes ``(n, T, 3)``, their normal matrices ``(n, T, 3, 3)`` and the
+    mask ``(n, T)`` of the well-supported ones (T triples).
+    """
+    n, k, _ = A.shape
+    if k < 3:
+        return np.zeros((n, 0, 3)), np.zeros((n, 0, 3, 3)), np.zeros((n, 0), bool)
+    sw = np.sqrt(wts)
+    trip = np.array(list(combinations(range(k), 3)), dtype=np.int64)
+    a0, a1, a2 = A[:, trip[:, 0]], A[:, trip[:, 1]], A[:, trip[:, 2]]
+    c0, c1, c2 = np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)
+    det = np.einsum("nti,nti->nt", a0, c0)
+    usable = np.all(keep[:, trip], axis=2) & (np.abs(det) > 1e-12)
+    bt = rn[:, trip]
+    wt = (bt[..., 0:1] * c0 + bt[..., 1:2] * c1 + bt[..., 2:3] * c2) / np.where(usable, det, 1.0)[..., None]
+    res = (rn[:, None, :] - np.einsum("nki,nti->ntk", A, wt)) * sw[:, None, :]
+    inl = (np.abs(res) <= support_gate) & keep[:, None, :]
+    ok = usable & (inl.sum(axis=2) >= share * keep.sum(axis=1)[:, None] - 1e-9)
+    w = wts[:, None, :] * inl
+    Mt = (np.einsum("ntk,nki,nkj->ntij", w, A, A)
+          + ridge * (wts * keep).sum(axis=1)[:, None, None, None] * np.eye(3))
+    b = np.einsum("ntk,nki,nk->nti", w, A, rn)
+    T = trip.shape[0]
+    wv = _solve3(Mt.reshape(n * T, 3, 3), b.reshape(n * T, 3)).reshape(n, T, 3)
+    return wv, Mt, ok
+
+
 def _solve3(M, b):
     """Solutions of stacks of 3x3 systems ``M w = b`` by Cramer's rule."""
     m0, m1, m2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
@@ -1040,7 +1105,32 @@ def _solve3(M, b):
                             np.einsum("ni,ni->n", b, c2)]) / det[:, None]
 
 
-def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3):
+def _posterior(pairs, e, s_across, s_along, r2, n1, k=8):
+    """Posterior probability that each match is its ray's true partner rather than a chance ray.
+
+    The residual of a true pair is Gaussian (``e``: its Mahalanobis norm;
+    ``s_across``, ``s_along``: the standard deviations across and along the
+    arc, on the unit sphere), with density ``exp(-e^2/2) / (2 pi s_across
+    s_along)`` per steradian; a chance ray of view 2 lands there with the
+    local density ``rho`` of the view-2 rays left unmatched (``k`` nearest
+    of them). The prior that a ray of view 1 has a partner is the share of
+    the ``n1`` predicted rays matched. Probabilistic data association with
+    one candidate: posterior odds = prior odds x likelihood ratio.
+    """
+    free = np.ones(r2.shape[0], bool)
+    free[pairs[:, 1]] = False
+    fr = r2[free]
+    if fr.shape[0] <= k:
+        return np.ones(pairs.shape[0])
+    dk = cKDTree(fr).query(r2[pairs[:, 1]], k=k)[0][:, -1]
+    rho = k / (np.pi * np.maximum(dk, 1e-12) ** 2)
+    p = min(max(pairs.shape[0] / max(n1, 1), 1e-3), 1.0 - 1e-3)
+    log_odds = math.log(p / (1.0 - p)) - 0.5 * e ** 2 - np.log(2.0 * np.pi * s_across * s_along * rho)
+    return 1.0 / (1.0 + np.exp(-np.clip(log_odds, -50.0, 50.0)))
+
+
+def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3,
+                   r2=None):
     """Match along the epipolar arcs, each ray at the inverse depth of its matched neighbours.
 
     The inverse depth of a plane is linear in the ray, ``rho(u) = w . u``:
@@ -1062,7 +1152,11 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     pairs as neighbours, 20% translation: 10-18% of the true pairs lay
     beyond the plain noise gate, 6-13% beyond this one. The growth rounds
     keep the plain distance: their wider gates with the longer windows let
-    a growth drift onto chance pairs.)
+    a growth drift onto chance pairs.) The last round also measures each
+    candidate against every plane that ``EPI_SHARE`` of the ray's
+    neighbours agree with (:func:`_supported_planes`), keeping the nearest
+    prediction, and, given the rays ``r2`` of view 2, keeps the matches
+    whose posterior (:func:`_posterior`) reaches ``EPI_POSTERIOR``.
     """
     ii, jj, phi, across, sig, alpha = cand
     n1 = r1.shape[0]
@@ -1111,7 +1205,25 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
             var_rho = np.maximum(np.einsum("ni,ni->n", r1, _solve3(Mt, r1)), 0.0)
             dpred = sa / (1.0 + 2.0 * rho_pred * np.cos(alpha) + rho_pred ** 2)
             var_pred = np.nan_to_num(var_rho * dpred ** 2, nan=np.inf)
-            dd = np.hypot((phi - phi_pred[ii]) * sig / np.sqrt(sig ** 2 + var_pred[ii]), across)
+            s_along = np.sqrt(sig ** 2 + var_pred[ii])
+            dd = np.hypot((phi - phi_pred[ii]) * sig / s_along, across)
+            if EPI_SHARE < 1.0:
+                wvt, Mtt, okt = _supported_planes(A, rho_m[nb], wts[nb], keep, ridge, EPI_SHARE)
+                T = wvt.shape[1]
+                if T:
+                    rt = np.einsum("nti,ni->nt", wvt, r1)
+                    pt = _arc_angle(rt, alpha[:, None])
+                    rr = np.broadcast_to(r1[:, None, :], (n1, T, 3)).reshape(-1, 3)
+                    vr = np.maximum(np.einsum("ni,ni->n", rr, _solve3(Mtt.reshape(-1, 3, 3), rr)), 0.0).reshape(n1, T)
+                    dp = np.sin(alpha)[:, None] / (1.0 + 2.0 * rt * np.cos(alpha)[:, None] + rt ** 2)
+                    vp = np.nan_to_num(vr * dp ** 2, nan=np.inf)
+                    st = np.sqrt(sig[:, None] ** 2 + vp[ii])
+                    dt = np.where(okt[ii], np.hypot((phi[:, None] - pt[ii]) * sig[:, None] / st, across[:, None]), np.inf)
+                    best = np.argmin(dt, axis=1)
+                    dmin = np.take_along_axis(dt, best[:, None], axis=1)[:, 0]
+                    nearer = dmin < dd
+                    dd = np.where(nearer, dmin, dd)
+                    s_along = np.where(nearer, np.take_along_axis(st, best[:, None], axis=1)[:, 0], s_along)
         else:
             dd = np.hypot(phi - phi_pred[ii], across)
         okc = valid[ii] & (dd <= s * GATE_SIGMAS * sig)
@@ -1143,7 +1255,11 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
                     look = np.searchsorted(uk, new[:, col])
                     second = np.minimum(second, mins[np.minimum(look, uk.size - 1)])
                 good = dd[new_k] <= EPI_RATIO * second
-                new = new[good]
+                new, new_k = new[good], new_k[good]
+            if r2 is not None and EPI_POSTERIOR > 0.0 and new.shape[0]:
+                keep_m = _posterior(new, dd[new_k] / sig[new_k], sig[new_k], s_along[new_k], r2,
+                                    np.count_nonzero(valid))
+                new = new[keep_m >= EPI_POSTERIOR]
             return new
         if new.shape == pairs.shape and np.array_equal(new, pairs):
             rounds = r + 1
@@ -1195,7 +1311,7 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         pairs, grown = seeds[inl], np.empty((0, 2), np.int64)
         for it in range(EPI_OUTER):
             cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
-            new = _grow_epipolar(r1, cand, r2.shape[0], pairs)
+            new = _grow_epipolar(r1, cand, r2.shape[0], pairs, r2=r2)
             if new.shape[0] < 12:
                 break
             converged = it > 0 and np.array_equal(new, grown)
@@ -1217,7 +1333,7 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
     # matches and every pool pair consistent with the final motion
     consistent = (_epipolar_distance(_essential_from_motion(R, t), x, y) <= GATE_SIGMAS * sig) & _cheirality(R, t, x, y)
     cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
-    again = _grow_epipolar(r1, cand, r2.shape[0], np.unique(np.vstack([pairs, seeds[consistent]]), axis=0))
+    again = _grow_epipolar(r1, cand, r2.shape[0], np.unique(np.vstack([pairs, seeds[consistent]]), axis=0), r2=r2)
     info["epipolar_regrown"] = int(again.shape[0])
     if again.shape[0] > pairs.shape[0]:
         pairs = again

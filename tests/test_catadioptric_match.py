@@ -256,3 +256,79 @@ def test_cli_bad_input_writes_nothing(tmp_path, capsys):
     args = _parse(["catadioptric", str(tmp_path / "missing.png"), str(img), "--camera", str(cam)])
     assert _cli.run(args) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pgm", "cam.json"]
+
+
+# ------------------------------------------------------------ epipolar internals
+
+
+def test_posterior_follows_residual_and_chance_density():
+    from catadioptric.matching import _posterior
+
+    rng = np.random.default_rng(0)
+    r2 = rng.normal(size=(400, 3))
+    r2 /= np.linalg.norm(r2, axis=1)[:, None]
+    pairs = np.column_stack([np.arange(4), np.arange(4)])
+    s = np.full(4, 0.005)
+    # same density: the posterior falls with the residual, and is ~1 at e = 0
+    # (prior: half of the 8 rays matched)
+    post = _posterior(pairs, np.array([0.0, 1.0, 2.0, 3.0]), s, s, r2, 8)
+    assert np.all(np.diff(post) < 0) and post[0] > 0.95 and post[3] < 0.9
+    # a wider along-arc spread (uncertain prediction) lowers it at equal e
+    wide = _posterior(pairs, np.ones(4), s, 10.0 * s, r2, 8)
+    narrow = _posterior(pairs, np.ones(4), s, s, r2, 8)
+    assert np.all(wide < narrow)
+    # more chance rays (a denser view 2) lower it too
+    dense = np.vstack([r2, r2 + 1e-4 * rng.normal(size=r2.shape)])
+    dense /= np.linalg.norm(dense, axis=1)[:, None]
+    assert np.all(_posterior(pairs, np.ones(4), s, s, dense, 8) < narrow)
+
+
+def test_supported_planes_find_both_sides_of_a_crease():
+    from catadioptric.matching import _supported_planes
+
+    # six neighbour rays, three on each of two inverse-depth planes
+    rng = np.random.default_rng(1)
+    A = np.array([[0.1, 0.0, 1.0], [0.12, 0.03, 1.0], [0.09, 0.05, 1.0],
+                  [-0.1, 0.0, 1.0], [-0.12, 0.04, 1.0], [-0.08, -0.05, 1.0]])
+    A /= np.linalg.norm(A, axis=1)[:, None]
+    w1, w2 = np.array([0.1, 0.0, 0.5]), np.array([-0.2, 0.1, 0.4])
+    rn = np.where(A[:, 0] > 0, A @ w1, A @ w2) + 1e-7 * rng.normal(size=6)
+    wts = np.full((1, 6), 1e8)
+    keep = np.ones((1, 6), bool)
+    # a share of 1/2: a plane through three neighbours is supported
+    wv, M, ok = _supported_planes(A[None], rn[None], wts, keep, 1e-9, share=0.5)
+    found = wv[0][ok[0]]
+    assert any(np.allclose(w, w1, atol=1e-3) for w in found)
+    assert any(np.allclose(w, w2, atol=1e-3) for w in found)
+    # with a 2/3 share neither side alone is supported
+    _, _, ok = _supported_planes(A[None], rn[None], wts, keep, 1e-9, share=2.0 / 3.0)
+    assert not ok.any()
+
+
+def test_lo_ransac_recovers_the_motion_from_a_mostly_wrong_pool():
+    from scipy.spatial.transform import Rotation
+
+    from catadioptric.matching import _estimate_motions
+
+    rng = np.random.default_rng(3)
+    R = Rotation.from_rotvec([0.2, -0.5, 0.9]).as_matrix()
+    t = np.array([0.3, -0.2, 0.1])
+    # 60 true triangles (three nearby rays each) at depths 2-5, 240 wrong ones
+    c = rng.normal(size=(300, 3))
+    c /= np.linalg.norm(c, axis=1)[:, None]
+    x = (c[:, None, :] + 0.03 * rng.normal(size=(300, 3, 3))).reshape(-1, 3)
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    X = x * rng.uniform(2.0, 5.0, (x.shape[0], 1))
+    y = X @ R.T + t
+    y /= np.linalg.norm(y, axis=1)[:, None]
+    sig = np.full(x.shape[0], 0.004)
+    y = y + sig[:, None] / np.sqrt(2.0) * rng.normal(size=y.shape)
+    wrong = np.arange(60 * 3, x.shape[0])
+    y[wrong] = y[rng.permutation(wrong)]
+    y /= np.linalg.norm(y, axis=1)[:, None]
+    groups = np.arange(x.shape[0]).reshape(-1, 3)
+    ests = _estimate_motions(x, y, sig, np.random.default_rng(0), groups)
+    Rb, tb, inl = ests[0]
+    assert rotation_error_deg(Rb, R) < 1.0
+    assert _angle_deg(tb, t) < 5.0
+    assert inl[: 60 * 3].mean() > 0.9

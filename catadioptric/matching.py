@@ -1019,6 +1019,29 @@ def _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax):
     return ii[ok], jj[ok], phi[ok], across[ok], sig[ok], alpha_all
 
 
+def _triple_planes(A, rn, wts, keep, support_gate):
+    """The exact plane through each triple of a ray's neighbours, and who agrees with it.
+
+    ``A, rn, wts, keep`` as in :func:`_local_planes` (k >= 3 neighbours).
+    Returns ``usable (n, T)`` (three usable, independent neighbours),
+    ``res (n, T, k)`` the neighbours' residuals from each triple's plane in
+    noise units, and ``inl (n, T, k)`` those within ``support_gate``; the
+    T triples in :func:`itertools.combinations` order.
+    """
+    k = A.shape[1]
+    trip = np.array(list(combinations(range(k), 3)), dtype=np.int64)
+    a0, a1, a2 = A[:, trip[:, 0]], A[:, trip[:, 1]], A[:, trip[:, 2]]   # (n, T, 3)
+    c0, c1, c2 = np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)
+    det = np.einsum("nti,nti->nt", a0, c0)
+    usable = np.all(keep[:, trip], axis=2) & (np.abs(det) > 1e-12)
+    bt = rn[:, trip]                                  # (n, T, 3)
+    # Cramer's rule: the plane through the three neighbours' (ray, rho)
+    wt = (bt[..., 0:1] * c0 + bt[..., 1:2] * c1 + bt[..., 2:3] * c2) / np.where(usable, det, 1.0)[..., None]
+    res = (rn[:, None, :] - np.einsum("nki,nti->ntk", A, wt)) * np.sqrt(wts)[:, None, :]
+    inl = (np.abs(res) <= support_gate) & keep[:, None, :]
+    return usable, res, inl
+
+
 def _local_planes(A, rn, wts, keep, ridge, support_gate=GATE_SIGMAS):
     """Inverse-depth planes ``rho = w . u`` of each ray's neighbours, robust to a second plane.
 
@@ -1037,18 +1060,8 @@ def _local_planes(A, rn, wts, keep, ridge, support_gate=GATE_SIGMAS):
     variance of the plane's inverse depth at the ray ``u``.
     """
     n, k, _ = A.shape
-    sw = np.sqrt(wts)
-    trip = np.array(list(combinations(range(k), 3)), dtype=np.int64) if k >= 3 else np.empty((0, 3), np.int64)
-    if trip.shape[0]:
-        a0, a1, a2 = A[:, trip[:, 0]], A[:, trip[:, 1]], A[:, trip[:, 2]]   # (n, T, 3)
-        c0, c1, c2 = np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)
-        det = np.einsum("nti,nti->nt", a0, c0)
-        usable = np.all(keep[:, trip], axis=2) & (np.abs(det) > 1e-12)
-        bt = rn[:, trip]                                  # (n, T, 3)
-        # Cramer's rule: the plane through the three neighbours' (ray, rho)
-        wt = (bt[..., 0:1] * c0 + bt[..., 1:2] * c1 + bt[..., 2:3] * c2) / np.where(usable, det, 1.0)[..., None]
-        res = (rn[:, None, :] - np.einsum("nki,nti->ntk", A, wt)) * sw[:, None, :]
-        inl = (np.abs(res) <= support_gate) & keep[:, None, :]
+    if k >= 3:
+        usable, res, inl = _triple_planes(A, rn, wts, keep, support_gate)
         score = inl.sum(axis=2) - np.minimum(np.where(inl, res * res, 0.0).sum(axis=2) / (support_gate ** 2 * k), 0.99)
         score = np.where(usable, score, -1.0)
         best = np.argmax(score, axis=1)
@@ -1075,22 +1088,13 @@ def _supported_planes(A, rn, wts, keep, ridge, share, support_gate=GATE_SIGMAS):
     n, k, _ = A.shape
     if k < 3:
         return np.zeros((n, 0, 3)), np.zeros((n, 0, 3, 3)), np.zeros((n, 0), bool)
-    sw = np.sqrt(wts)
-    trip = np.array(list(combinations(range(k), 3)), dtype=np.int64)
-    a0, a1, a2 = A[:, trip[:, 0]], A[:, trip[:, 1]], A[:, trip[:, 2]]
-    c0, c1, c2 = np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)
-    det = np.einsum("nti,nti->nt", a0, c0)
-    usable = np.all(keep[:, trip], axis=2) & (np.abs(det) > 1e-12)
-    bt = rn[:, trip]
-    wt = (bt[..., 0:1] * c0 + bt[..., 1:2] * c1 + bt[..., 2:3] * c2) / np.where(usable, det, 1.0)[..., None]
-    res = (rn[:, None, :] - np.einsum("nki,nti->ntk", A, wt)) * sw[:, None, :]
-    inl = (np.abs(res) <= support_gate) & keep[:, None, :]
+    usable, _, inl = _triple_planes(A, rn, wts, keep, support_gate)
     ok = usable & (inl.sum(axis=2) >= share * keep.sum(axis=1)[:, None] - 1e-9)
     w = wts[:, None, :] * inl
     Mt = (np.einsum("ntk,nki,nkj->ntij", w, A, A)
           + ridge * (wts * keep).sum(axis=1)[:, None, None, None] * np.eye(3))
     b = np.einsum("ntk,nki,nk->nti", w, A, rn)
-    T = trip.shape[0]
+    T = inl.shape[1]
     wv = _solve3(Mt.reshape(n * T, 3, 3), b.reshape(n * T, 3)).reshape(n, T, 3)
     return wv, Mt, ok
 

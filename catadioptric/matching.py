@@ -28,7 +28,9 @@ How it works
 3. **Rigid or locally rigid.** The rotation's support is compared with the
    chance level of the sphere (a wrong rotation brings a ray within the
    gate of a target ray with probability ``n2 π gate² / area``); when it
-   explains nearly all rays (``rigid_share``) it is the answer. With a
+   explains nearly all rays (``rigid_share``) it is the answer; its pairs
+   are kept when their posterior against a chance ray reaches
+   ``MIN_POSTERIOR`` (:func:`_rigid_posterior`). With a
    camera translation the rays move non-rigidly (parallax ``t⊥ / depth``),
    only locally rigidly: each ray is moved by the rotation of its nearest
    matched neighbours, grown from the rotation's pairs or from the
@@ -56,7 +58,7 @@ How it works
    with (both sides of a crease); a match whose ray has a second candidate
    nearly as close (``EPI_RATIO``) is dropped as ambiguous, and a match is
    kept only when its posterior probability of being the true partner
-   rather than a chance ray of view 2 is at least ``EPI_POSTERIOR`` (0.9;
+   rather than a chance ray of view 2 is at least ``MIN_POSTERIOR`` (0.9;
    :func:`_posterior`): precision first. Without parallax (a pure rotation, ``t`` undefined) the stage
    stands aside. The epipolar result is kept when it explains clearly more
    pairs than the rotation (``nonrigid_gain``) and beats the chance
@@ -116,6 +118,14 @@ __all__ = ["SphereMatch", "match", "sphere_noise"]
 GATE_SIGMAS = 3.03
 #: Neighbours per ray for the local triangles of the rotation search.
 TRIANGLE_NEIGHBOURS = 6
+#: A rigid or epipolar match is kept when its posterior probability of
+#: being the ray's true partner, against a chance ray of view 2, reaches
+#: this (:func:`_posterior`). The one-candidate model is over-confident
+#: (measured at 10-20% translation and 50% outliers: matches with
+#: posteriors 0.95-0.99 were right 0.958 of the time, 0.9-0.95 0.851: about
+#: twice the odds; the match is the best of the candidates in its gate), so
+#: 0.9 keeps a precision of about 0.95.
+MIN_POSTERIOR = 0.9
 
 
 @dataclass(frozen=True, eq=False)
@@ -504,6 +514,22 @@ def _rotation_icp(r1, r2, tree2, s1, s2, R, iterations=30):
     return R, kept
 
 
+def _rigid_posterior(r1, r2, s1, s2, R, pairs):
+    """The pairs of a rotation whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``.
+
+    The residual ``y - R x`` of a true pair is isotropic Gaussian with the
+    pair's noise per axis; the prior counts the rays of view 1 that the
+    rotation brings into the cap of view 2's rays.
+    """
+    moved = r1 @ R.T
+    sig = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
+    e = np.linalg.norm(r2[pairs[:, 1]] - moved[pairs[:, 0]], axis=1) / sig
+    m = r2.mean(axis=0)
+    nm = np.linalg.norm(m)
+    n1 = r1.shape[0] if nm < 1e-9 else int(np.count_nonzero(moved @ (m / nm) >= np.quantile(r2 @ (m / nm), 0.01)))
+    return pairs[_posterior(pairs, e, sig, sig, r2, max(n1, pairs.shape[0])) >= MIN_POSTERIOR]
+
+
 def _cap_area(rays: NDArray[np.float64]) -> float:
     """Area of the smallest cap around the mean direction holding 99% of the rays."""
     m = rays.mean(axis=0)
@@ -699,6 +725,8 @@ def match(
 
     def result(pairs, rotation, rot_support, used, reason=None, motion=None):
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        if used == "rigid" and pairs.shape[0]:
+            pairs = _rigid_posterior(r1, r2, s1, s2, rotation, pairs)
         if pairs.shape[0] and reason is None:
             t_r = time.perf_counter()
             rival, _ = _rival(r1, r2, tree2, s1, s2, pairs)
@@ -818,13 +846,6 @@ EPI_MATCHES = 32
 #: at least this share of them agree with (both sides of a crease of the
 #: scene; see :func:`_supported_planes`).
 EPI_SHARE = 2.0 / 3.0
-#: Last round: a match is kept when its posterior probability of being the
-#: ray's true partner, against a chance ray of view 2, reaches this. The
-#: one-candidate model is over-confident (measured at 10-20% translation and
-#: 50% outliers: matches with posteriors 0.95-0.99 were right 0.958 of the
-#: time, 0.9-0.95 0.851: about twice the odds; the match is the best of
-#: the candidates in the gate), so 0.9 keeps a precision of about 0.95.
-EPI_POSTERIOR = 0.9
 
 
 # --------------------------------------------------------------- epipolar stage
@@ -1164,7 +1185,7 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     candidate against every plane that ``EPI_SHARE`` of the ray's
     neighbours agree with (:func:`_supported_planes`), keeping the nearest
     prediction, and, given the rays ``r2`` of view 2, keeps the matches
-    whose posterior (:func:`_posterior`) reaches ``EPI_POSTERIOR``.
+    whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``.
     """
     ii, jj, phi, across, sig, alpha = cand
     n1 = r1.shape[0]
@@ -1264,10 +1285,10 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
                     second = np.minimum(second, mins[np.minimum(look, uk.size - 1)])
                 good = dd[new_k] <= EPI_RATIO * second
                 new, new_k = new[good], new_k[good]
-            if r2 is not None and EPI_POSTERIOR > 0.0 and new.shape[0]:
+            if r2 is not None and MIN_POSTERIOR > 0.0 and new.shape[0]:
                 keep_m = _posterior(new, dd[new_k] / sig[new_k], sig[new_k], s_along[new_k], r2,
                                     np.count_nonzero(valid))
-                new = new[keep_m >= EPI_POSTERIOR]
+                new = new[keep_m >= MIN_POSTERIOR]
             return new
         if new.shape == pairs.shape and np.array_equal(new, pairs):
             rounds = r + 1

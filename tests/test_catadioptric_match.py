@@ -332,3 +332,40 @@ def test_lo_ransac_recovers_the_motion_from_a_mostly_wrong_pool():
     assert rotation_error_deg(Rb, R) < 1.0
     assert _angle_deg(tb, t) < 5.0
     assert inl[: 60 * 3].mean() > 0.9
+
+
+def test_rigid_posterior_drops_chance_pairs_far_in_the_gate():
+    from scipy.spatial.transform import Rotation
+
+    from catadioptric.matching import GATE_SIGMAS, _rigid_posterior
+
+    rng = np.random.default_rng(5)
+    R = Rotation.from_rotvec([0.3, 0.1, -0.4]).as_matrix()
+    n, s = 400, 0.004
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    sig_pair = s * np.sqrt(2.0)
+    # 200 true pairs with Gaussian residuals; 200 chance pairs spread evenly
+    # over the area of the gate (what a wrong partner inside the gate looks like)
+    y = x @ R.T
+    tang = np.cross(y, rng.normal(size=(n, 3)))
+    tang /= np.linalg.norm(tang, axis=1)[:, None]
+    e = np.where(np.arange(n) < 200, np.hypot(*rng.normal(size=(2, n))),
+                 GATE_SIGMAS * np.sqrt(rng.uniform(size=n)))
+    y = y + (e * sig_pair)[:, None] * tang
+    y /= np.linalg.norm(y, axis=1)[:, None]
+    # view 2 also holds 400 unmatched chance rays
+    extra = rng.normal(size=(400, 3))
+    r2 = np.vstack([y, extra / np.linalg.norm(extra, axis=1)[:, None]])
+    # and view 1 200 rays without a partner (the prior: 2/3 of the rays matched)
+    lone = rng.normal(size=(200, 3))
+    r1 = np.vstack([x, lone / np.linalg.norm(lone, axis=1)[:, None]])
+    pairs = np.column_stack([np.arange(n), np.arange(n)])
+    kept = _rigid_posterior(r1, r2, np.full(r1.shape[0], s), np.full(r2.shape[0], s), R, pairs)
+    true_kept = np.count_nonzero(kept[:, 0] < 200)
+    chance_kept = np.count_nonzero(kept[:, 0] >= 200)
+    assert true_kept >= 0.95 * 200
+    assert chance_kept <= 0.9 * 200
+    # what is dropped lies far out in the gate
+    dropped = np.setdiff1d(np.arange(n), kept[:, 0])
+    assert np.all(e[dropped] > 1.5)

@@ -59,8 +59,8 @@ How it works
    nearly as close (``EPI_RATIO``) is dropped as ambiguous, and a match is
    kept only when its posterior probability of being the true partner
    rather than a chance ray of view 2 is at least ``MIN_POSTERIOR`` (0.9;
-   :func:`_posterior`): precision first. Without parallax (a pure rotation, ``t`` undefined) the stage
-   stands aside. The epipolar result is kept when it explains clearly more
+   :func:`_posterior`): precision first. Without parallax (a pure
+   rotation, ``t`` undefined) the stage stands aside. The epipolar result is kept when it explains clearly more
    pairs than the rotation (``nonrigid_gain``) and beats the chance
    level. ``strategy="nonrigid"`` instead extracts the curved surface of
    the tokens ``y_j − R x_i`` with tensor voting and local eq. 41
@@ -526,7 +526,10 @@ def _rigid_posterior(r1, r2, s1, s2, R, pairs):
     e = np.linalg.norm(r2[pairs[:, 1]] - moved[pairs[:, 0]], axis=1) / sig
     m = r2.mean(axis=0)
     nm = np.linalg.norm(m)
-    n1 = r1.shape[0] if nm < 1e-9 else int(np.count_nonzero(moved @ (m / nm) >= np.quantile(r2 @ (m / nm), 0.01)))
+    if nm < 1e-9:
+        n1 = r1.shape[0]
+    else:
+        n1 = int(np.count_nonzero(moved @ (m / nm) >= np.quantile(r2 @ (m / nm), 0.01)))
     return pairs[_posterior(pairs, e, sig, sig, r2, max(n1, pairs.shape[0])) >= MIN_POSTERIOR]
 
 
@@ -1243,11 +1246,13 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
                     rt = np.einsum("nti,ni->nt", wvt, r1)
                     pt = _arc_angle(rt, alpha[:, None])
                     rr = np.broadcast_to(r1[:, None, :], (n1, T, 3)).reshape(-1, 3)
-                    vr = np.maximum(np.einsum("ni,ni->n", rr, _solve3(Mtt.reshape(-1, 3, 3), rr)), 0.0).reshape(n1, T)
+                    vr = np.einsum("ni,ni->n", rr, _solve3(Mtt.reshape(-1, 3, 3), rr)).reshape(n1, T)
+                    vr = np.maximum(vr, 0.0)
                     dp = np.sin(alpha)[:, None] / (1.0 + 2.0 * rt * np.cos(alpha)[:, None] + rt ** 2)
                     vp = np.nan_to_num(vr * dp ** 2, nan=np.inf)
                     st = np.sqrt(sig[:, None] ** 2 + vp[ii])
-                    dt = np.where(okt[ii], np.hypot((phi[:, None] - pt[ii]) * sig[:, None] / st, across[:, None]), np.inf)
+                    dt = np.hypot((phi[:, None] - pt[ii]) * sig[:, None] / st, across[:, None])
+                    dt = np.where(okt[ii], dt, np.inf)
                     best = np.argmin(dt, axis=1)
                     dmin = np.take_along_axis(dt, best[:, None], axis=1)[:, 0]
                     nearer = dmin < dd

@@ -286,18 +286,20 @@ def test_posterior_follows_residual_and_chance_density():
 def test_supported_planes_find_both_sides_of_a_crease():
     from catadioptric.matching import _supported_planes
 
-    # six neighbour rays, three on each of two inverse-depth planes
+    # eight neighbour rays, four on each of two inverse-depth planes
     rng = np.random.default_rng(1)
-    A = np.array([[0.1, 0.0, 1.0], [0.12, 0.03, 1.0], [0.09, 0.05, 1.0],
-                  [-0.1, 0.0, 1.0], [-0.12, 0.04, 1.0], [-0.08, -0.05, 1.0]])
+    A = np.array([[0.1, 0.0, 1.0], [0.12, 0.03, 1.0], [0.09, 0.05, 1.0], [0.15, -0.04, 1.0],
+                  [-0.1, 0.0, 1.0], [-0.12, 0.04, 1.0], [-0.08, -0.05, 1.0], [-0.14, -0.02, 1.0]])
     A /= np.linalg.norm(A, axis=1)[:, None]
     w1, w2 = np.array([0.1, 0.0, 0.5]), np.array([-0.2, 0.1, 0.4])
-    rn = np.where(A[:, 0] > 0, A @ w1, A @ w2) + 1e-7 * rng.normal(size=6)
-    wts = np.full((1, 6), 1e8)
-    keep = np.ones((1, 6), bool)
-    # a share of 1/2: a plane through three neighbours is supported
+    rn = np.where(A[:, 0] > 0, A @ w1, A @ w2) + 1e-7 * rng.normal(size=8)
+    wts = np.full((1, 8), 1e8)
+    keep = np.ones((1, 8), bool)
+    # a share of 1/2: each side (4 of 8) is supported, no mixed triple is
     wv, M, ok = _supported_planes(A[None], rn[None], wts, keep, 1e-9, share=0.5)
     found = wv[0][ok[0]]
+    assert len(found) == 2 * 4   # the C(4, 3) triples of each side
+    assert all(np.allclose(w, w1, atol=1e-3) or np.allclose(w, w2, atol=1e-3) for w in found)
     assert any(np.allclose(w, w1, atol=1e-3) for w in found)
     assert any(np.allclose(w, w2, atol=1e-3) for w in found)
     # with a 2/3 share neither side alone is supported

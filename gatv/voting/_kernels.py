@@ -451,12 +451,11 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
         dba = context.make_array(signature.args[10])(context, builder, adb)
         pdb = dba.data
         row = cgutils.unpack_tuple(builder, dba.shape, 2)[1]  # C order: row r starts at r * shape[1]
-        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
-        vd, vi, vm = ir.VectorType(f64, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
-        mask_t = ir.IntType(_W)
         mod = builder.module
-        mload = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
+        o = _Ops(builder, mod)
+        f64, i64, i32, vd, vi, vm = o.lane_types
+        mask_t = ir.IntType(_W)
+        mload = o.intrinsic("load")
         cstore = cgutils.get_or_insert_function(
             mod, ir.FunctionType(ir.VoidType(), [vi, i64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}i64")
         cstore_d = cgutils.get_or_insert_function(
@@ -998,18 +997,14 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
         outa = context.make_array(signature.args[10])(context, builder, aout)
         brow = cgutils.unpack_tuple(builder, bufa.shape, 2)[1]
         orow = cgutils.unpack_tuple(builder, outa.shape, 2)[1]
-        dt, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
-        vd, vi, vm = ir.VectorType(dt, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
         mod = builder.module
-        mload = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
-        mstore = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(ir.VoidType(), [vd, vd.as_pointer(), i32, vm]), f"llvm.masked.store.v{_W}f64.p0v{_W}f64")
+        o = _Ops(builder, mod)
+        _, i64, i32, vd, vi, _ = o.lane_types
+        mload, mstore = o.intrinsic("load"), o.intrinsic("store")
 
         def splat(v, ty=vd):
             return _splat(builder, v, ty)
 
-        o = _Ops(builder, mod)
         L = o.L
         const = o.v
         sel = o.sel
@@ -1096,14 +1091,36 @@ def _clenshaw(co, x):
 
 
 class _Ops:
-    """Lane-wise comparisons, selects and math for the eigen-analysis."""
+    """Lane-wise comparisons, selects and math of the 8-lane intrinsics, and their LLVM types.
+
+    ``lane_types``: ``(f64, i64, i32, vd, vi, vm)``, the scalar types and the
+    vectors of ``_W`` doubles, int64 and bools; ``vpd`` a vector of double
+    pointers. :meth:`intrinsic` declares the masked memory intrinsics the
+    kernels use (once per module).
+    """
 
     def __init__(self, builder, mod):
         self.b = builder
-        vd = ir.VectorType(ir.DoubleType(), _W)
+        self.mod = mod
+        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
+        vd = ir.VectorType(f64, _W)
         self.vd = vd
+        self.lane_types = (f64, i64, i32, vd, ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W))
+        self.vpd = ir.VectorType(f64.as_pointer(), _W)
         self._sqrt = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vd]), f"llvm.sqrt.v{_W}f64")
         self._fabs = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vd]), f"llvm.fabs.v{_W}f64")
+
+    def intrinsic(self, name):
+        """Declaration of ``llvm.masked.<name>`` on vectors of doubles: load, store, gather or scatter."""
+        _, _, i32, vd, _, vm = self.lane_types
+        vpd, void = self.vpd, ir.VoidType()
+        ty, suffix = {
+            "load": (ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"v{_W}f64.p0v{_W}f64"),
+            "store": (ir.FunctionType(void, [vd, vd.as_pointer(), i32, vm]), f"v{_W}f64.p0v{_W}f64"),
+            "gather": (ir.FunctionType(vd, [vpd, i32, vm, vd]), f"v{_W}f64.v{_W}p0f64"),
+            "scatter": (ir.FunctionType(void, [vd, vpd, i32, vm]), f"v{_W}f64.v{_W}p0f64"),
+        }[name]
+        return cgutils.get_or_insert_function(self.mod, ty, f"llvm.masked.{name}.{suffix}")
 
     def v(self, a):
         """The LLVM vector of lanes, an LLVM value as it is, or a float in every lane."""
@@ -1242,19 +1259,15 @@ def _eig_rows_simd(typingctx, acc, vals, e1, i0, i1):
     def codegen(context, builder, signature, args):
         aacc, avals, ae1, ai0, ai1 = args
         arrs = [context.make_array(signature.args[k])(context, builder, args[k]) for k in range(3)]
-        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
-        vd, vi, vm = ir.VectorType(f64, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
-        vpd = ir.VectorType(f64.as_pointer(), _W)
         mod = builder.module
-        gather = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vpd, i32, vm, vd]),
-                                                f"llvm.masked.gather.v{_W}f64.v{_W}p0f64")
-        scatter = cgutils.get_or_insert_function(mod, ir.FunctionType(ir.VoidType(), [vd, vpd, i32, vm]),
-                                                 f"llvm.masked.scatter.v{_W}f64.v{_W}p0f64")
+        o = _Ops(builder, mod)
+        _, i64, i32, vd, vi, _ = o.lane_types
+        vpd = o.vpd
+        gather, scatter = o.intrinsic("gather"), o.intrinsic("scatter")
 
         def splat(v, ty):
             return _splat(builder, v, ty)
 
-        o = _Ops(builder, mod)
         iota = ir.Constant(vi, list(range(_W)))
         end = splat(ai1, vi)
         one = ir.Constant(vd, [1.0] * _W)
@@ -1300,18 +1313,11 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
         outa = context.make_array(signature.args[4])(context, builder, aout)
         drow = cgutils.unpack_tuple(builder, dba.shape, 2)[1]
         orow = cgutils.unpack_tuple(builder, outa.shape, 2)[1]
-        dt, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
-        vd, vi, vm = ir.VectorType(dt, _W), ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W)
-        vpd = ir.VectorType(dt.as_pointer(), _W)
         mod = builder.module
-        mload = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"llvm.masked.load.v{_W}f64.p0v{_W}f64")
-        mstore = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(ir.VoidType(), [vd, vd.as_pointer(), i32, vm]),
-            f"llvm.masked.store.v{_W}f64.p0v{_W}f64")
-        gather = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vpd, i32, vm, vd]),
-                                                f"llvm.masked.gather.v{_W}f64.v{_W}p0f64")
         o = _Ops(builder, mod)
+        _, i64, i32, vd, vi, _ = o.lane_types
+        vpd = o.vpd
+        mload, mstore, gather = o.intrinsic("load"), o.intrinsic("store"), o.intrinsic("gather")
 
         def splat(v, ty=vd):
             return _splat(builder, v, ty)

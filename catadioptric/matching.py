@@ -1223,8 +1223,6 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
         keep &= np.cumsum(keep, axis=1) <= k - 1
         A = xs[nb]                                        # (n1, k, 3)
         wv, Mt = _local_planes(A, rho_m[nb], wts[nb], keep, ridge)
-        rho_pred = np.einsum("ni,ni->n", wv, r1)
-        phi_pred = _arc_angle(rho_pred, alpha)
         spacing = float(np.median(tree.query(xs, k=2)[0][:, 1])) if m > 1 else 1.0
         reach = np.where(keep, dist, np.inf).min(axis=1)
         valid = reach <= 4.0 * spacing
@@ -1233,32 +1231,26 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
             # along the arc the prediction's own error adds to the pair's
             # noise (a Mahalanobis distance in units of the pair's noise):
             # the plane's covariance (its weights are inverse variances)
-            # carried to the ray, times (d phi / d rho)^2
-            var_rho = np.maximum(np.einsum("ni,ni->n", r1, _solve3(Mt, r1)), 0.0)
-            dpred = sa / (1.0 + 2.0 * rho_pred * np.cos(alpha) + rho_pred ** 2)
-            var_pred = np.nan_to_num(var_rho * dpred ** 2, nan=np.inf)
-            s_along = np.sqrt(sig ** 2 + var_pred[ii])
-            dd = np.hypot((phi - phi_pred[ii]) * sig / s_along, across)
+            # carried to the ray, times (d phi / d rho)^2; every
+            # well-supported plane predicts too, the nearest counts
+            wv, Mt, okp = wv[:, None], Mt[:, None], np.ones((n1, 1), bool)
             if EPI_SHARE < 1.0:
                 wvt, Mtt, okt = _supported_planes(A, rho_m[nb], wts[nb], keep, ridge, EPI_SHARE)
-                T = wvt.shape[1]
-                if T:
-                    rt = np.einsum("nti,ni->nt", wvt, r1)
-                    pt = _arc_angle(rt, alpha[:, None])
-                    rr = np.broadcast_to(r1[:, None, :], (n1, T, 3)).reshape(-1, 3)
-                    vr = np.einsum("ni,ni->n", rr, _solve3(Mtt.reshape(-1, 3, 3), rr)).reshape(n1, T)
-                    vr = np.maximum(vr, 0.0)
-                    dp = np.sin(alpha)[:, None] / (1.0 + 2.0 * rt * np.cos(alpha)[:, None] + rt ** 2)
-                    vp = np.nan_to_num(vr * dp ** 2, nan=np.inf)
-                    st = np.sqrt(sig[:, None] ** 2 + vp[ii])
-                    dt = np.hypot((phi[:, None] - pt[ii]) * sig[:, None] / st, across[:, None])
-                    dt = np.where(okt[ii], dt, np.inf)
-                    best = np.argmin(dt, axis=1)
-                    dmin = np.take_along_axis(dt, best[:, None], axis=1)[:, 0]
-                    nearer = dmin < dd
-                    dd = np.where(nearer, dmin, dd)
-                    s_along = np.where(nearer, np.take_along_axis(st, best[:, None], axis=1)[:, 0], s_along)
+                wv, Mt, okp = np.concatenate([wv, wvt], 1), np.concatenate([Mt, Mtt], 1), np.hstack([okp, okt])
+            P = wv.shape[1]
+            rho_pred = np.einsum("npi,ni->np", wv, r1)
+            phi_pred = _arc_angle(rho_pred, alpha[:, None])
+            rr = np.broadcast_to(r1[:, None, :], (n1, P, 3)).reshape(-1, 3)
+            var_rho = np.maximum(np.einsum("ni,ni->n", rr, _solve3(Mt.reshape(-1, 3, 3), rr)).reshape(n1, P), 0.0)
+            dpred = sa[:, None] / (1.0 + 2.0 * rho_pred * np.cos(alpha)[:, None] + rho_pred ** 2)
+            var_pred = np.nan_to_num(var_rho * dpred ** 2, nan=np.inf)
+            st = np.sqrt(sig[:, None] ** 2 + var_pred[ii])
+            dt = np.hypot((phi[:, None] - phi_pred[ii]) * sig[:, None] / st, across[:, None])
+            near = np.argmin(np.where(okp[ii], dt, np.inf), axis=1)[:, None]
+            dd = np.take_along_axis(dt, near, axis=1)[:, 0]
+            s_along = np.take_along_axis(st, near, axis=1)[:, 0]
         else:
+            phi_pred = _arc_angle(np.einsum("ni,ni->n", wv, r1), alpha)
             dd = np.hypot(phi - phi_pred[ii], across)
         okc = valid[ii] & (dd <= s * GATE_SIGMAS * sig)
         cp = np.column_stack([ii[okc], jj[okc]])

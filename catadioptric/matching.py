@@ -524,23 +524,29 @@ def _rigid_posterior(r1, r2, s1, s2, R, pairs):
     moved = r1 @ R.T
     sig = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
     e = np.linalg.norm(r2[pairs[:, 1]] - moved[pairs[:, 0]], axis=1) / sig
-    m = r2.mean(axis=0)
+    cap = _cap(r2)
+    n1 = r1.shape[0] if cap is None else int(np.count_nonzero(moved @ cap[0] >= cap[1]))
+    return pairs[_posterior(pairs, e, sig, sig, r2, max(n1, pairs.shape[0])) >= MIN_POSTERIOR]
+
+
+def _cap(rays: NDArray[np.float64]):
+    """``(axis, cos)`` of the smallest cap around the mean direction holding 99% of the rays.
+
+    None when the mean direction vanishes (rays all around the sphere).
+    """
+    m = rays.mean(axis=0)
     nm = np.linalg.norm(m)
     if nm < 1e-9:
-        n1 = r1.shape[0]
-    else:
-        n1 = int(np.count_nonzero(moved @ (m / nm) >= np.quantile(r2 @ (m / nm), 0.01)))
-    return pairs[_posterior(pairs, e, sig, sig, r2, max(n1, pairs.shape[0])) >= MIN_POSTERIOR]
+        return None
+    return m / nm, float(np.quantile(rays @ (m / nm), 0.01))
 
 
 def _cap_area(rays: NDArray[np.float64]) -> float:
     """Area of the smallest cap around the mean direction holding 99% of the rays."""
-    m = rays.mean(axis=0)
-    nm = np.linalg.norm(m)
-    if nm < 1e-9:
+    cap = _cap(rays)
+    if cap is None:
         return 4.0 * math.pi
-    c = float(np.quantile(rays @ (m / nm), 0.01))
-    return max(2.0 * math.pi * (1.0 - c), 1e-6)
+    return max(2.0 * math.pi * (1.0 - cap[1]), 1e-6)
 
 
 def _chance(n1, n2, area, gate, alpha=1e-6):

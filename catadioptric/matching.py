@@ -55,11 +55,11 @@ How it works
    fit's covariance) are matched one-to-one, closest first, growing until the matches repeat,
    with (R, t) refitted on them. In the last round a ray is also
    predicted by every other plane that two thirds of its neighbours agree
-   with (both sides of a crease); a match whose ray has a second candidate
-   nearly as close (``EPI_RATIO``) is dropped as ambiguous, and a match is
-   kept only when its posterior probability of being the true partner
-   rather than a chance ray of view 2 is at least ``MIN_POSTERIOR`` (0.9;
-   :func:`_posterior`): precision first. Without parallax (a pure
+   with (both sides of a crease), and a match is kept only when its
+   posterior probability of being the true partner, against a chance ray
+   of view 2 and against the other candidates of either ray, is at least
+   ``MIN_POSTERIOR`` (0.8; :func:`_posterior`, probabilistic data
+   association): precision first. Without parallax (a pure
    rotation, ``t`` undefined) the stage stands aside. The epipolar result is kept when it explains clearly more
    pairs than the rotation (``nonrigid_gain``) and beats the chance
    level. ``strategy="nonrigid"`` instead extracts the curved surface of
@@ -119,13 +119,11 @@ GATE_SIGMAS = 3.03
 #: Neighbours per ray for the local triangles of the rotation search.
 TRIANGLE_NEIGHBOURS = 6
 #: A rigid or epipolar match is kept when its posterior probability of
-#: being the ray's true partner, against a chance ray of view 2, reaches
-#: this (:func:`_posterior`). The one-candidate model is over-confident
-#: (measured at 10-20% translation and 50% outliers: matches with
-#: posteriors 0.95-0.99 were right 0.958 of the time, 0.9-0.95 0.851: about
-#: twice the odds; the match is the best of the candidates in its gate), so
-#: 0.9 keeps a precision of about 0.95.
-MIN_POSTERIOR = 0.9
+#: being the ray's true partner (:func:`_posterior`) reaches this. The
+#: posterior is calibrated (measured, see :func:`_posterior`), and most
+#: matches lie far above the floor: at 20% translation and 50% outliers
+#: the matches kept at 0.8 were right 0.962 of the time (60 trials).
+MIN_POSTERIOR = 0.8
 
 
 @dataclass(frozen=True, eq=False)
@@ -518,15 +516,25 @@ def _rigid_posterior(r1, r2, s1, s2, R, pairs):
     """The pairs of a rotation whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``.
 
     The residual ``y - R x`` of a true pair is isotropic Gaussian with the
-    pair's noise per axis; the prior counts the rays of view 1 that the
+    pair's noise per axis; the rivals are the other pairs inside the noise
+    gate of either ray; the prior counts the rays of view 1 that the
     rotation brings into the cap of view 2's rays.
     """
     moved = r1 @ R.T
+    gmax = GATE_SIGMAS * math.sqrt(float(s1.max()) ** 2 + float(s2.max()) ** 2)
+    near = cKDTree(moved).sparse_distance_matrix(cKDTree(r2), gmax, output_type="ndarray")
+    ci, cj = near["i"].astype(np.int64), near["j"].astype(np.int64)
+    sig_c = np.sqrt(s1[ci] ** 2 + s2[cj] ** 2)
+    inside = near["v"] <= GATE_SIGMAS * sig_c
+    cand = np.column_stack([ci[inside], cj[inside]])
+    like_c = _likelihood(near["v"][inside] / sig_c[inside], sig_c[inside], sig_c[inside])
     sig = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
     e = np.linalg.norm(r2[pairs[:, 1]] - moved[pairs[:, 0]], axis=1) / sig
+    like = _likelihood(e, sig, sig)
+    rivals = _rival_likelihood(pairs, np.where(e <= GATE_SIGMAS, like, 0.0), cand, like_c, r1.shape[0], r2.shape[0])
     cap = _cap(r2)
     n1 = r1.shape[0] if cap is None else int(np.count_nonzero(moved @ cap[0] >= cap[1]))
-    return pairs[_posterior(pairs, e, sig, sig, r2, max(n1, pairs.shape[0])) >= MIN_POSTERIOR]
+    return pairs[_posterior(pairs, like, r2, max(n1, pairs.shape[0]), rivals) >= MIN_POSTERIOR]
 
 
 def _cap(rays: NDArray[np.float64]):
@@ -836,10 +844,8 @@ EPI_LO = 24
 EPI_LO_GATE = 2.0
 #: Growth rounds with (R, t) refitted between them.
 EPI_OUTER = 6
-#: Final gate (in noise gates) and ambiguity ratio: a match is dropped when
-#: its distance exceeds EPI_RATIO times that of a rival candidate of either ray.
+#: Final gate, in noise gates.
 EPI_FINAL = 1.0
-EPI_RATIO = 0.6
 #: Median arc angle of the matches, in sphere noise, below which the views
 #: differ by a rotation only (t undefined).
 EPI_MIN_PARALLAX = 3.0
@@ -1143,28 +1149,58 @@ def _solve3(M, b):
                             np.einsum("ni,ni->n", b, c2)]) / det[:, None]
 
 
-def _posterior(pairs, e, s_across, s_along, r2, n1, k=8):
-    """Posterior probability that each match is its ray's true partner rather than a chance ray.
+def _likelihood(e, s_across, s_along):
+    """Density per steradian of a true pair's residual: ``exp(-e^2/2) / (2 pi s_across s_along)``.
 
-    The residual of a true pair is Gaussian (``e``: its Mahalanobis norm;
-    ``s_across``, ``s_along``: the standard deviations across and along the
-    arc, on the unit sphere), with density ``exp(-e^2/2) / (2 pi s_across
-    s_along)`` per steradian; a chance ray of view 2 lands there with the
-    local density ``rho`` of the view-2 rays left unmatched (``k`` nearest
-    of them). The prior that a ray of view 1 has a partner is the share of
-    the ``n1`` predicted rays matched. Probabilistic data association with
-    one candidate: posterior odds = prior odds x likelihood ratio.
+    ``e``: the residual's Mahalanobis norm; ``s_across``, ``s_along``: its
+    standard deviations across and along the arc, on the unit sphere.
     """
-    free = np.ones(r2.shape[0], bool)
-    free[pairs[:, 1]] = False
-    fr = r2[free]
-    if fr.shape[0] <= k:
+    return np.exp(-0.5 * np.asarray(e, dtype=np.float64) ** 2) / (2.0 * np.pi * s_across * s_along)
+
+
+def _rival_likelihood(pairs, own, cand, like, n1, n2):
+    """Summed likelihood of each match's rivals: the other candidates of either of its rays.
+
+    ``cand`` (C, 2) are the candidate pairs inside the gate and ``like``
+    their likelihoods (:func:`_likelihood`); ``own`` is each match's own
+    likelihood as counted among them (0 for a match that is not a
+    candidate).
+    """
+    per1 = np.bincount(cand[:, 0], like, minlength=n1)
+    per2 = np.bincount(cand[:, 1], like, minlength=n2)
+    return np.maximum(per1[pairs[:, 0]] + per2[pairs[:, 1]] - 2.0 * own, 0.0)
+
+
+def _posterior(pairs, like, r2, n1, rivals=0.0, k=16):
+    """Posterior probability that each match is its ray's true partner.
+
+    Probabilistic data association (Bar-Shalom), one view-1 ray at a time:
+    a true partner's residual has the density ``like`` (:func:`_likelihood`);
+    every other ray of view 2 lands there like clutter, with the local
+    density ``lam`` of view 2's rays (all of them, the match's own left
+    out: under "no partner" any ray may be the chance one; from the ``k``
+    nearest); the prior that a ray of view 1 has a partner is the share
+    ``p`` of the ``n1`` predicted rays matched. The match's ``rivals``
+    (:func:`_rival_likelihood`: the other candidates of either ray, any of
+    which may be the true pair instead) share the evidence::
+
+        P = like / (lam (1 - p) / p + like + rivals)
+
+    Calibration, measured (20% translation, 50% outliers, 60 trials, 9,800
+    matches): matches with P in [0.8, 0.9) were right 0.88 of the time, in
+    [0.9, 0.95) 0.94, in [0.95, 0.99) 0.98. (Without the rivals and with
+    the density of the unmatched rays only, the odds were about twice too
+    high.)
+    """
+    if pairs.shape[0] == 0:
+        return np.empty(0)
+    kk = min(k + 1, r2.shape[0])
+    if kk < 2:
         return np.ones(pairs.shape[0])
-    dk = cKDTree(fr).query(r2[pairs[:, 1]], k=k)[0][:, -1]
-    rho = k / (np.pi * np.maximum(dk, 1e-12) ** 2)
+    dk = cKDTree(r2).query(r2[pairs[:, 1]], k=kk)[0][:, -1]
+    lam = (kk - 1) / (np.pi * np.maximum(dk, 1e-12) ** 2)
     p = min(max(pairs.shape[0] / max(n1, 1), 1e-3), 1.0 - 1e-3)
-    log_odds = math.log(p / (1.0 - p)) - 0.5 * e ** 2 - np.log(2.0 * np.pi * s_across * s_along * rho)
-    return 1.0 / (1.0 + np.exp(-np.clip(log_odds, -50.0, 50.0)))
+    return like / (lam * (1.0 - p) / p + like + rivals)
 
 
 def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3,
@@ -1176,9 +1212,8 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     ``neighbours`` matched rays nearest to each ray, and predicts where on
     its epipolar arc the ray lands; candidates within ``scale`` noise gates
     of the prediction are matched one-to-one, closest first, until the
-    matches repeat; the last round uses ``final_scale`` and drops ambiguous
-    matches (``EPI_RATIO``). A ray farther than 4 match spacings from every
-    match is not predicted.
+    matches repeat; the last round uses ``final_scale``. A ray farther than
+    4 match spacings from every match is not predicted.
 
     In the last round the distance along the arc is measured against the
     pair's noise plus the prediction's own variance (the fitted plane's
@@ -1194,7 +1229,12 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     candidate against every plane that ``EPI_SHARE`` of the ray's
     neighbours agree with (:func:`_supported_planes`), keeping the nearest
     prediction, and, given the rays ``r2`` of view 2, keeps the matches
-    whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``.
+    whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``: the
+    other candidates of either ray inside the gate are its rivals (this
+    replaces a ratio test, which dropped a true pair for a rival at 1.67
+    times its distance; measured on 60 trials at 20% translation, at equal
+    precision 0.962 the posterior with rivals kept a recall of 0.835, the
+    ratio test with the one-candidate posterior 0.783).
     """
     ii, jj, phi, across, sig, alpha = cand
     n1 = r1.shape[0]
@@ -1268,30 +1308,13 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
         o = np.argsort(new[:, 0], kind="stable")
         new, new_k = new[o], new_k[o]
         if last:
-            if EPI_RATIO < 1.0 and new.shape[0]:
-                # ambiguity: another candidate of either ray nearly as close;
-                # a rival just outside the gate counts too (the ratio test
-                # must not be cut short by the gate)
-                wide = valid[ii] & (dd <= s * GATE_SIGMAS * sig / EPI_RATIO)
-                chosen = np.zeros(ii.shape[0], bool)
-                chosen[new_k] = True
-                cw = np.column_stack([ii[wide], jj[wide]])
-                dmask = np.where(chosen[wide], np.inf, dd[wide])   # the rivals' distances
-                second = np.full(new.shape[0], np.inf)
-                for col in (0, 1):
-                    key = cw[:, col]
-                    order = np.argsort(key, kind="stable")
-                    # nearest rival per ray
-                    uk, start = np.unique(key[order], return_index=True)
-                    mins = np.minimum.reduceat(dmask[order], start)
-                    look = np.searchsorted(uk, new[:, col])
-                    second = np.minimum(second, mins[np.minimum(look, uk.size - 1)])
-                good = dd[new_k] <= EPI_RATIO * second
-                new, new_k = new[good], new_k[good]
             if r2 is not None and MIN_POSTERIOR > 0.0 and new.shape[0]:
-                keep_m = _posterior(new, dd[new_k] / sig[new_k], sig[new_k], s_along[new_k], r2,
-                                    np.count_nonzero(valid))
-                new = new[keep_m >= MIN_POSTERIOR]
+                # every candidate inside the gate is a possible partner
+                like_c = _likelihood(dd[okc] / sig[okc], sig[okc], s_along[okc])
+                like = _likelihood(dd[new_k] / sig[new_k], sig[new_k], s_along[new_k])
+                rivals = _rival_likelihood(new, like, cp, like_c, n1, n2)
+                post = _posterior(new, like, r2, np.count_nonzero(valid), rivals)
+                new = new[post >= MIN_POSTERIOR]
             return new
         if new.shape == pairs.shape and np.array_equal(new, pairs):
             rounds = r + 1

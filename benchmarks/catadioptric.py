@@ -84,7 +84,7 @@ def _synthetic(trials: int, seed: int):
                                  np.mean(ps), np.mean(rs), "", np.median(terr) if terr else "",
                                  "/".join(sorted(set(strat))),
                                  np.median(ts)])
-                    print(rows[-1], flush=True)
+                    print(*map(_fmt, rows[-1]), flush=True)
     return rows
 
 
@@ -130,7 +130,7 @@ def _real(out_dir: Path):
         p, r = correspondence_stats(m.correspondences, truth)
         rows.append([f"real board {i:03d}-{j:03d}", cam.xi, "", "", 0.0, 48, m.support, p, r, r, "",
                      m.strategy, dt])
-        print(rows[-1], flush=True)
+        print(*map(_fmt, rows[-1]), flush=True)
     for i, j in pairs:
         img1 = read_image(MEI / "images" / f"img_para_{i:03d}.png")
         img2 = read_image(MEI / "images" / f"img_para_{j:03d}.png")
@@ -154,7 +154,7 @@ def _real(out_dir: Path):
         _, rb = correspondence_stats(c, board) if len(board) else (0.0, float("nan"))
         rows.append([f"real detected {i:03d}-{j:03d}", cam.xi, "", "", "", len(truth), m.support, p, r,
                      rb if len(board) else "", "", m.strategy, dt])
-        print(rows[-1], f"(board truth {len(board)})", flush=True)
+        print(*map(_fmt, rows[-1]), f"(board truth {len(board)})", flush=True)
         if (i, j) == (1, 2):
             from catadioptric._render import render_matches
 

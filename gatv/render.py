@@ -785,7 +785,7 @@ def add_image_pair(plotter, image1, image2, pixels1, pixels2, pairs=None, *, rig
         s, t = xyz(p1[c[flags, 0]], 0.0, 2.0), xyz(p2[c[flags, 1]], dx, 2.0)
         add_correspondences(plotter, s, t, color=color, width=1.0, opacity=0.55)
         add_points(plotter, np.vstack([s, t]), color=color, size=size,
-                   label=f"{int(flags.sum())} matches" + ("" if right is None else f", {name}"))
+                   label=f"{int(flags.sum())} match{'es' * (int(flags.sum()) != 1)}" + ("" if right is None else f", {name}"))
     if title:
         add_title(plotter, title)
     plotter.enable_parallel_projection()

@@ -513,17 +513,19 @@ def _rotation_icp(r1, r2, tree2, s1, s2, R, iterations=30):
     return R, kept
 
 
-def _rigid_posterior(r1, r2, s1, s2, R, pairs):
+def _rigid_posterior(r1, tree2, s1, s2, R, pairs):
     """The pairs of a rotation whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``.
 
     The residual ``y - R x`` of a true pair is isotropic Gaussian with the
     pair's noise per axis; the rivals are the other pairs inside the noise
     gate of either ray; the prior counts the rays of view 1 that the
-    rotation brings into the cap of view 2's rays.
+    rotation brings into the cap of view 2's rays (``tree2``: their
+    :class:`~scipy.spatial.cKDTree`).
     """
+    r2 = tree2.data
     moved = r1 @ R.T
     gmax = GATE_SIGMAS * math.sqrt(float(s1.max()) ** 2 + float(s2.max()) ** 2)
-    near = cKDTree(moved).sparse_distance_matrix(cKDTree(r2), gmax, output_type="ndarray")
+    near = cKDTree(moved).sparse_distance_matrix(tree2, gmax, output_type="ndarray")
     ci, cj = near["i"].astype(np.int64), near["j"].astype(np.int64)
     sig_c = np.sqrt(s1[ci] ** 2 + s2[cj] ** 2)
     inside = near["v"] <= GATE_SIGMAS * sig_c
@@ -535,7 +537,7 @@ def _rigid_posterior(r1, r2, s1, s2, R, pairs):
     rivals = _rival_likelihood(pairs, np.where(e <= GATE_SIGMAS, like, 0.0), cand, like_c, r1.shape[0], r2.shape[0])
     cap = _cap(r2)
     n1 = r1.shape[0] if cap is None else int(np.count_nonzero(moved @ cap[0] >= cap[1]))
-    return pairs[_posterior(pairs, like, r2, max(n1, pairs.shape[0]), rivals) >= MIN_POSTERIOR]
+    return pairs[_posterior(pairs, like, tree2, max(n1, pairs.shape[0]), rivals) >= MIN_POSTERIOR]
 
 
 def _cap(rays: NDArray[np.float64]):
@@ -744,7 +746,7 @@ def match(
     def result(pairs, rotation, rot_support, used, reason=None, motion=None):
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         if used == "rigid" and pairs.shape[0]:
-            pairs = _rigid_posterior(r1, r2, s1, s2, rotation, pairs)
+            pairs = _rigid_posterior(r1, tree2, s1, s2, rotation, pairs)
         if pairs.shape[0] and reason is None:
             t_r = time.perf_counter()
             rival, _ = _rival(r1, r2, tree2, s1, s2, pairs)
@@ -1172,7 +1174,7 @@ def _rival_likelihood(pairs, own, cand, like, n1, n2):
     return np.maximum(per1[pairs[:, 0]] + per2[pairs[:, 1]] - 2.0 * own, 0.0)
 
 
-def _posterior(pairs, like, r2, n1, rivals=0.0, k=16):
+def _posterior(pairs, like, tree2, n1, rivals=0.0, k=16):
     """Posterior probability that each match is its ray's true partner.
 
     Probabilistic data association (Bar-Shalom), one view-1 ray at a time:
@@ -1180,7 +1182,7 @@ def _posterior(pairs, like, r2, n1, rivals=0.0, k=16):
     every other ray of view 2 lands there like clutter, with the local
     density ``lam`` of view 2's rays (all of them, the match's own left
     out: under "no partner" any ray may be the chance one; from the ``k``
-    nearest); the prior that a ray of view 1 has a partner is the share
+    nearest in ``tree2``, their :class:`~scipy.spatial.cKDTree`); the prior that a ray of view 1 has a partner is the share
     ``p`` of the ``n1`` predicted rays matched. The match's ``rivals``
     (:func:`_rival_likelihood`: the other candidates of either ray, any of
     which may be the true pair instead) share the evidence::
@@ -1188,26 +1190,28 @@ def _posterior(pairs, like, r2, n1, rivals=0.0, k=16):
         P = like / (lam (1 - p) / p + like + rivals)
 
     Calibration, measured on the benchmark's scenes at 50% outliers (seeds
-    0-2, 60 trials for each translation): at 20% translation (epipolar, 10,309 matches of
-    the last round) matches with P in [0.8, 0.9) were right 0.88 of the
-    time, in [0.9, 0.95) 0.94, in [0.95, 0.99) 0.98; without translation
-    (rigid, 10,237) 0.93, 0.97 and 0.99: calibrated, or conservative.
+    0-2, 60 trials for each translation): at 20% translation (epipolar,
+    10,309 matches of the last round) matches with P in [0.8, 0.9) were
+    right 0.88 of the time, in [0.9, 0.95) 0.94, in [0.95, 0.99) 0.98;
+    without translation (rigid, 10,237) 0.93, 0.97 and 0.99: calibrated,
+    or conservative.
     (Without the rivals and with the density of the unmatched rays only,
     the odds were about twice too high.)
     """
     if pairs.shape[0] == 0:
         return np.empty(0)
+    r2 = tree2.data
     kk = min(k + 1, r2.shape[0])
     if kk < 2:
         return np.ones(pairs.shape[0])
-    dk = cKDTree(r2).query(r2[pairs[:, 1]], k=kk)[0][:, -1]
+    dk = tree2.query(r2[pairs[:, 1]], k=kk)[0][:, -1]
     lam = (kk - 1) / (np.pi * np.maximum(dk, 1e-12) ** 2)
     p = min(max(pairs.shape[0] / max(n1, 1), 1e-3), 1.0 - 1e-3)
     return like / (lam * (1.0 - p) / p + like + rivals)
 
 
 def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, final_scale=EPI_FINAL, ridge=1e-3,
-                   r2=None):
+                   tree2=None):
     """Match along the epipolar arcs, each ray at the inverse depth of its matched neighbours.
 
     The inverse depth of a plane is linear in the ray, ``rho(u) = w . u``:
@@ -1231,7 +1235,7 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
     a growth drift onto chance pairs.) The last round also measures each
     candidate against every plane that ``EPI_SHARE`` of the ray's
     neighbours agree with (:func:`_supported_planes`), keeping the nearest
-    prediction, and, given the rays ``r2`` of view 2, keeps the matches
+    prediction, and, given the tree ``tree2`` of view 2's rays, keeps the matches
     whose posterior (:func:`_posterior`) reaches ``MIN_POSTERIOR``: the
     other candidates of either ray inside the gate are its rivals (this
     replaces a ratio test, which dropped a true pair for a rival at 1.67
@@ -1311,12 +1315,11 @@ def _grow_epipolar(r1, cand, n2, seeds, neighbours=6, scale=2.0, rounds=15, fina
         o = np.argsort(new[:, 0], kind="stable")
         new, new_k = new[o], new_k[o]
         if last:
-            if r2 is not None and MIN_POSTERIOR > 0.0 and new.shape[0]:
+            if tree2 is not None and MIN_POSTERIOR > 0.0 and new.shape[0]:
                 # every candidate inside the gate is a possible partner
-                like_c = _likelihood(dd[okc] / sig[okc], sig[okc], s_along[okc])
-                like = _likelihood(dd[new_k] / sig[new_k], sig[new_k], s_along[new_k])
-                rivals = _rival_likelihood(new, like, cp, like_c, n1, n2)
-                post = _posterior(new, like, r2, np.count_nonzero(valid), rivals)
+                like = _likelihood(dd / sig, sig, s_along)
+                rivals = _rival_likelihood(new, like[new_k], cp, like[okc], n1, n2)
+                post = _posterior(new, like[new_k], tree2, np.count_nonzero(valid), rivals)
                 new = new[post >= MIN_POSTERIOR]
             return new
         if new.shape == pairs.shape and np.array_equal(new, pairs):
@@ -1369,7 +1372,7 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
         pairs, grown = seeds[inl], np.empty((0, 2), np.int64)
         for it in range(EPI_OUTER):
             cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
-            new = _grow_epipolar(r1, cand, r2.shape[0], pairs, r2=r2)
+            new = _grow_epipolar(r1, cand, r2.shape[0], pairs, tree2=tree2)
             if new.shape[0] < 12:
                 break
             converged = it > 0 and np.array_equal(new, grown)
@@ -1391,7 +1394,7 @@ def _epipolar_stage(r1, r2, tree2, s1, s2, seeds, noise, max_parallax, seed, inf
     # matches and every pool pair consistent with the final motion
     consistent = (_epipolar_distance(_essential_from_motion(R, t), x, y) <= GATE_SIGMAS * sig) & _cheirality(R, t, x, y)
     cand = _epipolar_candidates(r1, r2, tree2, s1, s2, R, t, max_parallax)
-    again = _grow_epipolar(r1, cand, r2.shape[0], np.unique(np.vstack([pairs, seeds[consistent]]), axis=0), r2=r2)
+    again = _grow_epipolar(r1, cand, r2.shape[0], np.unique(np.vstack([pairs, seeds[consistent]]), axis=0), tree2=tree2)
     info["epipolar_regrown"] = int(again.shape[0])
     if again.shape[0] > pairs.shape[0]:
         pairs = again

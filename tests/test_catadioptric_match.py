@@ -262,6 +262,8 @@ def test_cli_bad_input_writes_nothing(tmp_path, capsys):
 
 
 def test_posterior_follows_residual_rivals_and_chance_density():
+    from scipy.spatial import cKDTree
+
     from catadioptric.matching import _likelihood, _posterior
 
     rng = np.random.default_rng(0)
@@ -271,21 +273,22 @@ def test_posterior_follows_residual_rivals_and_chance_density():
     s = np.full(4, 0.005)
     # same density: the posterior falls with the residual, and is ~1 at e = 0
     # (prior: half of the 8 rays matched)
-    post = _posterior(pairs, _likelihood(np.array([0.0, 1.0, 2.0, 3.0]), s, s), r2, 8)
+    tree2 = cKDTree(r2)
+    post = _posterior(pairs, _likelihood(np.array([0.0, 1.0, 2.0, 3.0]), s, s), tree2, 8)
     assert np.all(np.diff(post) < 0) and post[0] > 0.95 and post[3] < 0.9
     # a wider along-arc spread (uncertain prediction) lowers it at equal e
-    narrow = _posterior(pairs, _likelihood(np.ones(4), s, s), r2, 8)
-    wide = _posterior(pairs, _likelihood(np.ones(4), s, 10.0 * s), r2, 8)
+    narrow = _posterior(pairs, _likelihood(np.ones(4), s, s), tree2, 8)
+    wide = _posterior(pairs, _likelihood(np.ones(4), s, 10.0 * s), tree2, 8)
     assert np.all(wide < narrow)
     # more chance rays (a denser view 2) lower it too
     dense = np.vstack([r2, r2 + 1e-4 * rng.normal(size=r2.shape)])
     dense /= np.linalg.norm(dense, axis=1)[:, None]
-    assert np.all(_posterior(pairs, _likelihood(np.ones(4), s, s), dense, 8) < narrow)
+    assert np.all(_posterior(pairs, _likelihood(np.ones(4), s, s), cKDTree(dense), 8) < narrow)
     # a rival as likely as the match: at most an even chance
     like = _likelihood(np.ones(4), s, s)
-    even = _posterior(pairs, like, r2, 8, rivals=like)
+    even = _posterior(pairs, like, tree2, 8, rivals=like)
     assert np.all(even < 0.5) and np.all(even > 0.45)
-    assert np.all(_posterior(pairs, like, r2, 8, rivals=0.1 * like) < narrow)
+    assert np.all(_posterior(pairs, like, tree2, 8, rivals=0.1 * like) < narrow)
 
 
 def test_posterior_is_calibrated_on_simulated_clutter():
@@ -316,7 +319,7 @@ def test_posterior_is_calibrated_on_simulated_clutter():
     sel = one_to_one(cand, near["v"])
     pairs = cand[sel]
     rivals = _rival_likelihood(pairs, like_c[sel], cand, like_c, n, r2.shape[0])
-    post = _posterior(pairs, like_c[sel], r2, n, rivals)
+    post = _posterior(pairs, like_c[sel], cKDTree(r2), n, rivals)
     right = truth[pairs[:, 0]] == pairs[:, 1]
     for lo, hi in ((0.5, 0.8), (0.8, 0.95), (0.95, 1.0)):
         m = (post >= lo) & (post < hi)
@@ -405,7 +408,7 @@ def test_rigid_posterior_drops_chance_pairs_far_in_the_gate():
     lone = rng.normal(size=(200, 3))
     r1 = np.vstack([x, lone / np.linalg.norm(lone, axis=1)[:, None]])
     pairs = np.column_stack([np.arange(n), np.arange(n)])
-    kept = _rigid_posterior(r1, r2, np.full(r1.shape[0], s), np.full(r2.shape[0], s), R, pairs)
+    kept = _rigid_posterior(r1, cKDTree(r2), np.full(r1.shape[0], s), np.full(r2.shape[0], s), R, pairs)
     true_kept = np.count_nonzero(kept[:, 0] < 200)
     chance_kept = np.count_nonzero(kept[:, 0] >= 200)
     assert true_kept >= 0.9 * 200

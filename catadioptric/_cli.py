@@ -27,6 +27,7 @@ from gatv.cli import (  # one set of conventions for every subcommand
     _error,
     _one_line,
 )
+from gatv.errors import InputError
 
 __all__ = ["add_parser", "run"]
 
@@ -82,12 +83,12 @@ def _run(args) -> int:
     inputs = [args.image1, args.image2, args.camera] + ([args.camera2] if args.camera2 else [])
     for path in inputs:
         if not path.is_file():
-            raise ValueError(f"{path}: no such file.")
+            raise InputError(f"{path}: no such file.")
     for out in outs:
         if out in [p.resolve() for p in inputs]:
-            raise ValueError(f"{out}: refusing to overwrite an input file.")
+            raise InputError(f"{out}: refusing to overwrite an input file.")
     if args.max_corners < 3:
-        raise ValueError(f"Expected --max-corners >= 3, got {args.max_corners}.")
+        raise InputError(f"Expected --max-corners >= 3, got {args.max_corners}.")
     cam1 = UnifiedCamera.from_file(args.camera)
     cam2 = UnifiedCamera.from_file(args.camera2) if args.camera2 else cam1
     img1, img2 = read_image(args.image1), read_image(args.image2)

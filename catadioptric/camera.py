@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gatv._validation import as_points
+from gatv.errors import InputError
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -72,11 +73,11 @@ _OPENCV_K_KEYS = ("K", "camera_matrix", "cameraMatrix")
 def _finite_real(value, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         msg = f"Expected `{name}` to be a real number, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     value = float(value)
     if not math.isfinite(value):
         msg = f"Expected `{name}` to be finite, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return value
 
 
@@ -87,7 +88,7 @@ def _distortion_tuple(distortion) -> tuple[float, float, float, float]:
         arr = np.asarray(distortion, dtype=np.float64).ravel()
     except (TypeError, ValueError) as exc:
         msg = f"Expected `distortion` to be 4 numbers (k1, k2, p1, p2): {exc}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if arr.size == 5 and arr[4] == 0.0:
         # OpenCV's pinhole (k1, k2, p1, p2, k3) with k3 = 0 is the same model.
         arr = arr[:4]
@@ -96,10 +97,10 @@ def _distortion_tuple(distortion) -> tuple[float, float, float, float]:
             "Expected `distortion` to have 4 coefficients (k1, k2, p1, p2) as in "
             f"cv2.omnidir, got {arr.size}."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
     if not np.all(np.isfinite(arr)):
         msg = f"Expected `distortion` to be finite, got {arr.tolist()}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return tuple(float(a) for a in arr)  # type: ignore[return-value]
 
 
@@ -198,13 +199,13 @@ class UnifiedCamera:
         xi = _finite_real(self.xi, "xi")
         if xi < 0:
             msg = f"Expected `xi` >= 0 (0 pinhole, 1 parabolic mirror), got {xi!r}."
-            raise ValueError(msg)
+            raise InputError(msg)
         values = {"xi": xi}
         for name in ("fx", "fy"):
             value = _finite_real(getattr(self, name), name)
             if value <= 0:
                 msg = f"Expected `{name}` to be a focal length > 0 in pixels, got {value!r}."
-                raise ValueError(msg)
+                raise InputError(msg)
             values[name] = value
         for name in ("cx", "cy", "skew"):
             values[name] = _finite_real(getattr(self, name), name)
@@ -218,7 +219,7 @@ class UnifiedCamera:
                 ok = False
             if not ok:
                 msg = f"Expected `image_size` to be (width, height) positive integers, got {size!r}."
-                raise ValueError(msg)
+                raise InputError(msg)
             values["image_size"] = (w, h)
         for name, value in values.items():
             object.__setattr__(self, name, value)
@@ -258,13 +259,13 @@ class UnifiedCamera:
             K = np.asarray(K, dtype=np.float64)
         except (TypeError, ValueError) as exc:
             msg = f"Expected `K` to be a (3, 3) array of numbers: {exc}."
-            raise ValueError(msg) from exc
+            raise InputError(msg) from exc
         if K.shape != (3, 3):
             msg = f"Expected `K` to have shape (3, 3), got {K.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
             msg = f"Expected `K` to be upper triangular with last row [0, 0, 1], got {K.tolist()}."
-            raise ValueError(msg)
+            raise InputError(msg)
         xi = _scalar(xi)
         return cls(
             xi, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], D, image_size=image_size
@@ -282,10 +283,10 @@ class UnifiedCamera:
         """
         if not isinstance(data, dict):
             msg = f"Expected a mapping of camera parameters, got {type(data).__name__}."
-            raise ValueError(msg)
+            raise InputError(msg)
         if "xi" not in data:
             msg = f"Camera parameters lack the key 'xi'; keys found: {sorted(data)}."
-            raise ValueError(msg)
+            raise InputError(msg)
         size = data.get("image_size_wh", data.get("image_size"))
         k_key = next((k for k in _OPENCV_K_KEYS if k in data), None)
         if k_key is not None:
@@ -298,7 +299,7 @@ class UnifiedCamera:
                 f"Camera parameters lack {missing}; expected either fx, fy, cx, cy "
                 f"or an OpenCV camera matrix 'K'. Keys found: {sorted(data)}."
             )
-            raise ValueError(msg)
+            raise InputError(msg)
         return cls(
             _scalar(data["xi"]),
             data["fx"],
@@ -333,7 +334,7 @@ class UnifiedCamera:
             data = json.loads(path.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
             msg = f"`path` {str(path)!r} is not valid JSON: {exc}."
-            raise ValueError(msg) from exc
+            raise InputError(msg) from exc
         return cls.from_dict(data)
 
     #: Alias of :meth:`from_json`; the layout is detected from the keys.
@@ -554,7 +555,7 @@ class UnifiedCamera:
                 "invertible part of the distortion); pass return_mask=True to get NaN rows "
                 "and a validity mask instead."
             )
-            raise ValueError(msg)
+            raise InputError(msg)
         return pixels
 
     def lift(self, pixels: ArrayLike, *, return_mask: bool = False):
@@ -606,7 +607,7 @@ class UnifiedCamera:
                 "the undistortion fails); pass return_mask=True to get NaN rows and a "
                 "validity mask instead."
             )
-            raise ValueError(msg)
+            raise InputError(msg)
         return rays
 
 

@@ -25,6 +25,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from gatv._validation import as_points, check_positive
+from gatv.errors import InputError
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -50,12 +51,12 @@ def _read_pnm(path: Path) -> NDArray[np.float64]:
             pos += 1
         if start == pos:
             msg = f"`image` file {str(path)!r} has a truncated PNM header."
-            raise ValueError(msg)
+            raise InputError(msg)
         tokens.append(data[start:pos])
     magic = tokens[0]
     if magic not in (b"P2", b"P3", b"P5", b"P6"):
         msg = f"`image` file {str(path)!r} is not a PGM/PPM file (magic {magic!r})."
-        raise ValueError(msg)
+        raise InputError(msg)
     width, height, maxval = (int(t) for t in tokens[1:])
     channels = 3 if magic in (b"P3", b"P6") else 1
     count = width * height * channels
@@ -66,7 +67,7 @@ def _read_pnm(path: Path) -> NDArray[np.float64]:
         raw = np.array(data[pos:].split()[:count], dtype=np.int64)
     if raw.size != count:
         msg = f"`image` file {str(path)!r} holds {raw.size} samples, expected {count}."
-        raise ValueError(msg)
+        raise InputError(msg)
     img = raw.astype(np.float64).reshape(height, width, channels)
     return img[..., 0] if channels == 1 else img
 
@@ -96,7 +97,7 @@ def read_image(image) -> NDArray[np.float64]:
         path = Path(image)
         if not path.is_file():
             msg = f"`image` file {str(path)!r} does not exist."
-            raise ValueError(msg)
+            raise InputError(msg)
         suffix = path.suffix.lower()
         if suffix in (".pgm", ".ppm", ".pnm"):
             arr = _read_pnm(path)
@@ -112,23 +113,23 @@ def read_image(image) -> NDArray[np.float64]:
             arr = arr[..., 0] if ncomp == 1 else arr
         else:
             msg = f"`image` file {str(path)!r}: unsupported format {suffix!r} (use PNG, JPEG or PGM)."
-            raise ValueError(msg)
+            raise InputError(msg)
     else:
         try:
             arr = np.asarray(image, dtype=np.float64)
         except (TypeError, ValueError) as exc:
             msg = f"Expected `image` to be a 2D array of numbers or a path: {exc}."
-            raise ValueError(msg) from exc
+            raise InputError(msg) from exc
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
         arr = arr[..., :3] @ np.array([0.299, 0.587, 0.114])
     elif arr.ndim == 3 and arr.shape[2] in (1, 2):
         arr = arr[..., 0]
     if arr.ndim != 2:
         msg = f"Expected `image` to have shape (H, W) or (H, W, 3), got {arr.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if not np.all(np.isfinite(arr)):
         msg = "`image` contains NaN or infinite values."
-        raise ValueError(msg)
+        raise InputError(msg)
     return np.ascontiguousarray(arr)
 
 
@@ -198,7 +199,7 @@ def refine_corners(
     q0 = as_points(corners, "corners", min_points=0, dim=2)
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1:
         msg = f"Expected `window` to be an integer >= 1, got {window!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     check_positive(gradient_sigma, "gradient_sigma")
     gx = ndimage.gaussian_filter(img, gradient_sigma, order=(0, 1))
     gy = ndimage.gaussian_filter(img, gradient_sigma, order=(1, 0))
@@ -325,20 +326,20 @@ def detect_corners(
     img = read_image(image)
     if isinstance(max_corners, bool) or not isinstance(max_corners, numbers.Integral) or max_corners < 1:
         msg = f"Expected `max_corners` to be an integer >= 1, got {max_corners!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     min_distance = check_positive(min_distance, "min_distance")
     quality = check_positive(quality, "quality")
     if quality > 1:
         msg = f"Expected `quality` in (0, 1], got {quality!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     sigma = check_positive(sigma, "sigma")
     gradient_sigma = check_positive(gradient_sigma, "gradient_sigma")
     if method not in ("shi-tomasi", "harris"):
         msg = f"Expected `method` to be 'shi-tomasi' or 'harris', got {method!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1:
         msg = f"Expected `window` to be an integer >= 1, got {window!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     h, w = img.shape
 
     allowed = np.zeros((h, w), dtype=bool)
@@ -349,10 +350,10 @@ def detect_corners(
             u0, v0, u1, v1 = (float(x) for x in roi)
         except (TypeError, ValueError) as exc:
             msg = f"Expected `roi` to be (u_min, v_min, u_max, v_max), got {roi!r}."
-            raise ValueError(msg) from exc
+            raise InputError(msg) from exc
         if not (u0 <= u1 and v0 <= v1):
             msg = f"Expected `roi` with u_min <= u_max and v_min <= v_max, got {roi!r}."
-            raise ValueError(msg)
+            raise InputError(msg)
         box = np.zeros_like(allowed)
         box[max(int(np.ceil(v0)), 0) : max(int(np.floor(v1)) + 1, 0),
             max(int(np.ceil(u0)), 0) : max(int(np.floor(u1)) + 1, 0)] = True  # fmt: skip
@@ -361,7 +362,7 @@ def detect_corners(
         m = np.asarray(mask)
         if m.shape != (h, w):
             msg = f"Expected `mask` to have the image's shape {(h, w)}, got {m.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         allowed &= m.astype(bool)
     if not allowed.any():
         return np.empty((0, 2))

@@ -95,9 +95,9 @@ from __future__ import annotations
 
 import math
 import numbers
-from itertools import combinations
 import time
 from dataclasses import dataclass, field
+from itertools import combinations
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -105,8 +105,9 @@ from scipy.spatial import cKDTree
 from scipy.stats import poisson
 
 from catadioptric.camera import UnifiedCamera
-from gatv.candidates import one_to_one
 from gatv._validation import frozen_array as _frozen
+from gatv.candidates import one_to_one
+from gatv.errors import InputError
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -232,33 +233,33 @@ class SphereMatch:
 def _check_pixels(pixels, name: str) -> NDArray[np.float64]:
     if pixels is None:
         msg = f"Expected `{name}` to be an (N, 2) array of pixels, got None."
-        raise ValueError(msg)
+        raise InputError(msg)
     try:
         arr = np.asarray(pixels, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         msg = f"Expected `{name}` to be an (N, 2) array of numbers: {exc}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if arr.ndim != 2 or arr.shape[1] != 2:
         msg = f"Expected `{name}` to have shape (N, 2), got {arr.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return np.ascontiguousarray(arr)
 
 
 def _check_camera(camera, name: str) -> UnifiedCamera:
     if not isinstance(camera, UnifiedCamera):
         msg = f"Expected `{name}` to be a catadioptric.UnifiedCamera, got {type(camera).__name__}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return camera
 
 
 def _check_real(value, name: str, *, low: float = 0.0, allow_zero: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         msg = f"Expected `{name}` to be a finite number, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     value = float(value)
     if value < low or (value == low and not allow_zero):
         msg = f"Expected `{name}` {'>=' if allow_zero else '>'} {low}, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return value
 
 
@@ -730,10 +731,10 @@ def match(
     rigid_share = _check_real(rigid_share, "rigid_share")
     if strategy not in ("auto", "rigid", "local", "nonrigid", "epipolar"):
         msg = f"Expected `strategy` to be 'auto', 'rigid', 'local' or 'nonrigid', got {strategy!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
         msg = f"Expected `seed` to be an integer >= 0, got {seed!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
 
     r1, index1 = _lift(camera1, p1)
     r2, index2 = _lift(camera2, p2)

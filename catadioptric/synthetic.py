@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from catadioptric.camera import UnifiedCamera
+from gatv.errors import InputError
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -94,14 +95,14 @@ class SyntheticViews:
 def _int_at_least(value, name, low):
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
         msg = f"Expected `{name}` to be an integer >= {low}, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return int(value)
 
 
 def _real(value, name, low=-math.inf, high=math.inf, *, low_open=False, high_open=False):
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         msg = f"Expected `{name}` to be a finite number, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     value = float(value)
     bad_low = value <= low if low_open else value < low
     bad_high = value >= high if high_open else value > high
@@ -109,7 +110,7 @@ def _real(value, name, low=-math.inf, high=math.inf, *, low_open=False, high_ope
         lo = "(" if low_open else "["
         hi = ")" if high_open else "]"
         msg = f"Expected `{name}` in {lo}{low}, {high}{hi}, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return value
 
 
@@ -118,10 +119,10 @@ def _vector3(value, name):
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         msg = f"Expected `{name}` to be 3 numbers: {exc}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
         msg = f"Expected `{name}` to be 3 finite numbers, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return arr
 
 
@@ -274,21 +275,21 @@ def synthetic_views(
         a, b, floor, ceiling = (float(v) for v in np.asarray(room, dtype=np.float64).ravel())
     except (TypeError, ValueError) as exc:
         msg = f"Expected `room` to be 4 positive numbers (a, b, floor, ceiling), got {room!r}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if not all(math.isfinite(v) and v > 0 for v in (a, b, floor, ceiling)):
         msg = f"Expected `room` to be 4 positive numbers (a, b, floor, ceiling), got {room!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     if camera is None:
         camera = _default_camera(_real(xi, "xi", 0.0), max_angle)
     elif not isinstance(camera, UnifiedCamera):
         msg = f"Expected `camera` to be a UnifiedCamera, got {type(camera).__name__}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if camera2 is None:
         camera2 = camera
     elif not isinstance(camera2, UnifiedCamera):
         msg = f"Expected `camera2` to be a UnifiedCamera, got {type(camera2).__name__}."
-        raise ValueError(msg)
+        raise InputError(msg)
 
     if axis is None:
         axis_v = rng.normal(size=3)
@@ -296,7 +297,7 @@ def synthetic_views(
         axis_v = _vector3(axis, "axis")
     if not np.linalg.norm(axis_v) > 0:
         msg = f"Expected `axis` to be a non-zero vector, got {axis!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     axis_v = axis_v / np.linalg.norm(axis_v)
     R = Rotation.from_rotvec(math.radians(rotation_deg) * axis_v).as_matrix()
     centre2 = -R.T @ t
@@ -307,7 +308,7 @@ def synthetic_views(
             f"Camera 2's centre -R.T @ t = {np.round(centre2, 3).tolist()} lies outside the "
             f"room {room!r}; use a smaller `translation` or a larger `room`."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
 
     # Scene: rays of camera 1 hit the walls of the (convex) room, which both
     # cameras are inside of, so every point is unoccluded in both views.

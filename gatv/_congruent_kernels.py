@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ._fit_kernels import kabsch3
+
 
 @njit(cache=True)
 def pair_table(points):
@@ -84,33 +86,6 @@ def _dist(p, i, q, j):
     dy = p[i, 1] - q[j, 1]
     dz = p[i, 2] - q[j, 2]
     return np.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@njit(cache=True)
-def kabsch3(src, dst):
-    """Least-squares rotation and translation with ``dst ≈ R src + t``."""
-    cs = np.zeros(3)
-    cd = np.zeros(3)
-    n = src.shape[0]
-    for i in range(n):
-        for k in range(3):
-            cs[k] += src[i, k]
-            cd[k] += dst[i, k]
-    cs /= n
-    cd /= n
-    H = np.zeros((3, 3))
-    for i in range(n):
-        for r in range(3):
-            for c in range(3):
-                H[r, c] += (src[i, r] - cs[r]) * (dst[i, c] - cd[c])
-    U, S, Vt = np.linalg.svd(H)
-    R = Vt.T @ U.T
-    if np.linalg.det(R) < 0:
-        for r in range(3):
-            Vt[2, r] = -Vt[2, r]
-        R = Vt.T @ U.T
-    t = cd - R @ cs
-    return R, t
 
 
 # ------------------------------------------------------------------ grid

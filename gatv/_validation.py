@@ -10,6 +10,8 @@ import numbers
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = [
     "frozen_array",
     "as_points",
@@ -17,6 +19,11 @@ __all__ = [
     "check_positive",
     "check_finite_array",
     "check_memory",
+    "check_int",
+    "check_fraction",
+    "as_rng",
+    "check_progress",
+    "seed_int",
     "DEFAULT_MEMORY_BUDGET",
 ]
 
@@ -44,7 +51,7 @@ def _memory_budget(budget: float | None) -> float:
             return float(env)
         except ValueError as exc:  # pragma: no cover - defensive
             msg = f"GATV_MEMORY_BUDGET must be a number of bytes, got {env!r}."
-            raise ValueError(msg) from exc
+            raise InputError(msg) from exc
     return float(DEFAULT_MEMORY_BUDGET)
 
 
@@ -69,7 +76,7 @@ def check_memory(nbytes: float, what: str, budget: float | None = None) -> None:
             "prune candidate pairs) or raise the budget with `memory_budget=` "
             "or the GATV_MEMORY_BUDGET environment variable (bytes)."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
 
 
 def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarray:
@@ -86,23 +93,23 @@ def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarra
     """
     if obj is None:
         msg = f"Expected `{name}` to be an (N, {dim}) array of points, got None."
-        raise ValueError(msg)
+        raise InputError(msg)
     if hasattr(obj, "points") and not isinstance(obj, np.ndarray):
         obj = obj.points
     try:
         arr = np.asarray(obj, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         msg = f"Expected `{name}` to be an (N, {dim}) array of numbers: {exc}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if arr.ndim != 2 or arr.shape[1] != dim:
         msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if arr.shape[0] < min_points:
         msg = (
             f"Expected `{name}` to have at least {min_points} point"
             f"{'s' if min_points != 1 else ''}, got {arr.shape[0]}."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
     check_finite_array(arr, name)
     return np.ascontiguousarray(arr)
 
@@ -112,7 +119,7 @@ def as_vectors(obj, name: str, n: int) -> np.ndarray:
     arr = as_points(obj, name, min_points=0)
     if arr.shape[0] != n:
         msg = f"Expected `{name}` to have {n} rows to match the tokens, got {arr.shape[0]}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return arr
 
 
@@ -124,7 +131,7 @@ def check_finite_array(arr: np.ndarray, name: str) -> None:
             f"`{name}` contains {bad} NaN or infinite value{'s' if bad != 1 else ''}; "
             "remove or replace them before calling."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
 
 
 def check_positive(value, name: str, *, allow_none: bool = False) -> float | None:
@@ -133,9 +140,69 @@ def check_positive(value, name: str, *, allow_none: bool = False) -> float | Non
         return None
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         msg = f"Expected `{name}` to be a positive number, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     value = float(value)
     if not np.isfinite(value) or value <= 0:
         msg = f"Expected `{name}` to be a finite number > 0, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return value
+
+
+def check_int(value, name: str, minimum: int, *, allow_none: bool = False) -> int | None:
+    """Return ``value`` as an ``int >= minimum`` (or ``None`` when allowed), else raise."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < minimum:
+        tail = " or None" if allow_none else ""
+        msg = f"Expected `{name}` to be an integer >= {minimum}{tail}, got {value!r}."
+        raise InputError(msg)
+    return int(value)
+
+
+def check_fraction(value, name: str, *, low: float = 0.0, high: float = 1.0,
+                   open_low: bool = True, open_high: bool = False) -> float:
+    """Return ``value`` as a float in the interval ``(low, high]`` (ends as asked), else raise."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and np.isfinite(float(value))
+    if ok:
+        v = float(value)
+        ok = (v > low if open_low else v >= low) and (v < high if open_high else v <= high)
+    if not ok:
+        interval = f"{'(' if open_low else '['}{low:g}, {high:g}{')' if open_high else ']'}"
+        msg = f"Expected `{name}` in {interval}, got {value!r}."
+        raise InputError(msg)
+    return float(value)
+
+
+def as_rng(seed, name: str = "seed") -> np.random.Generator:
+    """A :class:`numpy.random.Generator` from ``seed``.
+
+    ``seed`` is a non-negative integer (same seed, same result) or a
+    ``Generator``, used as it is (its state advances).
+    """
+    if isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or int(seed) < 0:
+        msg = (f"Expected `{name}` to be a non-negative integer or a numpy.random.Generator, "
+               f"got {seed!r}.")
+        raise InputError(msg)
+    return np.random.default_rng(int(seed))
+
+
+def seed_int(seed, name: str = "seed") -> int:
+    """An integer seed from ``seed`` (an int, or a ``Generator`` that draws one).
+
+    For stages that hand an integer to several independent sub-steps.
+    """
+    if isinstance(seed, np.random.Generator):
+        return int(seed.integers(0, 2**63 - 1))
+    return int(check_int(seed, name, 0))
+
+
+def check_progress(progress, name: str = "progress"):
+    """``progress`` as a callable ``(fraction, message)``; ``None`` gives a no-op."""
+    if progress is None:
+        return lambda fraction, message="": None
+    if not callable(progress):
+        msg = f"Expected `{name}` to be a callable progress(fraction, message) or None, got {progress!r}."
+        raise InputError(msg)
+    return progress

@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from ._validation import as_points, check_positive
+from .errors import InputError
 from .motion import RigidMotion, fit_rigid
 
 __all__ = ["fitzgibbon_icp", "icp", "median_spacing", "closest_pairs"]
@@ -101,7 +102,7 @@ def _init_motion(init) -> tuple[np.ndarray, np.ndarray]:
         R = t = None
     if R is None or R.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(t).all()):
         msg = "Expected `init` to be None, a RigidMotion or a (rotation (3, 3), translation (3,)) pair."
-        raise ValueError(msg)
+        raise InputError(msg)
     return R, t
 
 
@@ -237,7 +238,7 @@ def fitzgibbon_icp(
     tgt = as_points(target, "target", min_points=3)
     if loss not in _LOSSES:
         msg = f"Expected `loss` to be one of {_LOSSES}, got {loss!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     spacing = median_spacing(tgt)
     c = check_positive(scale, "scale", allow_none=True) or 0.1 * spacing
     threshold = check_positive(match_threshold, "match_threshold", allow_none=True) or 0.5 * spacing

@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .motion import rotation_angle_deg
 from ._validation import frozen_array as _frozen
+from .errors import InputError
+from .motion import rotation_angle_deg
 
 __all__ = [
     "Trial",
@@ -111,17 +112,17 @@ def _check_fraction(value) -> float:
         f = float(value)
     except (TypeError, ValueError):
         msg = f"Expected `outlier_fraction` to be a number in [0, 1), got {value!r}."
-        raise ValueError(msg) from None
+        raise InputError(msg) from None
     if not (0.0 <= f < 1.0):
         msg = f"Expected `outlier_fraction` to be in [0, 1), got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return f
 
 
 def _check_count(value, name: str, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         msg = f"Expected `{name}` to be an integer >= {minimum}, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return int(value)
 
 
@@ -194,7 +195,7 @@ def synthetic_trial(
     n = _check_count(n_inliers, "n_inliers", 3)
     if seed is None:
         msg = "Pass `seed` (an int or a numpy Generator) so that the trial is reproducible."
-        raise ValueError(msg)
+        raise InputError(msg)
     rng = np.random.default_rng(seed)
     half = 0.5 * float(cube_size)
     n_out = outlier_count(f, n)
@@ -296,11 +297,11 @@ def _as_pairs(pairs, name: str) -> np.ndarray:
         return np.empty((0, 2), np.int64)
     if arr.ndim != 2 or arr.shape[1] != 2:
         msg = f"Expected `{name}` to have shape (K, 2), got {arr.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if arr.dtype.kind not in "iu":
         if arr.dtype.kind != "f" or not np.all(arr == np.round(arr)):
             msg = f"Expected `{name}` to hold integer indices, got dtype {arr.dtype}."
-            raise ValueError(msg)
+            raise InputError(msg)
     return arr.astype(np.int64)
 
 
@@ -358,7 +359,7 @@ def paper_success(found_pairs, true_pairs, *, threshold: float = 0.5) -> bool:
     found = np.unique(_as_pairs(found_pairs, "found_pairs"), axis=0)
     if len(np.unique(found[:, 0])) != len(found) or len(np.unique(found[:, 1])) != len(found):
         msg = "Expected `found_pairs` to be one-to-one (each source and target index at most once)."
-        raise ValueError(msg)
+        raise InputError(msg)
     return correspondence_stats(found, true_pairs)[1] >= threshold
 
 
@@ -368,7 +369,7 @@ def rotation_error_deg(R_est, R_true) -> float:
     b = np.asarray(R_true, dtype=np.float64)
     if a.shape != (3, 3) or b.shape != (3, 3):
         msg = f"Expected `R_est` and `R_true` of shape (3, 3), got {a.shape} and {b.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return rotation_angle_deg(a @ b.T)
 
 
@@ -378,7 +379,7 @@ def translation_error(t_est, t_true) -> float:
     b = np.asarray(t_true, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or b.shape != (3,):
         msg = f"Expected `t_est` and `t_true` with 3 entries, got {a.shape} and {b.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return float(np.linalg.norm(a - b))
 
 
@@ -527,7 +528,7 @@ def demo_mesh(name: str = "ant") -> np.ndarray:
     """
     if name not in DEMO_MESHES:
         msg = f"Expected `name` to be one of {DEMO_MESHES}, got {name!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     from pyvista import examples
 
     from .io import read_points

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validation import as_points
+from .errors import InputError
 
 __all__ = [
     "Rotor",
@@ -57,6 +58,7 @@ __all__ = [
     "JOINT_SPACE_NAMES",
     "pair_differences",
     "eq41",
+    "eq41_length_residual",
     "eq41_residual",
 ]
 
@@ -110,7 +112,7 @@ def _normalise(q: np.ndarray) -> np.ndarray:
     n = float(np.linalg.norm(q))
     if not np.isfinite(n) or n < 1e-12:
         msg = f"A rotor needs a non-zero finite norm, got |q| = {n!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     q = q / n
     # Canonical sign: q0 > 0; for half-turns (q0 ~ 0) the first clearly
     # non-zero bivector coefficient is made positive.
@@ -151,9 +153,9 @@ class Rotor:
         q = np.array(self.q, dtype=np.float64).reshape(-1)
         if q.shape != (4,):
             msg = f"Expected `q` to have 4 components (q0, qx, qy, qz), got {q.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         if not np.all(np.isfinite(q)):
-            raise ValueError("`q` contains NaN or infinite values.")
+            raise InputError("`q` contains NaN or infinite values.")
         q = _normalise(q)
         q.setflags(write=False)
         object.__setattr__(self, "q", q)
@@ -178,13 +180,13 @@ class Rotor:
         a = np.asarray(axis, dtype=np.float64).reshape(-1)
         if a.shape != (3,) or not np.all(np.isfinite(a)):
             msg = f"Expected `axis` to be 3 finite numbers, got {np.asarray(axis)!r}."
-            raise ValueError(msg)
+            raise InputError(msg)
         n = np.linalg.norm(a)
         if n < 1e-15:
-            raise ValueError("Expected `axis` to be non-zero.")
+            raise InputError("Expected `axis` to be non-zero.")
         angle = float(angle)
         if not np.isfinite(angle):
-            raise ValueError(f"Expected `angle` to be finite, got {angle!r}.")
+            raise InputError(f"Expected `angle` to be finite, got {angle!r}.")
         a = a / n
         return cls(np.concatenate([[np.cos(angle / 2)], -np.sin(angle / 2) * a]))
 
@@ -206,7 +208,7 @@ class Rotor:
         h = np.asarray(quat, dtype=np.float64).reshape(-1)
         if h.shape != (4,):
             msg = f"Expected `quat` to have 4 components, got {h.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         if not scalar_first:
             h = np.array([h[3], h[0], h[1], h[2]])
         return cls(np.array([h[0], -h[1], -h[2], -h[3]]))
@@ -219,9 +221,9 @@ class Rotor:
         m = np.asarray(matrix, dtype=np.float64)
         if m.shape != (3, 3) or not np.all(np.isfinite(m)):
             msg = f"Expected `matrix` to be a finite (3, 3) array, got shape {m.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         if np.linalg.det(m) < 0:
-            raise ValueError("Expected `matrix` to be a rotation (det +1), got a reflection.")
+            raise InputError("Expected `matrix` to be a rotation (det +1), got a reflection.")
         return cls.from_scipy(Rotation.from_matrix(m))
 
     @classmethod
@@ -229,7 +231,7 @@ class Rotor:
         """From a single ``scipy.spatial.transform.Rotation``."""
         quat = np.asarray(rotation.as_quat(), dtype=np.float64)
         if quat.shape != (4,):
-            raise ValueError("Expected a single scipy Rotation, got a stack.")
+            raise InputError("Expected a single scipy Rotation, got a stack.")
         return cls.from_quaternion(quat, scalar_first=False)
 
     # ---------------------------------------------------------------- export
@@ -326,7 +328,7 @@ def pair_differences(source, target) -> tuple[np.ndarray, np.ndarray]:
             f"Expected `source` and `target` to hold the same number of paired "
             f"points, got {x.shape[0]} and {xp.shape[0]}."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
     return xp - x, xp + x
 
 
@@ -375,7 +377,7 @@ def joint_space_planes(rotor: Rotor, translation) -> np.ndarray:
     """
     t = np.asarray(translation, dtype=np.float64).reshape(-1)
     if t.shape != (3,) or not np.all(np.isfinite(t)):
-        raise ValueError(f"Expected `translation` to be 3 finite numbers, got {t!r}.")
+        raise InputError(f"Expected `translation` to be 3 finite numbers, got {t!r}.")
     p0, px, py, pz = rotor.reverse().q
     tx, ty, tz = t
     return np.array(
@@ -444,6 +446,23 @@ def eq41_residual(d_i, s_i, d_j, s_j, axis, *, normalize: str = "length") -> np.
         den = den * np.linalg.norm(V, axis=-1)
     elif normalize != "length":
         msg = f"Expected `normalize` to be 'length', 'angle' or 'none', got {normalize!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(den > 0, r / np.where(den > 0, den, 1.0), 0.0)
+
+
+def eq41_length_residual(d_i, s_i, d_j, s_j) -> np.ndarray:
+    """The length half of eq. 41, ``|V · Vs| / |Vs|``, which needs no axis.
+
+    ``V · Vs = |Δx'|² - |Δx|²`` vanishes when the pair distance is kept
+    (Fig. 2 b/e); divided by ``|Vs|`` it is in the data's length unit.
+    Pairs with ``|Vs| = 0`` give ``|V · Vs|`` (that is, 0 for ``V = 0``).
+
+    Returns
+    -------
+    (N,) ndarray
+    """
+    V = np.asarray(d_i, dtype=np.float64) - np.asarray(d_j, dtype=np.float64)
+    Vs = np.asarray(s_i, dtype=np.float64) - np.asarray(s_j, dtype=np.float64)
+    nvs = np.linalg.norm(Vs, axis=-1)
+    return np.abs(np.einsum("...i,...i->...", V, Vs)) / np.where(nvs > 0, nvs, 1.0)

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = [
     "PointFileError",
     "read_points",
@@ -58,7 +60,7 @@ READ_EXTENSIONS = (*_PYVISTA_READ, *_TEXT, ".npy")
 WRITE_EXTENSIONS = (*_PYVISTA_WRITE, *_TEXT, ".npy")
 
 
-class PointFileError(ValueError):
+class PointFileError(InputError):
     """A point file is missing, of an unknown kind, unreadable or invalid.
 
     A subclass of :class:`ValueError`; the message names the path.

@@ -11,15 +11,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validation import as_points
-from .ga import Rotor
 from ._validation import frozen_array as _frozen
+from .errors import InputError
+from .fitting import fit_rigid
+from .ga import Rotor
+from .models.base import Motion, homogeneous
 
 __all__ = ["RigidMotion", "fit_rigid", "rotation_angle_deg"]
 
 
 @dataclass(frozen=True, eq=False)
-class RigidMotion:
+class RigidMotion(Motion):
     """A rigid motion with the correspondences that support it.
 
     Attributes
@@ -44,6 +46,8 @@ class RigidMotion:
     whose ``info["reason"]`` says why.
     """
 
+    model = "rigid"
+
     rotation: np.ndarray
     translation: np.ndarray
     correspondences: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
@@ -54,39 +58,42 @@ class RigidMotion:
     def __post_init__(self):
         rot = np.asarray(self.rotation, dtype=np.float64)
         if rot.shape != (3, 3):
-            raise ValueError(f"Expected `rotation` to have shape (3, 3), got {rot.shape}.")
+            raise InputError(f"Expected `rotation` to have shape (3, 3), got {rot.shape}.")
         t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
         if t.shape != (3,):
-            raise ValueError(f"Expected `translation` to have 3 entries, got {t.shape}.")
+            raise InputError(f"Expected `translation` to have 3 entries, got {t.shape}.")
         c = np.asarray(self.correspondences, dtype=np.int64).reshape(-1, 2)
         object.__setattr__(self, "rotation", _frozen(rot))
         object.__setattr__(self, "translation", _frozen(t))
         object.__setattr__(self, "correspondences", _frozen(c, np.int64))
 
+    @classmethod
+    def from_matrix(cls, matrix, correspondences=None, *, score: float = 0.0,
+                    rms: float = float("nan"), info: dict | None = None) -> RigidMotion:
+        """From a 4×4 homogeneous matrix whose upper-left block is a rotation."""
+        T = np.asarray(matrix, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise InputError(f"Expected `matrix` to have shape (4, 4), got {T.shape}.")
+        pairs = np.empty((0, 2), np.int64) if correspondences is None else correspondences
+        return cls(T[:3, :3], T[:3, 3], pairs, score, rms, {} if info is None else info)
+
     # ------------------------------------------------------------- derived
+    @property
+    def matrix(self) -> np.ndarray:
+        """4×4 homogeneous matrix, ``p_target = T @ [p_source, 1]``."""
+        return homogeneous(self.rotation, self.translation)
+
     @property
     def rotor(self) -> np.ndarray:
         """``(q0, qx, qy, qz)`` of the rotor ``R = q0 + qx e23 + qy e31 + qz e12``."""
         return Rotor.from_matrix(self.rotation).q.copy()
 
     @property
-    def support(self) -> int:
-        return int(self.correspondences.shape[0])
-
-    @property
     def angle_deg(self) -> float:
         """Rotation angle in degrees."""
         return rotation_angle_deg(self.rotation)
 
-    def __bool__(self) -> bool:
-        return self.support > 0
-
     # ---------------------------------------------------------- operations
-    def transform(self, points) -> np.ndarray:
-        """Move source points: ``points @ rotation.T + translation``."""
-        p = as_points(points, "points", min_points=0)
-        return p @ self.rotation.T + self.translation
-
     def inverse(self) -> RigidMotion:
         """The motion from target to source, with swapped correspondences."""
         rot = self.rotation.T
@@ -99,24 +106,14 @@ class RigidMotion:
             info=dict(self.info),
         )
 
-    def as_matrix(self) -> np.ndarray:
-        """4×4 homogeneous matrix, ``p_target = T @ [p_source, 1]``."""
-        T = np.eye(4)
-        T[:3, :3] = self.rotation
-        T[:3, 3] = self.translation
-        return T
-
     def to_dict(self) -> dict:
         """JSON-friendly dictionary."""
         return {
+            **super().to_dict(),
             "rotation": self.rotation.tolist(),
             "translation": self.translation.tolist(),
             "rotor": self.rotor.tolist(),
             "angle_deg": self.angle_deg,
-            "correspondences": self.correspondences.tolist(),
-            "support": self.support,
-            "score": float(self.score),
-            "rms": float(self.rms),
         }
 
     def __repr__(self) -> str:
@@ -133,37 +130,3 @@ def rotation_angle_deg(rotation) -> float:
     c = (np.trace(r) - 1.0) / 2.0
     s = 0.5 * np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     return float(np.degrees(np.arctan2(s, c)))
-
-
-def fit_rigid(source, target, weights=None) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid motion between paired rows (Kabsch/Horn).
-
-    Parameters
-    ----------
-    source, target : (K, 3) array_like
-        Paired points, ``K >= 3`` and not all collinear for a unique answer.
-    weights : (K,) array_like, optional
-        Non-negative weights.
-
-    Returns
-    -------
-    rotation : (3, 3) ndarray
-    translation : (3,) ndarray
-        Minimisers of ``sum w |R x + t - x'|^2``.
-    """
-    x = as_points(source, "source", min_points=1)
-    y = as_points(target, "target", min_points=1)
-    if x.shape != y.shape:
-        raise ValueError(f"`source` and `target` must be paired, got {x.shape} and {y.shape}.")
-    w = np.ones(len(x)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (len(x),) or np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
-        raise ValueError("Expected `weights` to be non-negative, finite, not all zero, one per pair.")
-    w = w / w.sum()
-    cx = w @ x
-    cy = w @ y
-    H = (x - cx).T @ ((y - cy) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    D = np.diag([1.0, 1.0, d if d != 0 else 1.0])
-    R = Vt.T @ D @ U.T
-    return R, cy - R @ cx

@@ -52,6 +52,7 @@ from scipy.spatial import cKDTree
 from ._validation import as_points, check_positive
 from .candidates import bounded_pairs, median_spacing, one_to_one
 from .congruent import TargetIndex, chance_support, n_triples_needed, trial_motions
+from .errors import InputError
 from .ga import eq41_residual
 from .motion import RigidMotion, fit_rigid
 
@@ -65,9 +66,9 @@ def _check_not_degenerate(points: np.ndarray, name: str) -> None:
     c = points - points.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
     if s[0] <= 1e-12 * max(1.0, float(np.abs(points).max())):
-        raise ValueError(f"All points of `{name}` are identical; a rigid motion needs 3 non-collinear points.")
+        raise InputError(f"All points of `{name}` are identical; a rigid motion needs 3 non-collinear points.")
     if s[1] <= 1e-9 * s[0]:
-        raise ValueError(f"All points of `{name}` are collinear; a rigid motion needs 3 non-collinear points.")
+        raise InputError(f"All points of `{name}` are collinear; a rigid motion needs 3 non-collinear points.")
 
 
 def _gate(tol: float) -> float:
@@ -403,13 +404,13 @@ def register(
     P = _Problem(source, target)
     noise = check_positive(noise, "noise", allow_none=True)
     if not (0.0 < float(min_inlier_share) <= 1.0):
-        raise ValueError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
+        raise InputError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
     if not (0.0 < float(confidence) < 1.0):
-        raise ValueError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
+        raise InputError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
     if sigma is not None:
         sigma = check_positive(sigma, "sigma")
     if int(max_candidates) < 1:
-        raise ValueError(f"Expected `max_candidates` >= 1, got {max_candidates!r}.")
+        raise InputError(f"Expected `max_candidates` >= 1, got {max_candidates!r}.")
     max_candidates = int(max_candidates)
     levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
     report = progress if progress is not None else (lambda f, m: None)
@@ -418,14 +419,14 @@ def register(
     if max_angle is not None:
         ang = check_positive(max_angle, "max_angle")
         if ang > 180.0:
-            raise ValueError(f"Expected `max_angle` in degrees, at most 180, got {ang!r}.")
+            raise InputError(f"Expected `max_angle` in degrees, at most 180, got {ang!r}.")
         mt = check_positive(max_translation, "max_translation", allow_none=True)
         info["mode"] = "bounded"
         out = _bounded(P, np.radians(ang), mt, levels, sigma, refine, memory_budget, info)
         info["time_s"] = time.perf_counter() - t_start
         return out if out is not None else _failure("no plane with support above chance", info)
     if max_translation is not None:
-        raise ValueError("`max_translation` needs `max_angle` (the small-motion mode).")
+        raise InputError("`max_translation` needs `max_angle` (the small-motion mode).")
 
     info["mode"] = "congruent-triples"
     rng = np.random.default_rng(seed)

@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ._validation import as_points
+from .errors import InputError
 
 if TYPE_CHECKING:  # pragma: no cover
     import pyvista
@@ -208,10 +209,10 @@ def _check_size(size) -> tuple[int, int]:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):
         msg = f"Expected `size` to be (width, height) in pixels, got {size!r}."
-        raise ValueError(msg) from None
+        raise InputError(msg) from None
     if w < 16 or h < 16:
         msg = f"Expected `size` of at least (16, 16) pixels, got {size!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return w, h
 
 
@@ -284,7 +285,7 @@ def add_correspondences(plotter, source, target, pairs=None, *, color: str = LIN
     if pairs is None:
         if s.shape != t.shape:
             msg = f"Without `pairs`, `source` and `target` must be paired, got {s.shape} and {t.shape}."
-            raise ValueError(msg)
+            raise InputError(msg)
         a, b = s, t
     else:
         c = _as_pairs(pairs, s.shape[0], t.shape[0])
@@ -304,11 +305,11 @@ def _as_pairs(pairs, n_source: int, n_target: int) -> np.ndarray:
         return np.empty((0, 2), np.int64)
     if c.ndim != 2 or c.shape[1] != 2 or c.dtype.kind not in "iu":
         msg = f"Expected `pairs` to be a (K, 2) integer array, got shape {c.shape} and dtype {c.dtype}."
-        raise ValueError(msg)
+        raise InputError(msg)
     c = c.astype(np.int64)
     if (c < 0).any() or (c[:, 0] >= n_source).any() or (c[:, 1] >= n_target).any():
         msg = f"`pairs` index past the points ({n_source} source, {n_target} target)."
-        raise ValueError(msg)
+        raise InputError(msg)
     return c
 
 
@@ -348,7 +349,7 @@ def add_tokens(plotter, tokens, saliency=None, *, title: str = "saliency", cmap:
     s = np.asarray(saliency, dtype=np.float64).reshape(-1)
     if s.shape[0] != p.shape[0] or not np.all(np.isfinite(s)):
         msg = f"Expected `saliency` to hold {p.shape[0]} finite values, got shape {np.shape(saliency)}."
-        raise ValueError(msg)
+        raise InputError(msg)
     cloud = pv.PolyData(p)
     cloud[title] = s
     fs = _font_size(plotter, 13.0)
@@ -387,7 +388,7 @@ def add_normals(plotter, points, normals, *, scale: float | None = None, color: 
     n = as_points(normals, "normals", min_points=0)
     if n.shape != p.shape:
         msg = f"Expected `normals` to have shape {p.shape}, got {n.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     length = np.linalg.norm(n, axis=1)
     keep = length > 0
     if not keep.any():
@@ -438,7 +439,7 @@ def fit_plane(tokens, normal=None, offset: float | None = None):
         nrm = np.asarray(normal, dtype=np.float64).reshape(-1)
         if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) == 0:
             msg = f"Expected `normal` to be 3 finite numbers, not all zero, got {normal!r}."
-            raise ValueError(msg)
+            raise InputError(msg)
         nrm = nrm / np.linalg.norm(nrm)
     off = float(c @ nrm) if offset is None else float(offset)
     center = c - (c @ nrm - off) * nrm
@@ -547,7 +548,7 @@ def add_surface(plotter, tokens, scalars=None, *, color: str = PALETTE[0], title
     s = np.asarray(scalars, dtype=np.float64).reshape(-1)
     if s.shape[0] != p.shape[0]:
         msg = f"Expected `scalars` to hold {p.shape[0]} values, got {s.shape[0]}."
-        raise ValueError(msg)
+        raise InputError(msg)
     mesh[title] = s
     fs = _font_size(plotter, 13.0)
     bar = {"title": title, "color": "black", "vertical": True, "position_x": 0.87, "position_y": 0.1,
@@ -669,7 +670,7 @@ def add_legend(plotter, *, loc: str = "upper right"):
     corners = {"upper right": (1, 1), "upper left": (0, 1), "lower right": (1, 0), "lower left": (0, 0)}
     if loc not in corners:
         msg = f"Expected `loc` to be one of {sorted(corners)}, got {loc!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     pw, ph = _panel_px(plotter)
     n = len(labels)
     longest = max(len(text) for _, text, _ in labels.values())
@@ -696,7 +697,7 @@ def _grey(image, name: str) -> np.ndarray:
         a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
     if a.ndim != 2 or min(a.shape) < 2 or not np.all(np.isfinite(a)):
         msg = f"Expected `{name}` to be a finite (H, W) grey or (H, W, 3) colour image, got shape {np.shape(image)}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return a
 
 
@@ -706,7 +707,7 @@ def _pixels(pixels, name: str) -> np.ndarray:
         return np.empty((0, 2))
     if p.ndim != 2 or p.shape[1] != 2:
         msg = f"Expected `{name}` to have shape (N, 2), got {p.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return p
 
 
@@ -757,7 +758,7 @@ def add_image_pair(plotter, image1, image2, pixels1, pixels2, pairs=None, *, rig
     ok = np.ones(c.shape[0], bool) if right is None else np.asarray(right, bool).reshape(-1)
     if ok.shape[0] != c.shape[0]:
         msg = f"Expected `right` to hold {c.shape[0]} flags, got {ok.shape[0]}."
-        raise ValueError(msg)
+        raise InputError(msg)
     h = max(a.shape[0], b.shape[0])
     dx = float(a.shape[1] + gap)
     w = dx + b.shape[1]

@@ -36,6 +36,7 @@ from . import registration as _reg
 from ._validation import as_points, check_positive
 from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
+from .errors import InputError
 from .motion import RigidMotion
 
 __all__ = ["register_scans", "voxel_downsample", "surface_points", "refine_point_to_plane"]
@@ -206,9 +207,9 @@ def register_scans(
         _reg._check_not_degenerate(arr, name)
     report = progress if progress is not None else (lambda f, m: None)
     if int(n_points) < 10:
-        raise ValueError(f"Expected `n_points` >= 10, got {n_points!r}.")
+        raise InputError(f"Expected `n_points` >= 10, got {n_points!r}.")
     if not (0.0 < float(min_overlap) <= 1.0):
-        raise ValueError(f"Expected `min_overlap` in (0, 1], got {min_overlap!r}.")
+        raise InputError(f"Expected `min_overlap` in (0, 1], got {min_overlap!r}.")
     info: dict = {"mode": "scans"}
 
     report(0.0, "surface tokens")

@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..ga import Rotor
 from .._validation import frozen_array as _frozen
+from ..errors import InputError
+from ..ga import Rotor
 
 __all__ = ["MotionScene", "multi_motion_scene", "fig12_scene"]
 
@@ -61,13 +62,13 @@ def multi_motion_scene(rotations, translations, sizes, *, n_outliers: int = 0, c
     seed : int or numpy.random.Generator
     """
     if seed is None:
-        raise ValueError("Pass `seed` so that the scene is reproducible.")
+        raise InputError("Pass `seed` so that the scene is reproducible.")
     rng = np.random.default_rng(seed)
     rots = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
     ts = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
     sizes = [int(s) for s in sizes]
     if not (len(rots) == len(ts) == len(sizes)):
-        raise ValueError("Expected one rotation, translation and size per motion.")
+        raise InputError("Expected one rotation, translation and size per motion.")
     half = 0.5 * float(cube_size)
     src, dst, lab = [], [], []
     for k, (R, t, m) in enumerate(zip(rots, ts, sizes)):

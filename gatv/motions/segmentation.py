@@ -55,8 +55,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._validation import check_positive
+from .._validation import frozen_array as _frozen
 from ..candidates import one_to_one
 from ..congruent import TargetIndex, n_triples_needed, trial_motions
+from ..errors import InputError
 from ..ga import Rotor, eq41_residual, joint_space_coordinates, joint_space_planes
 from ..motion import RigidMotion, fit_rigid
 from ..registration import (
@@ -68,7 +70,6 @@ from ..registration import (
     _refine,
     _vote_judge,
 )
-from .._validation import frozen_array as _frozen
 
 __all__ = ["Segmentation", "segment", "joint_space_residuals"]
 
@@ -391,9 +392,9 @@ def _check_count(value, name: str, minimum: int):
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
+        raise InputError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
     if int(value) < minimum:
-        raise ValueError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
+        raise InputError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
     return int(value)
 
 
@@ -490,11 +491,11 @@ def segment(
     min_support = _check_count(min_support, "min_support", 3)
     noise = check_positive(noise, "noise", allow_none=True)
     if grouping not in GROUPINGS:
-        raise ValueError(f"Expected `grouping` to be one of {GROUPINGS}, got {grouping!r}.")
+        raise InputError(f"Expected `grouping` to be one of {GROUPINGS}, got {grouping!r}.")
     if not (0.0 < float(min_inlier_share) <= 1.0):
-        raise ValueError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
+        raise InputError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
     if not (0.0 < float(confidence) < 1.0):
-        raise ValueError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
+        raise InputError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
     max_judged = _check_count(max_judged, "max_judged", 1)
     max_candidates = _check_count(max_candidates, "max_candidates", 1)
     if sigma is not None:

@@ -25,6 +25,8 @@ from gatv.cli import (  # one set of conventions for every subcommand
     _one_line,
 )
 
+from ..errors import InputError
+
 __all__ = ["add_parser", "run"]
 
 
@@ -84,7 +86,7 @@ def _run(args) -> int:
     target = read_points(args.target)
     for out in outs:
         if out in (args.source.resolve(), args.target.resolve()):
-            raise ValueError(f"{out}: refusing to overwrite an input file.")
+            raise InputError(f"{out}: refusing to overwrite an input file.")
     options = {}
     if args.max_displacement is not None:
         options["max_displacement"] = args.max_displacement

@@ -32,6 +32,7 @@ import numpy as np
 
 from .._validation import as_points, check_positive
 from .._validation import frozen_array as _frozen
+from ..errors import InputError
 
 __all__ = [
     "sample_plane",
@@ -49,7 +50,7 @@ def _axis(axis, name: str = "axis") -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) == 0:
         msg = f"Expected `{name}` to be a nonzero 3-vector, got {axis!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return a / np.linalg.norm(a)
 
 
@@ -57,7 +58,7 @@ def _angle(value, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not np.isfinite(value):
         msg = f"Expected `{name}` to be a finite number of degrees, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return float(np.radians(value))
 
 
@@ -75,7 +76,7 @@ def _center(points: np.ndarray, center) -> np.ndarray:
     c = np.asarray(center, dtype=np.float64).reshape(-1)
     if c.shape != (3,) or not np.all(np.isfinite(c)):
         msg = f"Expected `center` to be 3 finite numbers, got {center!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return c
 
 
@@ -105,7 +106,7 @@ def sample_plane(n: int = 400, size: float = 10.0, *, seed=0) -> np.ndarray:
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 3:
         msg = f"Expected `n` to be an integer >= 3, got {n!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     size = check_positive(size, "size")
     rng = np.random.default_rng(seed)
     m = int(np.ceil(np.sqrt(n)))
@@ -190,7 +191,7 @@ def bend(points, angle: float, *, axis=(0.0, 1.0, 0.0), direction=(1.0, 0.0, 0.0
     e = e - (e @ a) * a
     if np.linalg.norm(e) < 1e-9:
         msg = "`direction` must not be parallel to `axis`."
-        raise ValueError(msg)
+        raise InputError(msg)
     e /= np.linalg.norm(e)
     n = np.cross(e, a)
     c = _center(p, center)
@@ -235,10 +236,10 @@ def elastic(points, amplitude: float, *, n_bumps: int = 6, width=None, seed=0) -
     if isinstance(amplitude, bool) or not isinstance(amplitude, (int, float, np.integer, np.floating)) \
             or not np.isfinite(amplitude) or amplitude < 0:
         msg = f"Expected `amplitude` to be a finite number >= 0, got {amplitude!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if isinstance(n_bumps, bool) or not isinstance(n_bumps, (int, np.integer)) or n_bumps < 1:
         msg = f"Expected `n_bumps` to be an integer >= 1, got {n_bumps!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if width is None:
         width = 0.25 * float(np.linalg.norm(np.ptp(p, axis=0))) or 1.0
     width = check_positive(width, "width")
@@ -282,7 +283,7 @@ def piecewise_rigid(points, angle: float, *, hinge_point=None, hinge_axis=(0.0, 
     t = np.asarray(translation, dtype=np.float64).reshape(-1)
     if t.shape != (3,) or not np.all(np.isfinite(t)):
         msg = f"Expected `translation` to be 3 finite numbers, got {translation!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     out = p.copy()
     moving = (p - c) @ nrm > 0
     q = p[moving] - c
@@ -300,7 +301,7 @@ def rigid(points, angle: float, *, axis=(0.0, 0.0, 1.0), translation=(0.0, 0.0, 
     t = np.asarray(translation, dtype=np.float64).reshape(-1)
     if t.shape != (3,) or not np.all(np.isfinite(t)):
         msg = f"Expected `translation` to be 3 finite numbers, got {translation!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return _rotate_about(p - c, a, np.full(p.shape[0], _angle(angle, "angle"))) + c + t
 
 
@@ -372,11 +373,11 @@ def nonrigid_trial(points, moved, outlier_fraction: float = 0.0, *, noise: float
     y = as_points(moved, "moved", min_points=3)
     if x.shape != y.shape:
         msg = f"Expected `points` and `moved` to have the same shape, got {x.shape} and {y.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if isinstance(noise, bool) or not isinstance(noise, (int, float, np.integer, np.floating)) \
             or not np.isfinite(noise) or noise < 0:
         msg = f"Expected `noise` to be a finite number >= 0, got {noise!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     rng = np.random.default_rng(seed)
     n = x.shape[0]
     n_out = outlier_count(outlier_fraction, n)

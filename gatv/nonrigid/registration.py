@@ -104,6 +104,7 @@ from scipy.spatial import cKDTree
 
 from .._validation import as_points, check_positive
 from ..candidates import all_pairs, median_spacing, one_to_one
+from ..errors import InputError
 from .motion import Diagnostics, NonRigidMotion, ThinPlateWarp
 
 __all__ = ["register"]
@@ -118,9 +119,9 @@ def _check_points(points, name: str) -> np.ndarray:
     c = p - p.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
     if s[0] <= 1e-12 * max(1.0, float(np.abs(p).max())):
-        raise ValueError(f"All points of `{name}` are identical; a non-rigid motion needs spread points.")
+        raise InputError(f"All points of `{name}` are identical; a non-rigid motion needs spread points.")
     if s[1] <= 1e-9 * s[0]:
-        raise ValueError(f"All points of `{name}` are collinear; a non-rigid motion needs a surface or a volume.")
+        raise InputError(f"All points of `{name}` are collinear; a non-rigid motion needs a surface or a volume.")
     return p
 
 
@@ -129,7 +130,7 @@ def _check_int(value, name: str, minimum: int, allow_none: bool = False):
         return None
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         msg = f"Expected `{name}` to be an integer >= {minimum}, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return int(value)
 
 
@@ -137,7 +138,7 @@ def _check_fraction(value, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not np.isfinite(value) or value < 0:
         msg = f"Expected `{name}` to be a finite number >= 0, got {value!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return float(value)
 
 
@@ -654,7 +655,7 @@ def register(
     sigma = check_positive(sigma, "sigma", allow_none=True)
     n_stick_passes = _check_int(n_stick_passes, "n_stick_passes", 1)
     if structure not in ("auto", "surface", "curve"):
-        raise ValueError(f"Expected `structure` to be 'auto', 'surface' or 'curve', got {structure!r}.")
+        raise InputError(f"Expected `structure` to be 'auto', 'surface' or 'curve', got {structure!r}.")
     strain = _check_fraction(strain, "strain")
     gate = check_positive(gate, "gate", allow_none=True)
     if smoothing is not None:
@@ -671,7 +672,7 @@ def register(
                   "gate": gate}
 
     if prealign not in (True, False, "auto"):
-        raise ValueError(f"Expected `prealign` to be True, False or 'auto', got {prealign!r}.")
+        raise InputError(f"Expected `prealign` to be True, False or 'auto', got {prealign!r}.")
     Xv = X
 
     t0 = time.perf_counter()

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from ..errors import InputError
+
 __all__ = ["Grid", "build_grid"]
 
 #: Largest number of cells of a dense layout, as ``max(DENSE_PER_TOKEN·N, DENSE_MIN)``.
@@ -176,7 +178,7 @@ def grid_layout(points: np.ndarray, radius: float, subdiv: int):
             f"The tokens span {float(ext.max()):.3g} units, more than {MAX_CELLS_PER_AXIS:.3g} "
             f"voting cells of side {h:.3g}; `sigma` is too small for this extent."
         )
-        raise ValueError(msg)
+        raise InputError(msg)
     dims = tuple(int(c) + 1 for c in cells)
     n = points.shape[0]
     ncells = dims[0] * dims[1] * dims[2]  # Python int: no overflow

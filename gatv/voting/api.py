@@ -59,6 +59,8 @@ from gatv._validation import _memory_budget, as_points, as_vectors, check_memory
 from gatv.voting import _fields
 from gatv.voting._grid import Grid, build_grid, grid_layout
 
+from ..errors import InputError
+
 if TYPE_CHECKING:  # pragma: no cover
     from numpy.typing import NDArray
 
@@ -408,7 +410,7 @@ def default_sigma(tokens, k: int = 40, *, sample: int = 2000, seed: int = 0) -> 
     pts = as_points(tokens, "tokens", min_points=2)
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
         msg = f"Expected `k` to be a positive integer, got {k!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return _default_sigma(pts, int(k), sample, seed)
 
 
@@ -428,7 +430,7 @@ def _default_sigma(pts: np.ndarray, k: int, sample: int = 2000, seed: int = 0) -
         pos = d[d > 0]
         if pos.size == 0:
             msg = "Cannot derive `sigma` from the tokens: they coincide; pass `sigma` explicitly."
-            raise ValueError(msg)
+            raise InputError(msg)
         r = float(np.median(pos))
     return r / _fields.RADIUS_FACTOR
 
@@ -439,7 +441,7 @@ def _prepare(tokens, sigma, memory_budget, k):
     if sigma is None:
         if pts.shape[0] < 2:
             msg = "Cannot derive `sigma` from a single token; pass `sigma` explicitly."
-            raise ValueError(msg)
+            raise InputError(msg)
         sigma = _default_sigma(pts, k)
     max_pairs = _check_budget(pts, sigma, memory_budget)
     return pts, sigma, max_pairs
@@ -450,7 +452,7 @@ def _as_normals(normals, n: int) -> np.ndarray:
     length = np.linalg.norm(nrm, axis=1)
     if np.any(length == 0):
         msg = f"`normals` has {int(np.count_nonzero(length == 0))} zero rows; normals must be nonzero."
-        raise ValueError(msg)
+        raise InputError(msg)
     return np.ascontiguousarray(nrm / length[:, None])
 
 
@@ -461,18 +463,18 @@ def _as_saliency(saliency, n: int) -> np.ndarray:
         w = np.asarray(saliency, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         msg = f"Expected `saliency` to be an array of {n} numbers: {exc}."
-        raise ValueError(msg) from exc
+        raise InputError(msg) from exc
     if w.ndim == 0:
         w = np.full(n, float(w))
     if w.shape != (n,):
         msg = f"Expected `saliency` to have shape ({n},) to match the tokens, got {w.shape}."
-        raise ValueError(msg)
+        raise InputError(msg)
     if not np.all(np.isfinite(w)):
         msg = "`saliency` contains NaN or infinite values."
-        raise ValueError(msg)
+        raise InputError(msg)
     if np.any(w < 0):
         msg = f"`saliency` must be >= 0, got a minimum of {float(w.min())!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     return np.ascontiguousarray(w)
 
 
@@ -546,13 +548,13 @@ def _parse_threshold(threshold) -> tuple[float, float]:
         t = tuple(threshold)
     if len(t) != 2:
         msg = f"Expected `threshold` to be a number or a pair, got {threshold!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     out = []
     for v in t:
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                 or not 0 <= float(v) < 1:
             msg = f"Expected `threshold` values in [0, 1), got {threshold!r}."
-            raise ValueError(msg)
+            raise InputError(msg)
         out.append(float(v))
     return out[0], out[1]
 
@@ -608,11 +610,11 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     if isinstance(n_stick_passes, bool) or not isinstance(n_stick_passes, (int, np.integer)) \
             or n_stick_passes < 1:
         msg = f"Expected `n_stick_passes` to be an integer >= 1, got {n_stick_passes!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     growth = check_positive(sigma_growth, "sigma_growth")
     if growth < 1.0:
         msg = f"Expected `sigma_growth` >= 1, got {sigma_growth!r}."
-        raise ValueError(msg)
+        raise InputError(msg)
     tau1, tau2 = _parse_threshold(threshold)
 
     eng = _Engine(pts, sigma, max_pairs)

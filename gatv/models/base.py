@@ -1,0 +1,186 @@
+"""The motion-model seam and the result base shared by every motion.
+
+A motion model tells the pipeline of :mod:`gatv.stages` everything that
+depends on the kind of motion (paper, sections 2–5):
+
+* its size: point dimension ``dim``, minimal sample ``sample_size``,
+  degrees of freedom ``n_params``;
+* the least-squares ``fit`` of weighted correspondences and the
+  ``residuals`` of pairs under a motion;
+* ``trial_motions``: hypotheses from *invariant* samples (side lengths for
+  rigid motions, side-length ratios for similarities, area ratios for 2D
+  affine maps), scored by a density test;
+* ``tokens``: the joint-space coordinates tensor voting works on
+  (``{dx, dy, dz}`` of eq. 30 for rigid motions; ``(x, y, x')`` and
+  ``(x, y, y')`` for Kang's 2D affine motions);
+* ``consistent``: the pairwise constraint between tokens (eq. 41 for rigid
+  motions, its analogue for the others);
+* ``chance``: the support a random motion collects;
+* ``result``: the frozen result object.
+
+Every motion is carried between stages as its ``(dim + 1) × (dim + 1)``
+homogeneous matrix ``T``: ``target ≈ source @ T[:d, :d].T + T[:d, d]``.
+See ``docs/extending.md`` for a worked example (the 2D affine model).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
+
+import numpy as np
+
+from .._validation import as_points, frozen_array
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..stages import Problem, TrialMotions
+
+__all__ = ["MotionModel", "Motion", "homogeneous", "split_matrix", "apply_matrix"]
+
+
+def homogeneous(linear, translation) -> np.ndarray:
+    """The ``(d + 1) × (d + 1)`` matrix of ``x -> linear @ x + translation``."""
+    A = np.asarray(linear, dtype=np.float64)
+    d = A.shape[0]
+    T = np.eye(d + 1)
+    T[:d, :d] = A
+    T[:d, d] = np.asarray(translation, dtype=np.float64).reshape(d)
+    return T
+
+
+def split_matrix(matrix) -> tuple[np.ndarray, np.ndarray]:
+    """``(linear, translation)`` of a homogeneous matrix (views, not copies)."""
+    d = matrix.shape[-1] - 1
+    return matrix[..., :d, :d], matrix[..., :d, d]
+
+
+def apply_matrix(matrix, points: np.ndarray) -> np.ndarray:
+    """``points @ A.T + t`` for the homogeneous matrix ``[[A, t], [0, 1]]``."""
+    A, t = split_matrix(matrix)
+    return points @ A.T + t
+
+
+@runtime_checkable
+class MotionModel(Protocol):
+    """What the pipeline needs to know about a kind of motion.
+
+    Implementations: :class:`gatv.models.Rigid`,
+    :class:`gatv.models.Similarity`, :class:`gatv.models.Affine2D`.
+    """
+
+    #: Name used by ``model=`` arguments ("rigid", "similarity", "affine2d").
+    name: str
+    #: Dimension of the points (3 for rigid and similarity, 2 for affine2d).
+    dim: int
+    #: Smallest number of correspondences that fixes a motion.
+    sample_size: int
+    #: Degrees of freedom of the motion.
+    n_params: int
+
+    def fit(self, source: np.ndarray, target: np.ndarray, weights=None) -> np.ndarray:
+        """Least-squares motion of paired (K, dim) rows, as a homogeneous matrix."""
+
+    def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """(K,) distances ``|target - T(source)|`` of paired rows."""
+
+    def trial_motions(self, problem: Problem, *, eps: float, max_triples: int,
+                      rng: np.random.Generator, keep: int, accept: int | None,
+                      **options: Any) -> TrialMotions:
+        """Hypotheses from invariant samples, ranked by their density-test support."""
+
+    def tokens(self, source: np.ndarray, target: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """(T, 3) joint-space coordinates of candidate ``pairs`` (one 3D space per row block)."""
+
+    def consistent(self, source: np.ndarray, target: np.ndarray, pairs: np.ndarray,
+                   ref: int, tau: float) -> np.ndarray:
+        """Indices of the ``pairs`` consistent with pair ``ref`` (eq. 41 or its analogue)."""
+
+    def chance(self, n_source: int, n_target: int, measure: float, gate: float,
+               n_tests: float = 1.0) -> int:
+        """Support a random motion collects within ``gate`` (family-wise over ``n_tests``)."""
+
+    def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,
+               rms: float, info: dict) -> Motion:
+        """The frozen result of this model."""
+
+
+class Motion:
+    """Base of the motion results: a frozen value with its correspondences.
+
+    Subclasses are frozen dataclasses (``eq=False``) with fields
+    ``correspondences``, ``score``, ``rms`` and ``info``, and define
+    :attr:`matrix` and :meth:`from_matrix`.
+
+    Attributes shared by every motion
+    ---------------------------------
+    matrix : (d + 1, d + 1) ndarray
+        Homogeneous transform, ``target ≈ T @ [source, 1]``.
+    correspondences : (K, 2) ndarray of int
+        One-to-one ``(source index, target index)`` pairs.
+    support : int
+        Number of correspondences.
+    info : dict
+        Diagnostics; ``info["reason"]`` on failure (the result is falsy).
+    """
+
+    #: Model name of the result ("rigid", "similarity", "affine2d").
+    model: ClassVar[str] = ""
+
+    correspondences: np.ndarray
+    score: float
+    rms: float
+    info: dict
+
+    # -------------------------------------------------------- to define
+    @property
+    def matrix(self) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @classmethod
+    def from_matrix(cls, matrix, correspondences=None, *, score: float = 0.0,
+                    rms: float = float("nan"), info: dict | None = None) -> Motion:  # pragma: no cover
+        raise NotImplementedError
+
+    # ----------------------------------------------------------- shared
+    @property
+    def dim(self) -> int:
+        """Dimension of the points moved."""
+        return int(self.matrix.shape[0] - 1)
+
+    @property
+    def support(self) -> int:
+        return int(self.correspondences.shape[0])
+
+    def __bool__(self) -> bool:
+        return self.support > 0
+
+    def as_matrix(self) -> np.ndarray:
+        """The homogeneous matrix, ``p_target = T @ [p_source, 1]`` (a copy)."""
+        return np.array(self.matrix)
+
+    def transform(self, points) -> np.ndarray:
+        """Move source points: ``points @ A.T + t``."""
+        p = as_points(points, "points", min_points=0, dim=self.dim)
+        return apply_matrix(self.matrix, p)
+
+    def inverse(self) -> Motion:
+        """The motion from target to source, with swapped correspondences."""
+        return type(self).from_matrix(np.linalg.inv(self.matrix), self.correspondences[:, ::-1],
+                                      score=self.score, rms=self.rms, info=dict(self.info))
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dictionary (``matrix`` row-major, as Open3D writes it)."""
+        out = {
+            "model": self.model,
+            "matrix": self.matrix.tolist(),
+            "correspondences": self.correspondences.tolist(),
+            "support": self.support,
+            "score": float(self.score),
+            "rms": float(self.rms),
+        }
+        if not self and "reason" in self.info:
+            out["reason"] = str(self.info["reason"])
+        return out
+
+    @staticmethod
+    def _frozen_pairs(c) -> np.ndarray:
+        return frozen_array(np.asarray(c, dtype=np.int64).reshape(-1, 2), np.int64)

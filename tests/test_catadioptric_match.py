@@ -12,6 +12,7 @@ import pytest
 from catadioptric import SphereMatch, UnifiedCamera, match, sphere_noise, synthetic_views
 from catadioptric import _cli
 from gatv.datasets import correspondence_stats, rotation_error_deg
+from gatv.errors import InputError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MEI = DATA / "omni_mei_paracatadioptric"
@@ -150,6 +151,7 @@ def _shifted_grid_views(seed, rotation_deg, n_outliers=5):
 
 @pytest.mark.parametrize(("seed", "rotation_deg"), [(0, 20.0), (1, 60.0)])
 def test_repeated_grid_gives_no_wrong_matches(seed, rotation_deg, monkeypatch):
+    # match (catadioptric.matching) applies RIVAL_RATIO: patch it there
     import catadioptric.matching as matching
 
     p1, p2, cam, truth = _shifted_grid_views(seed, rotation_deg)
@@ -203,6 +205,11 @@ def test_sphere_noise_at_the_centre():
         ({"camera2": "cam.json"}, "`camera2` to be a catadioptric.UnifiedCamera"),
         ({"noise_px": -1.0}, "`noise_px`"),
         ({"strategy": "magic"}, "`strategy`"),
+        ({"strategy": "magic"}, "'epipolar'"),
+        ({"seed": -1}, "`seed`"),
+        ({"seed": 1.5}, "`seed`"),
+        ({"progress": 3}, "`progress`"),
+        ({"memory_budget": -1.0}, "`memory_budget`"),
         ({"max_parallax": 0.0}, "`max_parallax`"),
     ],
 )
@@ -210,8 +217,26 @@ def test_bad_input(kwargs, match_text):
     cam = UnifiedCamera(1.0, 300.0, 300.0, 640.0, 512.0)
     args = {"pixels1": np.full((5, 2), 600.0), "pixels2": np.full((5, 2), 600.0), "camera1": cam}
     args.update(kwargs)
-    with pytest.raises(ValueError, match=match_text):
+    with pytest.raises(InputError, match=match_text):
         match(**args)
+
+
+def test_api_seed_generator_progress_memory_budget_and_angle():
+    v = synthetic_views(120, rotation_deg=40.0, translation=(0, 0, 0), seed=2)
+    calls = []
+    m = match(v.pixels1, v.pixels2, v.camera1, seed=np.random.default_rng(0),
+              progress=lambda f, msg: calls.append((f, msg)))
+    assert m.strategy == "rigid" and m.angle_deg == pytest.approx(40.0, abs=0.5)
+    assert m.rotation_deg == m.angle_deg
+    fractions = [f for f, _ in calls]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions)
+    # an int seed and a Generator both give a result; the pure rotation needs no randomness
+    assert np.array_equal(match(v.pixels1, v.pixels2, v.camera1, seed=7).correspondences, m.correspondences)
+    # a budget too small for the tables of trial rotations
+    with pytest.raises(InputError, match="memory budget"):
+        match(v.pixels1, v.pixels2, v.camera1, memory_budget=1000.0)
+    empty = match([[600.0, 500.0]], [[610.0, 500.0]], v.camera1)
+    assert empty.angle_deg is None and empty.rotation_deg is None
 
 
 def test_too_few_pixels_is_a_falsy_result():
@@ -264,7 +289,7 @@ def test_cli_bad_input_writes_nothing(tmp_path, capsys):
 def test_posterior_follows_residual_rivals_and_chance_density():
     from scipy.spatial import cKDTree
 
-    from catadioptric.matching import _likelihood, _posterior
+    from catadioptric.acceptance import likelihood, posterior
 
     rng = np.random.default_rng(0)
     r2 = rng.normal(size=(400, 3))
@@ -274,21 +299,21 @@ def test_posterior_follows_residual_rivals_and_chance_density():
     # same density: the posterior falls with the residual, and is ~1 at e = 0
     # (prior: half of the 8 rays matched)
     tree2 = cKDTree(r2)
-    post = _posterior(pairs, _likelihood(np.array([0.0, 1.0, 2.0, 3.0]), s, s), tree2, 8)
+    post = posterior(pairs, likelihood(np.array([0.0, 1.0, 2.0, 3.0]), s, s), tree2, 8)
     assert np.all(np.diff(post) < 0) and post[0] > 0.95 and post[3] < 0.9
     # a wider along-arc spread (uncertain prediction) lowers it at equal e
-    narrow = _posterior(pairs, _likelihood(np.ones(4), s, s), tree2, 8)
-    wide = _posterior(pairs, _likelihood(np.ones(4), s, 10.0 * s), tree2, 8)
+    narrow = posterior(pairs, likelihood(np.ones(4), s, s), tree2, 8)
+    wide = posterior(pairs, likelihood(np.ones(4), s, 10.0 * s), tree2, 8)
     assert np.all(wide < narrow)
     # more chance rays (a denser view 2) lower it too
     dense = np.vstack([r2, r2 + 1e-4 * rng.normal(size=r2.shape)])
     dense /= np.linalg.norm(dense, axis=1)[:, None]
-    assert np.all(_posterior(pairs, _likelihood(np.ones(4), s, s), cKDTree(dense), 8) < narrow)
+    assert np.all(posterior(pairs, likelihood(np.ones(4), s, s), cKDTree(dense), 8) < narrow)
     # a rival as likely as the match: at most an even chance
-    like = _likelihood(np.ones(4), s, s)
-    even = _posterior(pairs, like, tree2, 8, rivals=like)
+    like = likelihood(np.ones(4), s, s)
+    even = posterior(pairs, like, tree2, 8, rivals=like)
     assert np.all(even < 0.5) and np.all(even > 0.45)
-    assert np.all(_posterior(pairs, like, tree2, 8, rivals=0.1 * like) < narrow)
+    assert np.all(posterior(pairs, like, tree2, 8, rivals=0.1 * like) < narrow)
 
 
 def test_posterior_is_calibrated_on_simulated_clutter():
@@ -297,7 +322,8 @@ def test_posterior_is_calibrated_on_simulated_clutter():
     # candidate in the gate) with posterior P, a share ~P is right
     from scipy.spatial import cKDTree
 
-    from catadioptric.matching import GATE_SIGMAS, _likelihood, _posterior, _rival_likelihood
+    from catadioptric.acceptance import likelihood, posterior, rival_likelihood
+    from catadioptric.constants import GATE_SIGMAS
     from gatv.candidates import one_to_one
 
     rng = np.random.default_rng(3)
@@ -315,11 +341,11 @@ def test_posterior_is_calibrated_on_simulated_clutter():
     truth[has] = np.arange(np.count_nonzero(has))
     near = cKDTree(x).sparse_distance_matrix(cKDTree(r2), GATE_SIGMAS * sig, output_type="ndarray")
     cand = np.column_stack([near["i"], near["j"]]).astype(np.int64)
-    like_c = _likelihood(near["v"] / sig, sig, sig)
+    like_c = likelihood(near["v"] / sig, sig, sig)
     sel = one_to_one(cand, near["v"])
     pairs = cand[sel]
-    rivals = _rival_likelihood(pairs, like_c[sel], cand, like_c, n, r2.shape[0])
-    post = _posterior(pairs, like_c[sel], cKDTree(r2), n, rivals)
+    rivals = rival_likelihood(pairs, like_c[sel], cand, like_c, n, r2.shape[0])
+    post = posterior(pairs, like_c[sel], cKDTree(r2), n, rivals)
     right = truth[pairs[:, 0]] == pairs[:, 1]
     for lo, hi in ((0.5, 0.8), (0.8, 0.95), (0.95, 1.0)):
         m = (post >= lo) & (post < hi)
@@ -328,7 +354,7 @@ def test_posterior_is_calibrated_on_simulated_clutter():
 
 
 def test_supported_planes_find_both_sides_of_a_crease():
-    from catadioptric.matching import _supported_planes
+    from catadioptric.epipolar import _supported_planes
 
     # eight neighbour rays, four on each of two inverse-depth planes
     rng = np.random.default_rng(1)
@@ -354,7 +380,7 @@ def test_supported_planes_find_both_sides_of_a_crease():
 def test_lo_ransac_recovers_the_motion_from_a_mostly_wrong_pool():
     from scipy.spatial.transform import Rotation
 
-    from catadioptric.matching import _estimate_motions
+    from catadioptric.epipolar import _estimate_motions
 
     rng = np.random.default_rng(3)
     R = Rotation.from_rotvec([0.2, -0.5, 0.9]).as_matrix()
@@ -384,7 +410,8 @@ def test_rigid_posterior_drops_chance_pairs_far_in_the_gate():
     from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
 
-    from catadioptric.matching import GATE_SIGMAS, _rigid_posterior
+    from catadioptric.acceptance import rigid_posterior
+    from catadioptric.constants import GATE_SIGMAS
 
     rng = np.random.default_rng(5)
     R = Rotation.from_rotvec([0.3, 0.1, -0.4]).as_matrix()
@@ -408,7 +435,7 @@ def test_rigid_posterior_drops_chance_pairs_far_in_the_gate():
     lone = rng.normal(size=(200, 3))
     r1 = np.vstack([x, lone / np.linalg.norm(lone, axis=1)[:, None]])
     pairs = np.column_stack([np.arange(n), np.arange(n)])
-    kept = _rigid_posterior(r1, cKDTree(r2), np.full(r1.shape[0], s), np.full(r2.shape[0], s), R, pairs)
+    kept = rigid_posterior(r1, cKDTree(r2), np.full(r1.shape[0], s), np.full(r2.shape[0], s), R, pairs)
     true_kept = np.count_nonzero(kept[:, 0] < 200)
     chance_kept = np.count_nonzero(kept[:, 0] >= 200)
     assert true_kept >= 0.9 * 200

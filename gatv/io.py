@@ -46,6 +46,7 @@ __all__ = [
     "write_json",
     "atomic_path",
     "to_jsonable",
+    "one_line",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
 ]
@@ -178,7 +179,7 @@ def _read_pyvista(p: Path) -> np.ndarray:
         try:
             mesh = pv.read(p)
         except Exception as exc:  # VTK readers raise assorted types
-            raise _fail(p, f"cannot be read as {p.suffix.lower()} ({_one_line(exc)}).") from exc
+            raise _fail(p, f"cannot be read as {p.suffix.lower()} ({one_line(exc)}).") from exc
     if isinstance(mesh, pv.MultiBlock):
         mesh = mesh.combine()
     points = getattr(mesh, "points", None)
@@ -195,7 +196,7 @@ def _read_npy(p: Path) -> np.ndarray:
     try:
         arr = np.load(p, allow_pickle=False)
     except Exception as exc:  # ValueError, OSError, EOFError, UnpicklingError
-        raise _fail(p, f"cannot be read as .npy ({_one_line(exc)}).") from exc
+        raise _fail(p, f"cannot be read as .npy ({one_line(exc)}).") from exc
     if arr.dtype.kind not in "biuf":
         raise _fail(p, f"expected a numeric array, got dtype {arr.dtype}.")
     return arr
@@ -237,9 +238,11 @@ def _read_text(p: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException, limit: int | None = 200) -> str:
+    """``exc``'s message on one line (whitespace collapsed, cut at ``limit`` characters
+    unless ``limit`` is None), or its type name when it has no message."""
     text = " ".join(str(exc).split())
-    return text[:200] if text else type(exc).__name__
+    return text[:limit] if text else type(exc).__name__
 
 
 # --------------------------------------------------------------------- writing

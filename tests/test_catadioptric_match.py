@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from catadioptric import SphereMatch, UnifiedCamera, match, sphere_noise, synthetic_views
-from catadioptric import _cli
+from gatv.cli import catadioptric as catadioptric_cmd
 from gatv.datasets import correspondence_stats, rotation_error_deg
 from gatv.errors import InputError
 
@@ -247,7 +247,7 @@ def test_too_few_pixels_is_a_falsy_result():
 
 def _parse(argv):
     parser = argparse.ArgumentParser(prog="gatv")
-    _cli.add_parser(parser.add_subparsers())
+    catadioptric_cmd.add_parser(parser.add_subparsers())
     return parser.parse_args(argv)
 
 
@@ -258,7 +258,7 @@ def test_cli_end_to_end_on_real_pair(tmp_path, capsys):
                    str(MEI / "images" / "img_para_002.png"),
                    "--camera", str(MEI / "calibration_mei_opencv.json"),
                    "--out", str(out), "--render", str(pic), "--max-corners", "250"])
-    assert _cli.run(args) == 0
+    assert catadioptric_cmd.run(args) == 0
     record = json.loads(out.read_text())
     assert record["success"] and record["support"] >= 50
     assert record["rotation_deg"] < 1.0  # the static corridor: identity
@@ -274,12 +274,12 @@ def test_cli_bad_input_writes_nothing(tmp_path, capsys):
     out, pic = tmp_path / "m.json", tmp_path / "m.png"
     args = _parse(["catadioptric", str(img), str(img), "--camera", str(cam), "--out", str(out),
                    "--render", str(pic)])
-    assert _cli.run(args) == 2
+    assert catadioptric_cmd.run(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("gatv: error:")
     assert not out.exists() and not pic.exists()
     args = _parse(["catadioptric", str(tmp_path / "missing.png"), str(img), "--camera", str(cam)])
-    assert _cli.run(args) == 2
+    assert catadioptric_cmd.run(args) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pgm", "cam.json"]
 
 

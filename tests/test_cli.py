@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from gatv import cli
+from gatv.cli import register as register_cmd
+from gatv.cli import segment as segment_cmd
 from gatv.datasets import correspondence_stats, table2_trial
+from gatv.errors import InputError
 from gatv.io import read_points, write_points
 from gatv.motion import RigidMotion
 
@@ -48,7 +51,7 @@ def fake(monkeypatch, trial):
             info={"mode": "fake", "array": np.arange(3)},
         )
 
-    monkeypatch.setattr(cli, "_load_register", lambda scans=False: register)
+    monkeypatch.setattr(register_cmd, "load_register", lambda scans=False: register)
     return calls
 
 
@@ -75,6 +78,10 @@ def test_register_end_to_end(tmp_path, files, fake, trial, capsys):
     np.testing.assert_allclose(data["translation"], trial.translation)
     assert data["correspondences"] == trial.true_pairs.tolist()
     assert data["info"] == {"mode": "fake", "array": [0, 1, 2]}
+    assert data["model"] == "rigid" and "model:           rigid" in stdout
+    np.testing.assert_allclose(np.asarray(data["matrix"])[:3, :3], trial.rotation)
+    np.testing.assert_allclose(np.asarray(data["matrix"])[:3, 3], trial.translation)
+    np.testing.assert_allclose(np.asarray(data["matrix"])[3], [0, 0, 0, 1])
     moved = read_points(aligned)
     pairs = trial.true_pairs
     np.testing.assert_allclose(moved[pairs[:, 0]], trial.target[pairs[:, 1]], atol=1e-9)
@@ -133,18 +140,122 @@ def test_bad_input_one_line_exit_2_nothing_written(tmp_path, files, fake, capsys
     assert fake == []
 
 
-def test_register_value_error_is_one_line(tmp_path, files, monkeypatch, capsys):
+def test_register_input_error_is_one_line(tmp_path, files, monkeypatch, capsys):
     src, tgt = files
 
     def register(source, target, **kwargs):
-        raise ValueError("Expected `max_angle` in degrees,\nat most 180, got 500.0.")
+        raise InputError("Expected `max_angle` in degrees,\nat most 180, got 500.0.")
 
-    monkeypatch.setattr(cli, "_load_register", lambda scans=False: register)
+    monkeypatch.setattr(register_cmd, "load_register", lambda scans=False: register)
     before = _listing(tmp_path)
     rc = cli.main(["register", str(src), str(tgt), "--max-angle", "500", "--out", str(tmp_path / "r.json")])
     assert rc == 2
     _assert_one_error_line(capsys, "max_angle", "at most 180")
+    assert "InputError" not in capsys.readouterr().err
     assert _listing(tmp_path) == before
+
+
+@pytest.mark.parametrize("error", [ValueError("operands could not be broadcast\ntogether"),
+                                   RuntimeError("kernel failed"), IndexError("index 7 is out of bounds")])
+def test_internal_error_is_exit_1_one_line_no_traceback(tmp_path, files, monkeypatch, capsys, error):
+    """Only InputError and OSError are bad input: a plain ValueError deep inside is a bug, status 1."""
+    src, tgt = files
+
+    def register(source, target, **kwargs):
+        raise error
+
+    monkeypatch.setattr(register_cmd, "load_register", lambda scans=False: register)
+    monkeypatch.delenv("GATV_DEBUG", raising=False)
+    before = _listing(tmp_path)
+    rc = cli.main(["register", str(src), str(tgt), "--out", str(tmp_path / "r.json")])
+    assert rc == 1
+    message = " ".join(str(error).split())
+    _assert_one_error_line(capsys, f"gatv: error: {type(error).__name__}: {message}",
+                           "(set GATV_DEBUG=1 for a traceback)")
+    assert _listing(tmp_path) == before
+
+
+def test_internal_error_with_gatv_debug_raises(files, monkeypatch):
+    src, tgt = files
+
+    def register(source, target, **kwargs):
+        raise ValueError("deep inside")
+
+    monkeypatch.setattr(register_cmd, "load_register", lambda scans=False: register)
+    monkeypatch.setenv("GATV_DEBUG", "1")
+    with pytest.raises(ValueError, match="deep inside"):
+        cli.main(["register", str(src), str(tgt)])
+
+
+def test_internal_error_in_segment_is_exit_1(files, monkeypatch, capsys):
+    def segment(source, target, **kwargs):
+        raise ValueError("plain ValueError from numpy")
+
+    monkeypatch.setattr(segment_cmd, "load_segment", lambda: segment)
+    src, tgt = files
+    assert cli.main(["segment", str(src), str(tgt), "-q"]) == 1
+    _assert_one_error_line(capsys, "ValueError: plain ValueError from numpy", "GATV_DEBUG=1")
+
+
+@pytest.mark.parametrize("command", ["register", "segment"])
+def test_unknown_model_is_exit_2_and_lists_models(files, fake, capsys, command):
+    src, tgt = files
+    assert cli.main([command, str(src), str(tgt), "--model", "projective"]) == 2
+    _assert_one_error_line(capsys, "--model", "projective", "rigid", "similarity")
+    assert fake == []
+
+
+def test_model_option_is_passed_only_when_not_rigid(files, fake, capsys):
+    src, tgt = files
+    assert cli.main(["register", str(src), str(tgt), "-q", "--model", "rigid"]) == 0
+    assert cli.main(["register", str(src), str(tgt), "-q", "--model", "similarity"]) == 0
+    assert [call["options"] for call in fake] == [{}, {"model": "similarity"}]
+    assert cli.main(["register", str(src), str(tgt), "--scans", "--model", "similarity"]) == 2
+    _assert_one_error_line(capsys, "--scans takes no --model")
+
+
+class _FakeSegmentation:
+    """What `gatv segment` reads of a gatv.motions.Segmentation."""
+
+    def __init__(self, motions, source_labels, target_labels):
+        self.motions, self.source_labels, self.target_labels = motions, source_labels, target_labels
+        self.info = {}
+
+    def __len__(self):
+        return len(self.motions)
+
+    def __bool__(self):
+        return bool(self.motions)
+
+    def to_dict(self):
+        return {"n_motions": len(self), "motions": [m.to_dict() for m in self.motions]}
+
+
+def test_segment_passes_model_and_prints_generic_summary(tmp_path, files, monkeypatch, capsys, trial):
+    calls = []
+    motion = RigidMotion(trial.rotation, trial.translation, trial.true_pairs, score=1.0, rms=0.0)
+
+    def segment(source, target, **kwargs):
+        calls.append(kwargs)
+        src_lab = np.full(len(source), -1)
+        tgt_lab = np.full(len(target), -1)
+        src_lab[trial.true_pairs[:, 0]] = 0
+        tgt_lab[trial.true_pairs[:, 1]] = 0
+        return _FakeSegmentation((motion,), src_lab, tgt_lab)
+
+    monkeypatch.setattr(segment_cmd, "load_segment", lambda: segment)
+    src, tgt = files
+    out = tmp_path / "s.json"
+    assert cli.main(["segment", str(src), str(tgt), "--out", str(out)]) == 0
+    assert cli.main(["segment", str(src), str(tgt), "-q", "--model", "similarity"]) == 0
+    assert "model" not in calls[0] and calls[1]["model"] == "similarity"
+    stdout = capsys.readouterr().out
+    assert "model:           rigid" in stdout and "motions:         1" in stdout
+    assert f"motion 0:        {trial.angle_deg:.4f} deg about axis" in stdout
+    assert "50 correspondences" in stdout
+    data = json.loads(out.read_text())
+    assert data["success"] is True and data["source"] == str(src) and data["n_motions"] == 1
+    assert data["motions"][0]["model"] == "rigid" and len(data["motions"][0]["matrix"]) == 4
 
 
 @pytest.mark.parametrize(
@@ -169,7 +280,7 @@ def test_failure_in_last_output_leaves_no_output(tmp_path, files, fake, monkeypa
     def broken(*args):
         raise OSError("disk full")
 
-    monkeypatch.setattr(cli, "_render", broken)
+    monkeypatch.setattr(register_cmd, "render", broken)
     before = _listing(tmp_path)
     rc = cli.main([
         "register", str(src), str(tgt), "--out", str(tmp_path / "r.json"),
@@ -183,7 +294,7 @@ def test_failure_in_last_output_leaves_no_output(tmp_path, files, fake, monkeypa
 def test_no_motion_found_exit_1_json_only(tmp_path, files, monkeypatch, capsys):
     src, tgt = files
     failed = RigidMotion(np.eye(3), np.zeros(3), info={"reason": "no plane above chance"})
-    monkeypatch.setattr(cli, "_load_register", lambda scans=False: lambda s, t, **kw: failed)
+    monkeypatch.setattr(register_cmd, "load_register", lambda scans=False: lambda s, t, **kw: failed)
     out = tmp_path / "r.json"
     rc = cli.main(["register", str(src), str(tgt), "--out", str(out), "--aligned", str(tmp_path / "a.xyz")])
     assert rc == 1
@@ -237,7 +348,7 @@ def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
     write_points(src, u * [1.0, 0.7, 0.5])
     write_points(tgt, u * [1.0, 0.7, 0.5] + 0.01)
     seen = []
-    monkeypatch.setattr(cli, "_load_register",
+    monkeypatch.setattr(register_cmd, "load_register",
                         lambda scans=False: seen.append(scans) or (lambda s, t, **kw: RigidMotion(
                             np.eye(3), np.full(3, 0.01), np.c_[np.arange(5), np.arange(5)])))
     assert cli.main(["register", str(src), str(tgt), "--scans", "-q"]) == 0

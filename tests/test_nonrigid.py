@@ -287,7 +287,7 @@ def test_generators_reject_bad_input():
 
 # ------------------------------------------------------------------ command line
 def _parse(argv):
-    from gatv.nonrigid._cli import add_parser
+    from gatv.cli.nonrigid import add_parser
 
     parser = argparse.ArgumentParser(prog="gatv")
     add_parser(parser.add_subparsers(dest="command"))
@@ -295,7 +295,7 @@ def _parse(argv):
 
 
 def test_cli_run_writes_json(tmp_path, capsys):
-    from gatv.nonrigid._cli import run
+    from gatv.cli.nonrigid import run
 
     x = deform.sample_plane(60, 10.0, seed=8)
     np.save(tmp_path / "s.npy", x)
@@ -313,7 +313,7 @@ def test_cli_run_writes_json(tmp_path, capsys):
 
 
 def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
-    from gatv.nonrigid._cli import run
+    from gatv.cli.nonrigid import run
 
     np.save(tmp_path / "s.npy", np.zeros((10, 2)))
     np.save(tmp_path / "t.npy", deform.sample_plane(10, seed=0))

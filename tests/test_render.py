@@ -197,13 +197,13 @@ def test_render_motions_with_two_motions_shows_two_colours(tmp_path, rng):
 
 
 def test_cli_uses_render_registration(tmp_path, monkeypatch):
-    from gatv import cli
+    from gatv.cli import register as register_cmd
 
     calls = []
     monkeypatch.setattr(render, "render_registration", lambda *a, **k: calls.append(a))
     trial = table2_trial(0.5, seed=4)
     motion = RigidMotion(trial.rotation, trial.translation, trial.true_pairs)
-    cli._render(trial.source, trial.target, motion, tmp_path / "x.png")
+    register_cmd.render(trial.source, trial.target, motion, tmp_path / "x.png")
     assert len(calls) == 1
 
 
@@ -220,13 +220,13 @@ def test_render_segmentation_draws_the_segmentation(tmp_path):
 
 
 def test_cli_uses_render_segmentation(tmp_path, monkeypatch):
-    from gatv import cli
+    from gatv.cli import segment as segment_cmd
     from gatv.motions import Segmentation
 
     calls = []
     monkeypatch.setattr(render, "render_segmentation", lambda *a, **k: calls.append(a))
     empty = Segmentation((), np.full(3, -1), np.full(3, -1), np.empty((0, 2), int), np.empty(0, int))
-    cli._render_segmentation(np.zeros((3, 3)), np.zeros((3, 3)), empty, tmp_path / "x.png")
+    segment_cmd.render_segmentation(np.zeros((3, 3)), np.zeros((3, 3)), empty, tmp_path / "x.png")
     assert len(calls) == 1
 
 

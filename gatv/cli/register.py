@@ -1,0 +1,175 @@
+"""``gatv register SOURCE TARGET``: the motion taking SOURCE onto TARGET (:func:`gatv.register`).
+
+Also home of :func:`register_and_write`, the registration step ``gatv demo``
+shares.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from ._common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    PROG,
+    UsageError,
+    add_model,
+    add_noise,
+    add_outputs,
+    add_point_files,
+    add_seed,
+    add_verbosity,
+    check_outputs,
+    check_point_counts,
+    guarded,
+    model_options,
+    motion_lines,
+    progress_printer,
+    result_record,
+    write_outputs,
+)
+
+__all__ = [
+    "NAME",
+    "add_parser",
+    "add_run_options",
+    "load_register",
+    "register_and_write",
+    "render",
+    "run",
+    "summary",
+]
+
+NAME = "register"
+
+
+def add_parser(subparsers):
+    """Add the ``register`` subcommand to an ``argparse`` subparsers object."""
+    p = subparsers.add_parser(
+        NAME,
+        help="find the motion taking SOURCE onto TARGET",
+        description=(
+            "Find the motion taking SOURCE onto TARGET (rigid: target = R source + t) and their "
+            "correspondences, with no initial guess. Point files: .ply .vtk .vtp .stl .obj "
+            ".xyz .txt .csv .pts .npy."
+        ),
+    )
+    add_point_files(p)
+    p.add_argument(
+        "--scans", action="store_true",
+        help="real, differently sampled range scans (gatv.register_scans: surface tokens, "
+             "voxel downsampling, normal-pruned trials, point-to-plane polish)",
+    )
+    add_model(p)
+    add_run_options(p)
+    p.set_defaults(handler=run)
+    return p
+
+
+def add_run_options(p) -> None:
+    """The outputs and options of a registration (``register`` and ``demo``)."""
+    add_outputs(p, aligned=True)
+    add_seed(p, "the registration")
+    p.add_argument(
+        "--max-angle", type=float, metavar="DEG",
+        help="bound on the rotation angle in degrees (small-motion mode)",
+    )
+    p.add_argument(
+        "--max-translation", type=float, metavar="DIST",
+        help="bound on |t| in data units (with --max-angle)",
+    )
+    add_noise(p)
+    add_verbosity(p)
+
+
+def load_register(scans: bool = False):
+    """:func:`gatv.register` (or :func:`gatv.register_scans`); RuntimeError if it cannot be imported."""
+    from ..io import one_line
+
+    try:
+        if scans:
+            from ..scans import register_scans as register
+        else:
+            from ..registration import register
+    except ImportError as exc:
+        msg = f"the registration module gatv.registration cannot be imported ({one_line(exc)})."
+        raise RuntimeError(msg) from exc
+    return register
+
+
+def render(source, target, motion, path) -> None:
+    """Write the picture of a registration (:func:`gatv.render.render_registration`)."""
+    from ..render import render_registration
+
+    render_registration(source, target, motion, path)
+
+
+def summary(motion, seconds: float) -> list[str]:
+    """The lines printed for a registration result."""
+    lines = [f"model:           {getattr(motion, 'model', '') or type(motion).__name__}"]
+    lines += [f"{label + ':':<17}{text}" for label, text in motion_lines(motion)]
+    lines.append(f"correspondences: {motion.support}")
+    lines.append(f"rms:             {motion.rms:.6g}")
+    lines.append(f"time:            {seconds:.3f} s")
+    return lines
+
+
+def _options(args) -> dict:
+    names = ("max_angle", "max_translation", "noise")
+    opts = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
+    opts.update(model_options(args))
+    return opts
+
+
+def register_and_write(args, source, target, inputs: dict, extra: dict | None = None):
+    """Register, print, and write every output atomically; return ``(status, motion)``."""
+    from ..io import write_json, write_points
+
+    check_point_counts((name, pts, inputs[name]) for name, pts in (("source", source), ("target", target)))
+    scans = bool(getattr(args, "scans", False))
+    register = load_register(scans)
+    options = _options(args)
+    if scans and options:
+        raise UsageError(f"--scans takes no {', '.join('--' + k.replace('_', '-') for k in options)}.")
+    progress = progress_printer(args)
+    call = dict(options)
+    if progress is not None:
+        call["progress"] = progress
+    start = time.perf_counter()
+    motion = register(source, target, seed=args.seed, **call)
+    seconds = time.perf_counter() - start
+
+    ok = bool(motion)
+    if not args.quiet:
+        for line in summary(motion, seconds):
+            print(line)
+    if not ok:
+        reason = motion.info.get("reason", "no motion found") if hasattr(motion, "info") else "no motion found"
+        print(f"{PROG}: registration failed: {reason}", file=sys.stderr)
+
+    record = result_record(inputs, source, target, seed=args.seed, options=options,
+                           seconds=seconds, result=motion)
+    if extra:
+        record.update(extra)
+    aligned = args.aligned if ok else None
+    write_outputs([
+        (args.out, lambda tmp: write_json(tmp, record)),
+        (aligned, lambda tmp: write_points(tmp, motion.transform(source))),
+        (args.render if ok else None, lambda tmp: render(source, target, motion, tmp)),
+    ], quiet=args.quiet)
+    return (EXIT_OK if ok else EXIT_FAILED), motion
+
+
+@guarded
+def run(args) -> int:
+    """Run ``gatv register`` on parsed ``args``; return the exit status."""
+    from ..io import read_points
+
+    check_outputs(args, inputs=(args.source, args.target))
+    source = read_points(args.source)
+    target = read_points(args.target)
+    inputs = {"source": str(args.source), "target": str(args.target)}
+    return register_and_write(args, source, target, inputs)[0]
+
+

@@ -366,3 +366,15 @@ def test_catadioptric_subcommand_is_wired(tmp_path, capsys):
     args = ["catadioptric", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--camera", "c.json"]
     assert cli.main(args) == 2
     _assert_one_error_line(capsys, "a.png")
+
+
+def test_catadioptric_package_missing_is_one_line_exit_1(tmp_path, monkeypatch, capsys):
+    """The catadioptric package is imported only when its command runs."""
+    for name in ("a.png", "b.png", "c.json"):
+        (tmp_path / name).write_bytes(b"x")
+    monkeypatch.setitem(sys.modules, "catadioptric", None)  # import fails
+    assert cli.main(["--help"]) == 0
+    capsys.readouterr()
+    args = ["catadioptric", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--camera", str(tmp_path / "c.json")]
+    assert cli.main(args) == 1
+    _assert_one_error_line(capsys, "RuntimeError: the catadioptric package cannot be imported")

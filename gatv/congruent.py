@@ -25,12 +25,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import poisson
 
 from . import _congruent_kernels as _k
 from ._validation import check_memory
+from .models.base import homogeneous
+from .stats import chance_support
 
-__all__ = ["TargetIndex", "TrialMotions", "trial_motions", "n_triples_needed", "chance_support"]
+__all__ = ["TargetIndex", "TrialMotions", "trial_motions", "sample_triples", "n_triples_needed", "chance_support"]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
@@ -39,22 +40,6 @@ def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
     if w3 >= 1.0:
         return 1
     return int(np.ceil(np.log1p(-confidence) / np.log1p(-w3)))
-
-
-def chance_support(n_source: int, n_target: int, volume: float, radius: float,
-                   n_tests: float = 1.0, alpha: float = 1e-6) -> int:
-    """Support a wrong motion reaches by chance, with family-wise level ``alpha``.
-
-    Under a wrong motion a moved source point lands within ``radius`` of
-    one of ``n_target`` points spread over ``volume`` with probability
-    ``p = min(1, n_target * 4/3 π radius³ / volume)``; the count over
-    ``n_source`` points is about Poisson(``n_source p``).  Returns the
-    smallest count exceeded with probability below ``alpha / n_tests``.
-    The three points that generated a trial always match, hence ``+ 3``.
-    """
-    p = min(1.0, n_target * (4.0 / 3.0) * np.pi * radius**3 / max(volume, 1e-300))
-    lam = n_source * p
-    return int(poisson.isf(alpha / max(n_tests, 1.0), lam)) + 3
 
 
 class TargetIndex:
@@ -95,7 +80,7 @@ class TargetIndex:
         return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrialMotions:
     """Trial motions ranked by support, best first."""
 
@@ -109,8 +94,16 @@ class TrialMotions:
     def __len__(self) -> int:
         return int(self.support.shape[0])
 
+    @property
+    def matrices(self) -> np.ndarray:
+        """(K, 4, 4) homogeneous matrices of the trial motions."""
+        if len(self) == 0:
+            return np.zeros((0, 4, 4))
+        return np.stack([homogeneous(R, t) for R, t in zip(self.rotations, self.translations)])
 
-def _sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
+
+def sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` random triples of distinct indices below ``n``, (count, 3)."""
     t = np.empty((count, 3), np.int64)
     t[:, 0] = rng.integers(0, n, count)
     t[:, 1] = rng.integers(0, n - 1, count)
@@ -187,7 +180,7 @@ def trial_motions(
     n_congruent = 0
     while drawn < max_triples:
         m = min(batch, max_triples - drawn)
-        tri = _sample_triples(n, m * 2 if min_side > 0 else m, rng)
+        tri = sample_triples(n, m * 2 if min_side > 0 else m, rng)
         if min_side > 0:
             p = source
             s1 = np.linalg.norm(p[tri[:, 0]] - p[tri[:, 1]], axis=1)
@@ -195,7 +188,7 @@ def trial_motions(
             s3 = np.linalg.norm(p[tri[:, 1]] - p[tri[:, 2]], axis=1)
             tri = tri[np.minimum(np.minimum(s1, s2), s3) >= min_side][:m]
             if tri.shape[0] == 0:
-                tri = _sample_triples(n, m, rng)
+                tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
         scores, R, t, nm = _k.triple_hypotheses(
             source, index.target, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx,

@@ -32,11 +32,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import registration as _reg
-from ._validation import as_points, check_positive
+from . import stages
+from ._validation import as_points, check_fraction, check_int, check_positive, check_progress, seed_int
 from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
-from .errors import InputError
+from .models.base import homogeneous
+from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
 __all__ = ["register_scans", "voxel_downsample", "surface_points", "refine_point_to_plane"]
@@ -173,7 +174,8 @@ def register_scans(
         size when ``voxel`` is not given.
     voxel : float, optional
         Voxel size (data units); the matching tolerance scale.
-    seed : int, default: 0
+    seed : int or numpy.random.Generator, default: 0
+        Seed of the subsamples and the triple sampling; same seed, same result.
     min_overlap : float, default: 0.4
         Smallest share of downsampled source points expected to have a
         partner; sets the number of source triples drawn (with
@@ -201,15 +203,15 @@ def register_scans(
         gate, on the points kept as surface).  ``info`` has the voxel size and stage timings.
     """
     t0 = time.perf_counter()
-    X = as_points(source, "source", min_points=3)
-    Y = as_points(target, "target", min_points=3)
-    for arr, name in ((X, "source"), (Y, "target")):
-        _reg._check_not_degenerate(arr, name)
-    report = progress if progress is not None else (lambda f, m: None)
-    if int(n_points) < 10:
-        raise InputError(f"Expected `n_points` >= 10, got {n_points!r}.")
-    if not (0.0 < float(min_overlap) <= 1.0):
-        raise InputError(f"Expected `min_overlap` in (0, 1], got {min_overlap!r}.")
+    X = RIGID.check_points(source, "source")
+    Y = RIGID.check_points(target, "target")
+    report = check_progress(progress)
+    n_points = check_int(n_points, "n_points", 10)
+    check_fraction(min_overlap, "min_overlap")
+    check_fraction(confidence, "confidence", open_high=True)
+    max_triples = check_int(max_triples, "max_triples", 1, allow_none=True)
+    n_judged = check_int(n_judged, "n_judged", 1)
+    seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
     info: dict = {"mode": "scans"}
 
     report(0.0, "surface tokens")
@@ -238,7 +240,7 @@ def register_scans(
     diameter = float(np.linalg.norm(Xd.max(axis=0) - Xd.min(axis=0)))
     budget = n_triples_needed(float(min_overlap), confidence)
     if max_triples is not None:
-        budget = min(budget, int(max_triples))
+        budget = min(budget, max_triples)
     rng = np.random.default_rng(seed)
     trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
                            min_side=0.25 * diameter, max_matches=256, accept=0,
@@ -247,23 +249,23 @@ def register_scans(
     info.update(triples=trials.n_triples, congruent=trials.n_congruent,
                 t_trials=time.perf_counter() - t0)
     if not len(trials):
-        return _reg._failure("no congruent triples", info)
+        return stages.failure(RIGID, "no congruent triples", info)
 
     # Tensor voting judges the best trials on the downsampled sets.
     report(0.7, "tensor voting")
-    P = _reg._Problem(Xd, Yd)
+    P = stages.prepare(Xd, Yd, RIGID)
     tol = gate / 3.5  # so that the judge's gate is one voxel
     best = None
-    for k in range(len(trials)):
-        judged = _reg._vote_judge(P, trials.rotations[k], trials.translations[k], tol, None, 4)
+    for matrix in trials.matrices:
+        judged = stages.judge(P, matrix, tol, max_candidates=4)
         if judged is None:
             continue
-        if best is None or judged[2].shape[0] > best[2].shape[0]:
-            best = judged
+        if best is None or judged.fit.support > best.support:
+            best = judged.fit
     if best is None:
-        return _reg._failure("tensor voting found no consistent plane", info)
-    R, t, kept = best[0], best[1], best[2]
-    info.update(judged_support=int(kept.shape[0]), t_judge=time.perf_counter() - t0)
+        return stages.failure(RIGID, "tensor voting found no consistent plane", info)
+    R, t = best.matrix[:3, :3], best.matrix[:3, 3]
+    info.update(judged_support=best.support, t_judge=time.perf_counter() - t0)
 
     # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
     # the tensor-voting normals of the target's surface points.
@@ -282,9 +284,9 @@ def register_scans(
     dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
     ok = np.flatnonzero(np.isfinite(dist))
     pairs = np.stack([ok, j[ok]], axis=1)
-    kept = pairs[_reg.one_to_one(pairs, dist[ok])]
+    kept = pairs[stages.select_one_to_one(pairs, dist[ok])]
     # Correspondences index the input points.
     kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)
     info.update(final_gate=g, time_s=time.perf_counter() - t0)
     report(1.0, f"{kept.shape[0]} correspondences")
-    return _reg._result(X, Y, R, t, kept, info)
+    return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(R, t), kept), info)

@@ -32,7 +32,8 @@ import numpy as np
 from .._validation import as_points, frozen_array
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..stages import Problem, TrialMotions
+    from ..congruent import TrialMotions
+    from ..stages import Tokens
 
 __all__ = ["MotionModel", "Motion", "homogeneous", "split_matrix", "apply_matrix"]
 
@@ -76,23 +77,32 @@ class MotionModel(Protocol):
     #: Degrees of freedom of the motion.
     n_params: int
 
+    def check_points(self, points, name: str) -> np.ndarray:
+        """Validated (N, dim) float64 points; the error names ``name`` and the fix."""
+
     def fit(self, source: np.ndarray, target: np.ndarray, weights=None) -> np.ndarray:
         """Least-squares motion of paired (K, dim) rows, as a homogeneous matrix."""
 
     def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
         """(K,) distances ``|target - T(source)|`` of paired rows."""
 
-    def trial_motions(self, problem: Problem, *, eps: float, max_triples: int,
-                      rng: np.random.Generator, keep: int, accept: int | None,
-                      **options: Any) -> TrialMotions:
+    def index(self, target: np.ndarray, radius: float, *, memory_budget=None) -> Any:
+        """What :meth:`trial_motions` looks target samples up in.
+
+        It has ``radius`` and ``volume`` (the measure random motions scatter
+        points over), ``set_radius(r)`` and survives ``copy.copy``.
+        """
+
+    def trial_motions(self, source: np.ndarray, index: Any, *, eps: float, max_triples: int,
+                      rng: np.random.Generator, keep: int, max_matches: int,
+                      accept: int | None, **options: Any) -> TrialMotions:
         """Hypotheses from invariant samples, ranked by their density-test support."""
 
-    def tokens(self, source: np.ndarray, target: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-        """(T, 3) joint-space coordinates of candidate ``pairs`` (one 3D space per row block)."""
+    def tokens(self, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """(T, 3) joint-space coordinates of paired rows (source already trial-moved)."""
 
-    def consistent(self, source: np.ndarray, target: np.ndarray, pairs: np.ndarray,
-                   ref: int, tau: float) -> np.ndarray:
-        """Indices of the ``pairs`` consistent with pair ``ref`` (eq. 41 or its analogue)."""
+    def consistent(self, tokens: Tokens, ref: int, tau: float) -> np.ndarray:
+        """Indices of the tokens consistent with token ``ref`` (eq. 41 or its analogue)."""
 
     def chance(self, n_source: int, n_target: int, measure: float, gate: float,
                n_tests: float = 1.0) -> int:

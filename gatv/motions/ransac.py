@@ -12,28 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import stages
+from .._validation import as_rng, check_int
 from ..candidates import one_to_one
-from ..motion import RigidMotion, fit_rigid
-from ..registration import NOISE_SCHEDULE, _gate, _Problem
-from .segmentation import Segmentation, _check_count
+from ..fitting import fit_rigid, kabsch
+from ..models.base import homogeneous
+from ..stages import NOISE_SCHEDULE
+from .segmentation import Segmentation
 
 __all__ = ["ransac_segment"]
-
-
-def _kabsch_batch(A, B):
-    """Rotations and translations of many 3-pair samples, (S, 3, 3) each."""
-    ca, cb = A.mean(axis=1), B.mean(axis=1)
-    H = np.einsum("sni,snj->sij", A - ca[:, None], B - cb[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("sji,skj->sik", Vt, U)))
-    d[d == 0] = 1.0
-    D = np.zeros_like(H)
-    D[:, 0, 0] = 1.0
-    D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.einsum("sji,sjk,slk->sil", Vt, D, U)
-    t = cb - np.einsum("sij,sj->si", R, ca)
-    return R, t
 
 
 def ransac_segment(source, target, *, max_motions=None, min_support=None, seed=0, noise=None,
@@ -47,13 +34,14 @@ def ransac_segment(source, target, *, max_motions=None, min_support=None, seed=0
     noise : float, optional
         Point noise; default ``1e-6`` of the spacing (exact data).
     """
-    P = _Problem(source, target)
-    max_motions = _check_count(max_motions, "max_motions", 1)
-    min_support = _check_count(min_support, "min_support", 3)
+    P = stages.prepare(source, target, "rigid")
+    X, Y = P.source, P.target
+    max_motions = check_int(max_motions, "max_motions", 1, allow_none=True)
+    min_support = check_int(min_support, "min_support", 3, allow_none=True)
     tol = float(noise) if noise is not None else NOISE_SCHEDULE[0] * P.spacing
-    gate = _gate(tol)
-    rng = np.random.default_rng(seed)
-    n1, n2 = P.X.shape[0], P.Y.shape[0]
+    gate = stages.gate(tol)
+    rng = as_rng(seed)
+    n1, n2 = X.shape[0], Y.shape[0]
     free_s = np.ones(n1, bool)
     free_t = np.ones(n2, bool)
     motions = []
@@ -74,12 +62,12 @@ def ransac_segment(source, target, *, max_motions=None, min_support=None, seed=0
             si, tj = si[ok], tj[ok]
             if si.shape[0] == 0:
                 continue
-            R, t = _kabsch_batch(P.X[si], P.Y[tj])
+            R, t = kabsch(X[si], Y[tj])
             # cheap pre-test: the three sample pairs themselves must fit
-            r3 = np.linalg.norm(np.einsum("sij,snj->sni", R, P.X[si]) + t[:, None] - P.Y[tj], axis=2)
+            r3 = np.linalg.norm(np.einsum("sij,snj->sni", R, X[si]) + t[:, None] - Y[tj], axis=2)
             good = np.flatnonzero(r3.max(axis=1) <= gate)
             for g in good:
-                moved = P.X[fs] @ R[g].T + t[g]
+                moved = X[fs] @ R[g].T + t[g]
                 d, j = P.tree.query(moved, k=1, distance_upper_bound=gate)
                 hit = np.isfinite(d)
                 hit[hit] = free_t[j[hit]]
@@ -90,21 +78,19 @@ def ransac_segment(source, target, *, max_motions=None, min_support=None, seed=0
             break
         R, t = best[1], best[2]
         for _ in range(3):
-            moved = P.X[fs] @ R.T + t
+            moved = X[fs] @ R.T + t
             lists = P.tree.query_ball_point(moved, gate)
             pairs = np.array([(fs[a], b) for a, l in enumerate(lists) for b in l if free_t[b]],
                              np.int64).reshape(-1, 2)
             if pairs.shape[0] < 3:
                 break
-            res = np.linalg.norm(P.Y[pairs[:, 1]] - (P.X[pairs[:, 0]] @ R.T + t), axis=1)
+            res = np.linalg.norm(Y[pairs[:, 1]] - (X[pairs[:, 0]] @ R.T + t), axis=1)
             pairs = pairs[one_to_one(pairs, res)]
-            R, t = fit_rigid(P.X[pairs[:, 0]], P.Y[pairs[:, 1]])
+            R, t = fit_rigid(X[pairs[:, 0]], Y[pairs[:, 1]])
         if pairs.shape[0] < threshold:
             break
         k = len(motions)
-        res = np.linalg.norm(P.Y[pairs[:, 1]] - (P.X[pairs[:, 0]] @ R.T + t), axis=1)
-        pairs = pairs[np.argsort(pairs[:, 0])]
-        motions.append(RigidMotion(R, t, pairs, float(pairs.shape[0]), float(np.sqrt(np.mean(res**2)))))
+        motions.append(stages.make_result(P, stages.Fit(homogeneous(R, t), pairs), {}))
         src_lab[pairs[:, 0]] = k
         tgt_lab[pairs[:, 1]] = k
         free_s[pairs[:, 0]] = False

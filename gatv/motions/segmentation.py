@@ -15,7 +15,7 @@ How it works
 2. **One voting run per new surface.** Trials are taken best first; a
    trial whose inliers are already explained by an earlier hypothesis is
    skipped, the others are judged by tensor voting in the joint space of
-   the trial-rotated source and eq. 41 (:func:`gatv.registration._vote_judge`),
+   the trial-rotated source and eq. 41 (:func:`gatv.stages.judge`),
    so voting is never redone for a motion already found.
 3. **Surfaces.** Hypotheses whose tokens lie on one eq.-30 plane (same
    axis and same translation along it) share one salient surface in
@@ -54,22 +54,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._validation import check_positive
+from .. import stages
+from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
 from .._validation import frozen_array as _frozen
 from ..candidates import one_to_one
-from ..congruent import TargetIndex, n_triples_needed, trial_motions
+from ..congruent import n_triples_needed
 from ..errors import InputError
-from ..ga import Rotor, eq41_residual, joint_space_coordinates, joint_space_planes
-from ..motion import RigidMotion, fit_rigid
-from ..registration import (
-    NOISE_SCHEDULE,
-    _fit_and_gate,
-    _gate,
-    _grow_tolerance,
-    _Problem,
-    _refine,
-    _vote_judge,
-)
+from ..fitting import fit_rigid
+from ..ga import Rotor, eq41_length_residual, eq41_residual, joint_space_coordinates, joint_space_planes
+from ..models import get_model
+from ..models.base import homogeneous
+from ..motion import RigidMotion
+from ..stages import NOISE_SCHEDULE, Fit, Problem
 
 __all__ = ["Segmentation", "segment", "joint_space_residuals"]
 
@@ -165,13 +161,19 @@ def joint_space_residuals(source, target, pairs, rotation, translation) -> np.nd
     return np.einsum("kj,ktj->tk", planes[:, :3], u) + planes[:, 3]
 
 
-def _residual(P, pairs, R, t) -> np.ndarray:
-    return np.linalg.norm(P.Y[pairs[:, 1]] - (P.X[pairs[:, 0]] @ R.T + t), axis=1)
+def _rt(fit: Fit):
+    """Rotation and translation of a rigid ``fit``."""
+    return fit.matrix[:3, :3], fit.matrix[:3, 3]
 
 
-def _gated_pairs(P, R, t, gate) -> np.ndarray:
+def _residual(P: Problem, pairs, fit: Fit) -> np.ndarray:
+    return P.residuals(fit.matrix, pairs)
+
+
+def _gated_pairs(P: Problem, fit: Fit, gate) -> np.ndarray:
     """Every pair ``(i, j)`` with ``|y_j - R x_i - t| <= gate`` (multiple matches too)."""
-    lists = P.tree.query_ball_point(P.X @ R.T + t, gate)
+    R, t = _rt(fit)
+    lists = P.tree.query_ball_point(P.source @ R.T + t, gate)
     counts = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     i = np.repeat(np.arange(len(lists)), counts)
     j = np.fromiter((v for x in lists for v in x), np.int64, int(counts.sum()))
@@ -186,92 +188,121 @@ def _axis(R) -> np.ndarray | None:
     return np.asarray(rv.axis, dtype=np.float64)
 
 
-class _Hypothesis:
-    __slots__ = ("R", "t", "kept", "gated", "axis")
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """A judged trial motion: its fit, every pair within its gate, its axis (None: translation)."""
 
-    def __init__(self, P, R, t, kept, gate):
-        self.R, self.t, self.kept = R, t, kept
-        self.gated = _gated_pairs(P, R, t, gate)
-        self.axis = _axis(R)
+    fit: Fit
+    gated: np.ndarray
+    axis: np.ndarray | None
 
-    def on_plane(self, P, pairs, tau) -> np.ndarray:
+    @classmethod
+    def from_fit(cls, P: Problem, fit: Fit, gate: float) -> Hypothesis:
+        return cls(fit, _gated_pairs(P, fit, gate), _axis(fit.matrix[:3, :3]))
+
+    def on_plane(self, P: Problem, pairs, tau) -> np.ndarray:
         """Which ``pairs`` lie on this hypothesis's eq.-30 plane ``A · (d - t) = 0``."""
-        d = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
+        d = P.target[pairs[:, 1]] - P.source[pairs[:, 0]]
+        t = self.fit.matrix[:3, 3]
         if self.axis is None:  # pure translation: the "plane" is the cluster at t
-            return np.linalg.norm(d - self.t, axis=1) <= tau
-        return np.abs((d - self.t) @ self.axis) <= tau
+            return np.linalg.norm(d - t, axis=1) <= tau
+        return np.abs((d - t) @ self.axis) <= tau
+
+
+@dataclass(frozen=True)
+class SearchOptions:
+    """Bounds of the trial search and of the voting runs of :func:`segment`."""
+
+    sigma: float | None
+    max_candidates: int
+    refine: bool
+    max_trials: int
+    max_judged: int
+    chunk: int
+    confidence: float
+    max_triples: int
+    min_points: float
+
+
+@dataclass(frozen=True, eq=False)
+class Trial:
+    """A trial motion kept by the search, with the count of points it brings onto targets."""
+
+    matrix: np.ndarray
+    inliers: int
 
 
 # ------------------------------------------------------------ trial stage
-def _trial_search(P, index, tol, rng, threshold, opts, log):
+def _trial_search(P: Problem, index, tol, rng, threshold, opts: SearchOptions, log) -> list[Trial]:
     """One trial search that keeps every distinct trial motion beating chance.
 
     Triples are drawn in chunks from the source points no trial has
     explained yet, so the pool shrinks as motions are found and the share
     of the motions still hidden grows.  The search stops when, since the
     last new motion, enough triples were drawn to hit a motion of
-    ``opts["min_points"]`` points in the pool with ``opts["confidence"]``
-    (the RANSAC bound), or at ``opts["max_triples"]``.
+    ``opts.min_points`` points in the pool with ``opts.confidence``
+    (the RANSAC bound), or at ``opts.max_triples``.
     """
-    gate = _gate(tol)
-    n1 = P.X.shape[0]
+    gate = stages.gate(tol)
+    n1 = P.source.shape[0]
     explained = np.zeros(n1, bool)
-    found = []
+    found: list[Trial] = []
     drawn = since_new = n_congruent = 0
     beat = 0
-    while drawn < opts["max_triples"]:
+    while drawn < opts.max_triples:
         pool = np.flatnonzero(~explained)
         if pool.size < max(3, threshold):
             break
-        need = n_triples_needed(min(1.0, opts["min_points"] / pool.size), opts["confidence"])
+        need = n_triples_needed(min(1.0, opts.min_points / pool.size), opts.confidence)
         if since_new >= need:
             break
-        chunk = int(min(opts["chunk"], opts["max_triples"] - drawn, need - since_new))
-        trials = trial_motions(P.X[pool], index, eps=2.0 * gate, max_triples=max(chunk, 1), rng=rng,
-                               keep=opts["max_trials"], accept=np.iinfo(np.int64).max)
+        chunk = int(min(opts.chunk, opts.max_triples - drawn, need - since_new))
+        trials = P.model.trial_motions(P.source[pool], index, eps=2.0 * gate, max_triples=max(chunk, 1),
+                                       rng=rng, keep=opts.max_trials, max_matches=64,
+                                       accept=np.iinfo(np.int64).max)
         drawn += trials.n_triples
         since_new += trials.n_triples
         n_congruent += trials.n_congruent
-        for k in range(len(trials)):
+        for k, matrix in enumerate(trials.matrices):
             if trials.support[k] < trials.threshold:
                 break
             beat += 1
-            R0, t0 = trials.rotations[k], trials.translations[k]
-            d, _ = P.tree.query(P.X @ R0.T + t0, k=1, distance_upper_bound=gate)
+            R0, t0 = matrix[:3, :3], matrix[:3, 3]
+            d, _ = P.tree.query(P.source @ R0.T + t0, k=1, distance_upper_bound=gate)
             inl = np.isfinite(d)
             if np.count_nonzero(inl & ~explained) < threshold:
                 continue  # nothing new: a trial already kept explains it
             explained |= inl
-            found.append((R0, t0, int(np.count_nonzero(inl))))
+            found.append(Trial(matrix, int(np.count_nonzero(inl))))
             since_new = 0
     log.append({"tolerance": tol, "triples": drawn, "congruent": n_congruent, "beat_chance": beat,
                 "kept": len(found)})
     return found
 
 
-def _hypotheses(P, trials, tol, threshold, opts):
+def _hypotheses(P: Problem, trials: list[Trial], tol, threshold, opts: SearchOptions) -> list[Hypothesis]:
     """Judge each kept trial by tensor voting and eq. 41 (one voting run each)."""
-    gate = _gate(tol)
+    gate = stages.gate(tol)
     out = []
-    explained = np.zeros(P.X.shape[0], bool)
-    for R0, t0, _ in sorted(trials, key=lambda x: -x[2])[: opts["max_judged"]]:
-        judged = _vote_judge(P, R0, t0, tol, opts["sigma"], opts["max_candidates"])
+    explained = np.zeros(P.source.shape[0], bool)
+    for trial in sorted(trials, key=lambda x: -x.inliers)[: opts.max_judged]:
+        judged = stages.judge(P, trial.matrix, tol, sigma=opts.sigma, max_candidates=opts.max_candidates)
         if judged is None:
             continue
-        R, t, kept = judged[:3]
-        if opts["refine"]:
-            R2, t2, kept2 = _refine(P, R, t, gate)
-            if kept2 is not None and kept2.shape[0] >= kept.shape[0]:
-                R, t, kept = R2, t2, kept2
-        if np.count_nonzero(~explained[kept[:, 0]]) < threshold:
+        fit = judged.fit
+        if opts.refine:
+            polished = stages.refine(P, fit, gate)
+            if polished.support >= fit.support:
+                fit = polished
+        if np.count_nonzero(~explained[fit.correspondences[:, 0]]) < threshold:
             continue
-        explained[kept[:, 0]] = True
-        out.append(_Hypothesis(P, R, t, kept, gate))
+        explained[fit.correspondences[:, 0]] = True
+        out.append(Hypothesis.from_fit(P, fit, gate))
     return out
 
 
 # --------------------------------------------------------- grouping stage
-def _surfaces(P, hyps, gate) -> list[list[int]]:
+def _surfaces(P: Problem, hyps: list[Hypothesis], gate) -> list[list[int]]:
     """Group hypotheses whose tokens lie on one eq.-30 plane (union-find)."""
     parent = list(range(len(hyps)))
 
@@ -287,7 +318,8 @@ def _surfaces(P, hyps, gate) -> list[list[int]]:
             ha, hb = hyps[a], hyps[b]
             if (ha.axis is None) != (hb.axis is None):
                 continue
-            if np.mean(ha.on_plane(P, hb.kept, tau)) >= 0.9 and np.mean(hb.on_plane(P, ha.kept, tau)) >= 0.9:
+            if (np.mean(ha.on_plane(P, hb.fit.correspondences, tau)) >= 0.9
+                    and np.mean(hb.on_plane(P, ha.fit.correspondences, tau)) >= 0.9):
                 parent[find(b)] = find(a)
     groups: dict[int, list[int]] = {}
     for a in range(len(hyps)):
@@ -295,21 +327,19 @@ def _surfaces(P, hyps, gate) -> list[list[int]]:
     return list(groups.values())
 
 
-def _eq41_graph(P, pairs, axis, tau):
+def _eq41_graph(P: Problem, pairs, axis, tau):
     """Tokens as nodes, eq.-41-consistent token pairs as edges (networkx)."""
     import networkx as nx
 
-    d = P.Y[pairs[:, 1]] - P.X[pairs[:, 0]]
-    s = P.Y[pairs[:, 1]] + P.X[pairs[:, 0]]
+    d = P.target[pairs[:, 1]] - P.source[pairs[:, 0]]
+    s = P.target[pairs[:, 1]] + P.source[pairs[:, 0]]
     T = pairs.shape[0]
     G = nx.Graph()
     G.add_nodes_from(range(T))
     for a in range(T - 1):
         db, sb = d[a + 1:], s[a + 1:]
         if axis is None:  # pure translation: length preservation V · Vs = 0
-            V, Vs = db - d[a], sb - s[a]
-            nvs = np.linalg.norm(Vs, axis=1)
-            r = np.abs(np.einsum("ij,ij->i", V, Vs)) / np.where(nvs > 0, nvs, 1.0)
+            r = eq41_length_residual(db, sb, d[a], s[a])
         else:
             r = eq41_residual(db, sb, d[a], s[a], axis, normalize="length")
         shared = (pairs[a + 1:, 0] == pairs[a, 0]) | (pairs[a + 1:, 1] == pairs[a, 1])
@@ -318,11 +348,11 @@ def _eq41_graph(P, pairs, axis, tau):
     return G
 
 
-def _dense_components(P, G, pairs, threshold, gate):
+def _dense_components(P: Problem, G, pairs, threshold, gate) -> list[Fit]:
     """Motions as dense components: peel the k-core from its densest node."""
     import networkx as nx
 
-    found = []
+    found: list[Fit] = []
     G = G.copy()
     k = max(int(threshold) - 1, 1)
     while G.number_of_nodes() >= threshold:
@@ -334,22 +364,22 @@ def _dense_components(P, G, pairs, threshold, gate):
         sub = core.subgraph(C)
         need = 0.5 * (len(C) - 1)
         C = np.asarray(sorted(u for u in C if sub.degree(u) >= need), np.int64)
-        fit = _fit_and_gate(P, pairs, pairs[C], gate) if C.size >= 3 else None
-        if fit is None or fit[2].shape[0] < threshold:
+        fit = stages.fit_and_gate(P, pairs, pairs[C], gate) if C.size >= 3 else None
+        if fit is None or fit.support < threshold:
             G.remove_nodes_from(C.tolist())
             continue
-        R, t, kept = fit
-        found.append((R, t, kept))
+        found.append(fit)
+        kept = fit.correspondences
         used_s, used_t = set(kept[:, 0].tolist()), set(kept[:, 1].tolist())
         G.remove_nodes_from([u for u in list(G.nodes) if int(pairs[u, 0]) in used_s
                              or int(pairs[u, 1]) in used_t])
     return found
 
 
-def _resolve(P, motions, tokens, threshold, gate, rounds=3):
+def _resolve(P: Problem, motions: list[Fit], tokens, threshold, gate, rounds=3):
     """Each token to the motion whose joint-space planes it lies closest to; one-to-one; refit.
 
-    Returns the surviving ``(R, t, kept)`` and the token labels.
+    Returns the surviving fits and the token labels.
     """
     motions = list(motions)
     labels = np.full(tokens.shape[0], -1, np.int64)
@@ -357,8 +387,8 @@ def _resolve(P, motions, tokens, threshold, gate, rounds=3):
         if not motions or tokens.shape[0] == 0:
             return [], np.full(tokens.shape[0], -1, np.int64)
         # (M, T) residual via the four joint-space planes (eqs. 27-30)
-        res = np.stack([np.linalg.norm(joint_space_residuals(P.X, P.Y, tokens, R, t), axis=1)
-                        for R, t, _ in motions])
+        res = np.stack([np.linalg.norm(joint_space_residuals(P.source, P.target, tokens, *_rt(f)), axis=1)
+                        for f in motions])
         best = np.argmin(res, axis=0)
         rbest = res[best, np.arange(tokens.shape[0])]
         labels = np.where(rbest <= gate, best, -1)
@@ -372,39 +402,31 @@ def _resolve(P, motions, tokens, threshold, gate, rounds=3):
             if sel.size < max(threshold, 3):
                 continue
             pm = tokens[sel]
-            R, t = fit_rigid(P.X[pm[:, 0]], P.Y[pm[:, 1]])
-            new.append((R, t, pm))
+            R, t = fit_rigid(P.source[pm[:, 0]], P.target[pm[:, 1]])
+            new.append(Fit(homogeneous(R, t), pm))
         changed = len(new) != len(motions) or any(
-            a[2].shape != b[2].shape or not np.array_equal(a[2], b[2]) for a, b in zip(new, motions))
+            a.correspondences.shape != b.correspondences.shape
+            or not np.array_equal(a.correspondences, b.correspondences) for a, b in zip(new, motions))
         motions = new
         if not changed:
             break
     if not motions:
         return [], np.full(tokens.shape[0], -1, np.int64)
-    res = np.stack([_residual(P, tokens, R, t) for R, t, _ in motions])
+    res = np.stack([_residual(P, tokens, f) for f in motions])
     best = np.argmin(res, axis=0)
     labels = np.where(res[best, np.arange(tokens.shape[0])] <= gate, best, -1)
     return motions, labels
 
 
 # ------------------------------------------------------------------ entry
-def _check_count(value, name: str, minimum: int):
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
-    if int(value) < minimum:
-        raise InputError(f"Expected `{name}` to be an integer >= {minimum} or None, got {value!r}.")
-    return int(value)
-
-
 def segment(
     source,
     target,
     *,
+    model="rigid",
     max_motions: int | None = None,
     min_support: int | None = None,
-    seed: int = 0,
+    seed=0,
     noise: float | None = None,
     grouping: str = "graph",
     refine: bool = True,
@@ -422,7 +444,12 @@ def segment(
     Parameters
     ----------
     source, target : (N, 3) array_like or object with ``.points``
-        The two point sets; any share of either may be outliers.
+        The two point sets; any share of either may be outliers ((N, 2)
+        for ``model="affine2d"``).
+    model : {"rigid", "similarity", "affine2d"} or MotionModel, default: "rigid"
+        The kind of each motion (:mod:`gatv.models`).  The rigid model runs
+        the grouping of section 5 below; the others peel one motion at a
+        time (:func:`gatv.motions.peel`).
     max_motions : int, optional
         Cap on the number of motions returned (largest first). The number
         of motions is found from the data; this only caps it.
@@ -430,7 +457,7 @@ def segment(
         Smallest number of correspondences a motion needs.  Default from
         the data: the support a random motion reaches by chance
         (:func:`gatv.congruent.chance_support`), at least 3.
-    seed : int, default: 0
+    seed : int or numpy.random.Generator, default: 0
         Seed of the random triple sampling; same seed, same result.
     noise : float, optional
         Standard deviation of the point noise (data units).  Default: the
@@ -486,30 +513,35 @@ def segment(
     (3, [40, 40, 40])
     """
     t_start = time.perf_counter()
-    P = _Problem(source, target)
-    max_motions = _check_count(max_motions, "max_motions", 1)
-    min_support = _check_count(min_support, "min_support", 3)
+    P = stages.prepare(source, target, model)
+    if P.model.name != "rigid":
+        from .peeling import peel
+
+        return peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
+                    refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
+                    max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
+                    memory_budget=memory_budget, progress=progress)
+    max_motions = check_int(max_motions, "max_motions", 1, allow_none=True)
+    min_support = check_int(min_support, "min_support", 3, allow_none=True)
     noise = check_positive(noise, "noise", allow_none=True)
     if grouping not in GROUPINGS:
         raise InputError(f"Expected `grouping` to be one of {GROUPINGS}, got {grouping!r}.")
-    if not (0.0 < float(min_inlier_share) <= 1.0):
-        raise InputError(f"Expected `min_inlier_share` in (0, 1], got {min_inlier_share!r}.")
-    if not (0.0 < float(confidence) < 1.0):
-        raise InputError(f"Expected `confidence` in (0, 1), got {confidence!r}.")
-    max_judged = _check_count(max_judged, "max_judged", 1)
-    max_candidates = _check_count(max_candidates, "max_candidates", 1)
+    check_fraction(min_inlier_share, "min_inlier_share")
+    check_fraction(confidence, "confidence", open_high=True)
+    max_judged = check_int(max_judged, "max_judged", 1)
+    max_candidates = check_int(max_candidates, "max_candidates", 1)
     if sigma is not None:
         sigma = check_positive(sigma, "sigma")
-    report = progress if progress is not None else (lambda f, m: None)
+    report = check_progress(progress)
+    rng = as_rng(seed)
     levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
-    n1 = P.X.shape[0]
-    max_triples = _check_count(max_triples, "max_triples", 1) or 2_000_000
-    opts = {"sigma": sigma, "max_candidates": max_candidates, "refine": bool(refine),
-            "max_trials": 16, "max_judged": max_judged, "chunk": 8192, "confidence": float(confidence),
-            "max_triples": max_triples, "min_points": max(3.0, float(min_inlier_share) * n1)}
-    rng = np.random.default_rng(seed)
-    info: dict = {"n_source": n1, "n_target": int(P.Y.shape[0]), "spacing": P.spacing,
-                  "grouping": grouping}
+    n1 = P.source.shape[0]
+    max_triples = check_int(max_triples, "max_triples", 1, allow_none=True) or 2_000_000
+    opts = SearchOptions(sigma=sigma, max_candidates=max_candidates, refine=bool(refine), max_trials=16,
+                         max_judged=max_judged, chunk=8192, confidence=float(confidence),
+                         max_triples=max_triples, min_points=max(3.0, float(min_inlier_share) * n1))
+    info: dict = {"model": P.model.name, "n_source": n1, "n_target": int(P.target.shape[0]),
+                  "spacing": P.spacing, "grouping": grouping}
     log: list = []
     index = None
 
@@ -518,13 +550,13 @@ def segment(
             return min_support
         return max(3, P.chance(gate, n_tests=n_tests))
 
-    hyps: list = []
+    hyps: list[Hypothesis] = []
     level = 0
     tol = levels[0]
     for level, tol in enumerate(levels):
-        gate = _gate(tol)
+        gate = stages.gate(tol)
         if index is None:
-            index = TargetIndex(P.Y, gate, memory_budget=memory_budget)
+            index = P.model.index(P.target, gate, memory_budget=memory_budget)
         else:
             index.set_radius(gate)
         report(level / len(levels), f"tolerance {tol:.3g}: trial search")
@@ -533,7 +565,7 @@ def segment(
             hyps = _hypotheses(P, trials, tol, threshold_fn(gate), opts)
         if hyps:
             break
-    gate = _gate(tol)
+    gate = stages.gate(tol)
     threshold = threshold_fn(gate)
     info.update(tolerance=tol, support_threshold=threshold, trials=log)
     if not hyps:
@@ -548,58 +580,55 @@ def segment(
     if noise is None and len(levels) > 1 and motions:
         grown = []
         top = level
-        for R, t, kept in motions:
-            R, t, kept, lv = _grow_tolerance(P, R, t, kept, levels, level)
-            grown.append((R, t, kept))
+        for fit in motions:
+            fit, lv = stages.grow_tolerance(P, fit, levels, level)
+            grown.append(fit)
             top = max(top, lv)
         if top > level:
-            gate = _gate(levels[top])
+            gate = stages.gate(levels[top])
             info["tolerance"] = levels[top]
-            tokens = np.unique(np.vstack([tokens] + [_gated_pairs(P, R, t, gate) for R, t, _ in grown]), axis=0)
+            tokens = np.unique(np.vstack([tokens] + [_gated_pairs(P, f, gate) for f in grown]), axis=0)
             motions, labels = _resolve(P, grown, tokens, threshold, gate)
 
-    order = sorted(range(len(motions)), key=lambda m: (-motions[m][2].shape[0], m))
+    order = sorted(range(len(motions)), key=lambda m: (-motions[m].support, m))
     if max_motions is not None:
         order = order[:max_motions]
     remap = np.full(len(motions) + 1, -1, np.int64)
     remap[np.asarray(order, np.int64)] = np.arange(len(order))
     labels = remap[labels]
     src_lab = np.full(n1, -1, np.int64)
-    tgt_lab = np.full(P.Y.shape[0], -1, np.int64)
+    tgt_lab = np.full(P.target.shape[0], -1, np.int64)
     out = []
     for new, m in enumerate(order):
-        R, t, kept = motions[m]
-        kept = kept[np.argsort(kept[:, 0], kind="stable")]
+        fit = motions[m]
+        kept = fit.correspondences
         src_lab[kept[:, 0]] = new
         tgt_lab[kept[:, 1]] = new
-        res = _residual(P, kept, R, t)
-        out.append(RigidMotion(rotation=R, translation=t, correspondences=kept,
-                               score=float(kept.shape[0]), rms=float(np.sqrt(np.mean(res**2))),
-                               info={"label": new}))
+        out.append(stages.make_result(P, fit, {"label": new}))
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {len(out)} motions")
     return Segmentation(tuple(out), src_lab, tgt_lab, tokens, labels, info)
 
 
-def _empty(P, info) -> Segmentation:
-    return Segmentation((), np.full(P.X.shape[0], -1), np.full(P.Y.shape[0], -1),
+def _empty(P: Problem, info) -> Segmentation:
+    return Segmentation((), np.full(P.source.shape[0], -1), np.full(P.target.shape[0], -1),
                         np.empty((0, 2), np.int64), np.empty(0, np.int64), info)
 
 
-def _group(P, hyps, grouping, threshold, gate):
-    """Hypotheses → motions (``(R, t, kept)`` list), tokens and token labels."""
-    tokens = np.unique(np.vstack([h.gated for h in hyps] + [h.kept for h in hyps]), axis=0)
+def _group(P: Problem, hyps: list[Hypothesis], grouping, threshold, gate):
+    """Hypotheses → motions (fits), tokens and token labels."""
+    tokens = np.unique(np.vstack([h.gated for h in hyps] + [h.fit.correspondences for h in hyps]), axis=0)
     extra: dict = {}
     if grouping == "greedy":
-        cands = [(h.R, h.t, h.kept) for h in sorted(hyps, key=lambda h: -h.kept.shape[0])]
+        cands = [h.fit for h in sorted(hyps, key=lambda h: -h.fit.support)]
         motions, labels = _resolve(P, cands, tokens, threshold, gate)
         return motions, tokens, labels, extra
     surfaces = _surfaces(P, hyps, gate)
-    cands = []
+    cands: list[Fit] = []
     split = []
     n_edges = 0
     for members in surfaces:
-        big = max(members, key=lambda a: hyps[a].kept.shape[0])
+        big = max(members, key=lambda a: hyps[a].fit.support)
         axis = hyps[big].axis
         pairs = np.unique(np.vstack([hyps[a].gated for a in members]), axis=0)
         G = _eq41_graph(P, pairs, axis, 2.0 * gate)
@@ -607,9 +636,10 @@ def _group(P, hyps, grouping, threshold, gate):
         found = _dense_components(P, G, pairs, threshold, gate)
         if len(found) > 1:
             split.append({"hypotheses": len(members), "motions": len(found),
-                          "angles_deg": [float(np.degrees(Rotor.from_matrix(R).angle)) for R, _, _ in found]})
+                          "angles_deg": [float(np.degrees(Rotor.from_matrix(f.matrix[:3, :3]).angle))
+                                         for f in found]})
         cands.extend(found)
-    cands.sort(key=lambda c: -c[2].shape[0])
+    cands.sort(key=lambda c: -c.support)
     motions, labels = _resolve(P, cands, tokens, threshold, gate)
     extra.update(n_surfaces=len(surfaces), shared_surfaces=split, graph_edges=n_edges)
     return motions, tokens, labels, extra

@@ -1,0 +1,145 @@
+"""The rigid motion model: ``x' = R x R̃ + t`` (paper, sections 2–4).
+
+Trial motions come from congruent point triples (side lengths survive any
+rigid motion, :mod:`gatv.congruent`); tokens are the differences
+``d = x' - R0 x`` in the ``{dx, dy, dz}`` joint space of eq. 30, where the
+true pairs form the dense pure-translation cluster of section 3.4 (a plane
+normal to the rotation axis when a residual rotation is left); eq. 41,
+``V × (A × Vs) = 0``, checks pairs of tokens.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._validation import as_points
+from ..errors import InputError
+from ..fitting import kabsch
+from ..ga import eq41_length_residual, eq41_residual
+from ..motion import RigidMotion
+from ..stats import chance_support
+from .base import Motion, homogeneous
+
+__all__ = ["Rigid", "MODEL", "check_spread", "plane_normal"]
+
+
+def check_spread(points: np.ndarray, name: str, need: str) -> None:
+    """Raise when all ``points`` are identical or collinear (no motion is fixed then)."""
+    c = points - points.mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    if s[0] <= 1e-12 * max(1.0, float(np.abs(points).max())):
+        raise InputError(f"All points of `{name}` are identical; {need}.")
+    if s[1] <= 1e-9 * s[0]:
+        raise InputError(f"All points of `{name}` are collinear; {need}.")
+
+
+def check_dimension(points, name: str, dim: int, model: str) -> None:
+    """A clear error for points of the wrong dimension for ``model``."""
+    if hasattr(points, "points") and not isinstance(points, np.ndarray):
+        points = points.points
+    shape = np.shape(points)
+    if len(shape) == 2 and shape[1] != dim:
+        other = "'affine2d'" if shape[1] == 2 else "'rigid' or 'similarity'"
+        msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}; "
+               f"for ({shape[0]}, {shape[1]}) points use model={other}.")
+        raise InputError(msg)
+
+
+def plane_normal(points: np.ndarray, tau: float) -> np.ndarray:
+    """Unit normal of the least-squares plane through ``points``, trimmed once at ``tau``."""
+    c = points - points.mean(axis=0)
+    n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    near = np.abs(c @ n) <= tau
+    if 3 <= near.sum() < len(points):
+        c = points[near] - points[near].mean(axis=0)
+        n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return n
+
+
+def eq41_consistent(d: np.ndarray, s: np.ndarray, pairs: np.ndarray, ref: int,
+                    tau: float) -> np.ndarray:
+    """Indices of tokens consistent with the reference token by eq. 41.
+
+    ``d``, ``s`` are the difference and sum vectors of the candidate
+    ``pairs``.  First the length-preservation half of eq. 41,
+    ``V · Vs = |Δx'|² - |Δx|² = 0``, which needs no axis; the rotation axis
+    ``A`` is then the normal of the eq.-30 plane through the tokens kept,
+    and the full constraint ``|V × (A × Vs)| / |Vs| <= tau`` (relaxed to the
+    noise level, section 4.1) decides.  A token that reuses the
+    reference's source or target point (the double match of Fig. 2 c/f)
+    is dropped.
+    """
+    r = eq41_length_residual(d, s, d[ref], s[ref])
+    same = (pairs[:, 0] == pairs[ref, 0]) ^ (pairs[:, 1] == pairs[ref, 1])
+    cons = np.union1d(np.flatnonzero((r <= tau) & ~same), [ref])
+    if cons.size < 4:
+        return cons
+    axis = plane_normal(d[cons], tau)
+    r = eq41_residual(d[cons], s[cons], d[ref], s[ref], axis, normalize="length")
+    return np.union1d(cons[r <= tau], [ref])
+
+
+class Rigid:
+    """Rotation and translation in 3D: 3-point samples, 6 degrees of freedom."""
+
+    name = "rigid"
+    dim = 3
+    sample_size = 3
+    n_params = 6
+    result_type = RigidMotion
+
+    def __repr__(self) -> str:
+        return "Rigid()"
+
+    # ------------------------------------------------------------ input
+    def check_points(self, points, name: str) -> np.ndarray:
+        """(N, 3) float64 points, at least 3, not all identical or collinear."""
+        check_dimension(points, name, self.dim, self.name)
+        p = as_points(points, name, min_points=self.sample_size)
+        check_spread(p, name, "a rigid motion needs 3 non-collinear points")
+        return p
+
+    # -------------------------------------------------------------- fit
+    def fit(self, source: np.ndarray, target: np.ndarray, weights=None) -> np.ndarray:
+        """Kabsch/Horn least squares, as a 4×4 matrix."""
+        R, t = kabsch(source, target, weights)
+        return homogeneous(R, t)
+
+    def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(target - (source @ matrix[:3, :3].T + matrix[:3, 3]), axis=1)
+
+    # ----------------------------------------------------------- trials
+    def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
+        """The target's pair-length table and scoring grid (:class:`gatv.congruent.TargetIndex`)."""
+        from ..congruent import TargetIndex
+
+        return TargetIndex(target, radius, memory_budget=memory_budget)
+
+    def trial_motions(self, source: np.ndarray, index, **options):
+        """Trial motions from congruent triples (:func:`gatv.congruent.trial_motions`)."""
+        from ..congruent import trial_motions
+
+        return trial_motions(source, index, **options)
+
+    # ----------------------------------------------------------- tokens
+    def tokens(self, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """``{dx, dy, dz}`` of eq. 30: ``d = x' - x`` (``x`` already trial-rotated)."""
+        return target - source
+
+    def consistent(self, tokens, ref: int, tau: float) -> np.ndarray:
+        """Eq. 41 against token ``ref`` (:func:`eq41_consistent`)."""
+        xs, ys = tokens.source_points, tokens.target_points
+        return eq41_consistent(ys - xs, ys + xs, tokens.pairs, ref, tau)
+
+    def chance(self, n_source: int, n_target: int, measure: float, gate: float,
+               n_tests: float = 1.0) -> int:
+        return chance_support(n_source, n_target, measure, gate, n_tests=n_tests, dim=3,
+                              sample_size=self.sample_size)
+
+    # ----------------------------------------------------------- result
+    def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,
+               rms: float, info: dict) -> Motion:
+        return RigidMotion(matrix[:3, :3], matrix[:3, 3], correspondences, score, rms, info)
+
+
+MODEL = Rigid()

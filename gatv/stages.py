@@ -1,0 +1,378 @@
+"""The paper's data flow as named stages (Algorithm 1, sections 2–5).
+
+trial motions → tokens → tensor votes → constraint → one-to-one selection
+→ fit and refine → result.
+
+Each stage is a function over small frozen values; whatever depends on the
+kind of motion is asked of the :class:`~gatv.models.MotionModel` the
+:class:`Problem` carries, so the same stages serve rigid motions, similarities
+and 2D affine maps.  :func:`gatv.register`, :func:`gatv.register_scans` and
+:func:`gatv.motions.segment` are short sequences of these stages.
+
+Motions travel between stages as homogeneous matrices ``T``
+(``target ≈ source @ T[:d, :d].T + T[:d, d]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .candidates import median_spacing, one_to_one
+from .models import Motion, MotionModel, get_model, split_matrix
+from .stats import chance_count
+
+__all__ = [
+    "NOISE_SCHEDULE",
+    "gate",
+    "Problem",
+    "prepare",
+    "Tokens",
+    "candidate_tokens",
+    "Votes",
+    "vote_tokens",
+    "constraint",
+    "select_one_to_one",
+    "Fit",
+    "fit_and_gate",
+    "refine",
+    "grow_tolerance",
+    "Judged",
+    "judge",
+    "make_result",
+    "motion_result",
+    "failure",
+]
+
+#: Tolerances tried when the noise is not given, relative to the point spacing.
+NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
+
+
+def gate(tolerance: float) -> float:
+    """Residual radius of a true pair for point noise of standard deviation ``tolerance``.
+
+    The residual ``x' - T(x)`` carries the noise of both points, a Gaussian
+    of per-axis standard deviation ``sqrt(2) tolerance``; in 3D its norm
+    stays below ``3.5 tolerance`` (2.47 of those standard deviations) for
+    about 89% of the pairs, in 2D for about 95%.
+    """
+    return 3.5 * tolerance
+
+
+# ------------------------------------------------------------------ problem
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Validated inputs and the scale facts every stage shares.
+
+    Attributes
+    ----------
+    source, target : (N, d), (M, d) ndarray
+    model : MotionModel
+    tree : scipy.spatial.cKDTree
+        Of the target points.
+    spacing : float
+        Mean of the two sets' median nearest-neighbour distances.
+    extent : float
+        Largest coordinate offset of a source point from the source centroid.
+    volume : float
+        Measure of the target's bounding box (each side at least ``spacing``):
+        the region random motions scatter points over (:meth:`chance`).
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    model: MotionModel
+    tree: cKDTree
+    spacing: float
+    extent: float
+    volume: float
+
+    @property
+    def dim(self) -> int:
+        return int(self.source.shape[1])
+
+    def chance(self, gate: float, n_tests: float = 1.0) -> int:
+        """Support a random motion reaches within ``gate`` (see :mod:`gatv.stats`)."""
+        return self.model.chance(self.source.shape[0], self.target.shape[0], self.volume, gate,
+                                 n_tests)
+
+    def residuals(self, matrix: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """``|target[j] - T(source[i])|`` of candidate pairs ``(i, j)``."""
+        return self.model.residuals(matrix, self.source[pairs[:, 0]], self.target[pairs[:, 1]])
+
+
+def prepare(source, target, model="rigid") -> Problem:
+    """Validate the two point sets for ``model`` and measure their scale.
+
+    Raises
+    ------
+    InputError
+        Wrong shapes (naming the argument and the model's dimension), too few,
+        identical or collinear points, NaN or inf.
+    """
+    model = get_model(model)
+    X = model.check_points(source, "source")
+    Y = model.check_points(target, "target")
+    spacing = 0.5 * (median_spacing(X) + median_spacing(Y))
+    lo, hi = Y.min(axis=0), Y.max(axis=0)
+    extent = float(np.abs(X - X.mean(axis=0)).max())
+    volume = float(np.prod(np.maximum(hi - lo, spacing)))
+    return Problem(X, Y, model, cKDTree(Y), spacing, extent, volume)
+
+
+# ------------------------------------------------------------------- tokens
+@dataclass(frozen=True, eq=False)
+class Tokens:
+    """Candidate pairs and their joint-space coordinates (section 3.4).
+
+    Attributes
+    ----------
+    pairs : (T, 2) ndarray of int
+        ``(source index, target index)``.
+    source_points : (T, d) ndarray
+        ``source[i]`` moved by the trial motion's linear part (the trial
+        rotation for rigid motions): the residual motion of true pairs is
+        then near a pure translation.
+    target_points : (T, d) ndarray
+        ``target[j]``.
+    coords : (T, 3) ndarray
+        The joint-space point voted on (``{dx, dy, dz}`` of eq. 30 for rigid
+        motions).
+    """
+
+    pairs: np.ndarray
+    source_points: np.ndarray
+    target_points: np.ndarray
+    coords: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.pairs.shape[0])
+
+
+def candidate_tokens(problem: Problem, matrix: np.ndarray, reach: float,
+                     max_candidates: int) -> Tokens:
+    """Pairs within ``reach`` of the trial motion ``matrix``, at most ``max_candidates`` a point.
+
+    The nearest targets of each moved source point are kept, which bounds
+    the work on dense real scans where every point has many near targets.
+    """
+    A, t = split_matrix(matrix)
+    moved = problem.source @ A.T
+    dist, j = problem.tree.query(moved + t, k=max_candidates, distance_upper_bound=reach)
+    dist, j = dist.reshape(len(moved), -1), j.reshape(len(moved), -1)
+    ii, kk = np.nonzero(np.isfinite(dist))
+    pairs = np.stack([ii, j[ii, kk]], axis=1)
+    xs, ys = moved[pairs[:, 0]], problem.target[pairs[:, 1]]
+    return Tokens(pairs, xs, ys, problem.model.tokens(xs, ys))
+
+
+# -------------------------------------------------------------------- votes
+@dataclass(frozen=True, eq=False)
+class Votes:
+    """What the sparse ball pass (section 3.3) says of each token.
+
+    Attributes
+    ----------
+    saliency : (T,) ndarray
+        ``λ1 + λ2 + λ3``: large in the dense pure-translation cluster of
+        section 3.4 and on the plane of a residual rotation.
+    normals : (T, 3) ndarray
+        ``e1``: the plane normal (the residual rotation axis) where the
+        tokens form a plane.
+    sigma : float
+        Voting scale.
+    """
+
+    saliency: np.ndarray
+    normals: np.ndarray
+    sigma: float
+
+
+def vote_tokens(tokens: Tokens, sigma: float) -> Votes:
+    """One sparse ball pass over the tokens' joint-space coordinates."""
+    from .voting import vote
+
+    ball = vote(tokens.coords, sigma)
+    return Votes(ball.eigenvalues.sum(axis=1), np.asarray(ball.normals), float(sigma))
+
+
+# --------------------------------------------------------------- constraint
+def constraint(tokens: Tokens, votes: Votes, tau: float, model: MotionModel,
+               n_refs: int = 4) -> np.ndarray | None:
+    """Tokens consistent with the best of the most salient tokens (eq. 41).
+
+    The paper tests the plane's most salient token against the rest
+    (section 3.4); the next few are tried as well, which guards against a
+    salient false token, and the reference with the largest consistent set
+    wins.  ``None`` when no reference has three consistent tokens.
+    """
+    best = None
+    for ref in np.argsort(-votes.saliency, kind="stable")[:n_refs]:
+        if votes.saliency[ref] <= 0:
+            break
+        cons = model.consistent(tokens, int(ref), tau)
+        if cons.size >= 3 and (best is None or cons.size > best.size):
+            best = cons
+    return best
+
+
+def select_one_to_one(pairs: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Rows of ``pairs`` kept by the greedy one-to-one selection, cheapest first."""
+    return one_to_one(pairs, cost)
+
+
+# ---------------------------------------------------------------------- fit
+@dataclass(frozen=True, eq=False)
+class Fit:
+    """A motion and the one-to-one correspondences it was fitted on."""
+
+    matrix: np.ndarray
+    correspondences: np.ndarray
+
+    @property
+    def support(self) -> int:
+        return int(self.correspondences.shape[0])
+
+
+def fit_and_gate(problem: Problem, pairs: np.ndarray, seed_pairs: np.ndarray,
+                 gate: float) -> Fit | None:
+    """Fit on ``seed_pairs``, keep ``pairs`` within ``gate``, one-to-one, refit (3 rounds)."""
+    model = problem.model
+    X, Y = problem.source, problem.target
+    if seed_pairs.shape[0] < model.sample_size:
+        return None
+    T = model.fit(X[seed_pairs[:, 0]], Y[seed_pairs[:, 1]])
+    for _ in range(3):
+        res = problem.residuals(T, pairs)
+        ok = np.flatnonzero(res <= gate)
+        if ok.size < model.sample_size:
+            return None
+        keep = ok[one_to_one(pairs[ok], res[ok])]
+        kept = pairs[keep]
+        T_new = model.fit(X[kept[:, 0]], Y[kept[:, 1]])
+        (A, t), (A_new, t_new) = split_matrix(T), split_matrix(T_new)
+        moved = np.abs(A_new - A).max() + np.abs(t_new - t).max()
+        T = T_new
+        if moved < 1e-12:
+            break
+    return Fit(T, kept)
+
+
+def refine(problem: Problem, fit: Fit, gate: float, iterations: int = 10) -> Fit:
+    """ICP polish: nearest target within ``gate``, one-to-one, refit.
+
+    Stops when the correspondences repeat or the motion moves by less than
+    1e-9 of the point spacing.  Returns ``fit`` unchanged when fewer than
+    ``sample_size`` points have a target within the gate.
+    """
+    model = problem.model
+    X, Y = problem.source, problem.target
+    T, kept = fit.matrix, None
+    for _ in range(iterations):
+        A, t = split_matrix(T)
+        dist, j = problem.tree.query(X @ A.T + t, k=1, distance_upper_bound=gate)
+        ok = np.flatnonzero(np.isfinite(dist))
+        if ok.size < model.sample_size:
+            break
+        pairs = np.stack([ok, j[ok]], axis=1)
+        new = pairs[one_to_one(pairs, dist[ok])]
+        T_new = model.fit(X[new[:, 0]], Y[new[:, 1]])
+        same = kept is not None and new.shape == kept.shape and np.array_equal(new, kept)
+        A_new, t_new = split_matrix(T_new)
+        step = np.abs(A_new - A).max() * problem.extent + np.abs(t_new - t).max()
+        T, kept = T_new, new
+        if same or step < 1e-9 * problem.spacing:
+            break
+    if kept is None:
+        return fit
+    return Fit(T, kept)
+
+
+def grow_tolerance(problem: Problem, fit: Fit, levels, level: int) -> tuple[Fit, int]:
+    """Move up the tolerance schedule while the support grows beyond chance.
+
+    A motion accepted at a tolerance below the data's noise explains only
+    the luckiest pairs; re-gating it at the next tolerance brings in the
+    rest.  Stop when the gain is no larger than what the wider gate would
+    collect from random points (Poisson, level 1e-3).
+    """
+    n1, n2 = problem.source.shape[0], problem.target.shape[0]
+    while level + 1 < len(levels):
+        g = gate(levels[level + 1])
+        wider = refine(problem, fit, g)
+        if wider is fit:
+            break
+        gain = chance_count(n1, n2, problem.volume, g, dim=problem.dim, alpha=1e-3)
+        if wider.support - fit.support <= max(2.0, gain):
+            break
+        fit, level = wider, level + 1
+    return fit, level
+
+
+# -------------------------------------------------------------------- judge
+@dataclass(frozen=True, eq=False)
+class Judged:
+    """What tensor voting made of one trial motion."""
+
+    fit: Fit
+    n_tokens: int
+    sigma: float
+
+
+def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: float | None = None,
+          max_candidates: int = 8, n_refs: int = 4) -> Judged | None:
+    """Tensor voting judges a trial motion (section 3.4).
+
+    tokens within the voting reach (2σ) of the trial motion → one ball pass
+    → eq. 41 against the most salient tokens → one-to-one by saliency → fit
+    and residual gate.  σ defaults to half the spacing of false tokens near
+    the trial translation (each source point contributes the target's
+    density there), at least the gate.
+    """
+    n1, n2 = problem.source.shape[0], problem.target.shape[0]
+    g = gate(tolerance)
+    false_spacing = (n1 * n2 / problem.volume) ** (-1.0 / problem.dim)
+    sig = float(sigma) if sigma is not None else max(g, 0.5 * min(false_spacing, problem.spacing))
+    tokens = candidate_tokens(problem, matrix, 2.0 * sig, max_candidates)
+    if len(tokens) < problem.model.sample_size:
+        return None
+    votes = vote_tokens(tokens, sig)
+    best = constraint(tokens, votes, 2.0 * g, problem.model, n_refs=n_refs)
+    if best is None:
+        return None
+    sub = best[select_one_to_one(tokens.pairs[best], -votes.saliency[best])]
+    fit = fit_and_gate(problem, tokens.pairs, tokens.pairs[sub], g)
+    if fit is None:
+        return None
+    return Judged(fit, len(tokens), sig)
+
+
+# ------------------------------------------------------------------- result
+def make_result(problem: Problem, fit: Fit, info: dict, score: float | None = None) -> Motion:
+    """The model's result for ``fit``: correspondences sorted by source index, their rms."""
+    return motion_result(problem.model, problem.source, problem.target, fit, info, score)
+
+
+def motion_result(model, source: np.ndarray, target: np.ndarray, fit: Fit, info: dict,
+                  score: float | None = None) -> Motion:
+    """:func:`make_result` for correspondences into ``source`` and ``target`` (no :class:`Problem`).
+
+    ``score`` defaults to the support.
+    """
+    model = get_model(model)
+    pairs = fit.correspondences
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    res = model.residuals(fit.matrix, source[pairs[:, 0]], target[pairs[:, 1]])
+    rms = float(np.sqrt(np.mean(res**2))) if pairs.size else float("nan")
+    return model.result(fit.matrix, pairs, score=float(pairs.shape[0] if score is None else score),
+                        rms=rms, info=info)
+
+
+def failure(model, reason: str, info: dict) -> Motion:
+    """A falsy result of ``model`` whose ``info["reason"]`` says why."""
+    model = get_model(model)
+    d = model.dim
+    return model.result(np.eye(d + 1), np.empty((0, 2), np.int64), score=0.0, rms=float("nan"),
+                        info=dict(info, reason=reason))

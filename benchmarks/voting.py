@@ -62,13 +62,14 @@ def worker(n: int, repeats: int) -> dict:
     from scipy.spatial import cKDTree
 
     from gatv.voting import default_sigma, vote
-    from gatv.voting import _kernels as K
+    from gatv.voting import _eigen as K
+    from gatv.voting._simd import SIMD
     from gatv.voting.api import _check_budget, _Engine
 
     warm = tokens(2000, seed=1)  # compile / load the cache
     b = vote(warm)
     vote(warm, b.sigma, b.normals, saliency=b.surfaceness)
-    K.eig3_top_batch(b.components.copy(), np.empty((2000, 3)), np.empty((2000, 3)), K.SIMD)
+    K.eig3_top_batch(b.components.copy(), np.empty((2000, 3)), np.empty((2000, 3)), SIMD)
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     pts = tokens(n)
@@ -89,7 +90,7 @@ def worker(n: int, repeats: int) -> dict:
         t3 = time.perf_counter()
         _, _, _, cnt_s = eng.stick(e1, w)
         t4 = time.perf_counter()
-        K.eig3_top_batch(t6, np.empty((n, 3)), np.empty((n, 3)), K.SIMD)
+        K.eig3_top_batch(t6, np.empty((n, 3)), np.empty((n, 3)), SIMD)
         t5 = time.perf_counter()
         rows["grid"].append(t1 - t0)
         rows["ball"].append(t2 - t1)

@@ -26,8 +26,9 @@ from gatv.voting import (
     vote,
 )
 from gatv.voting import _fields, _reference
-from gatv.voting import _kernels as K
-from gatv.voting._kernels import eig3_batch
+from gatv.voting import _eigen as E
+from gatv.voting import _passes as K
+from gatv.voting._eigen import eig3_batch
 
 seeds = st.integers(0, 2**32 - 1)
 
@@ -355,13 +356,13 @@ def test_default_sigma_gives_about_k_neighbours():
     ],
 )
 def test_vote_rejects_bad_input(kwargs, match, monkeypatch):
-    from gatv.voting import _kernels
+    from gatv.voting import _passes
 
     def boom(*args, **kw):  # pragma: no cover - must not be reached
         raise AssertionError("numba kernel ran on bad input")
 
-    monkeypatch.setattr(_kernels, "ball_pass", boom)
-    monkeypatch.setattr(_kernels, "stick_pass", boom)
+    monkeypatch.setattr(_passes, "ball_pass", boom)
+    monkeypatch.setattr(_passes, "stick_pass", boom)
     args = {"tokens": np.random.default_rng(0).uniform(size=(5, 3)), "sigma": 0.5}
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
@@ -406,12 +407,12 @@ _CACHE_SCRIPT = textwrap.dedent(
     """
     import json, numpy as np
     from gatv.voting import vote, extract_surfaces
-    from gatv.voting import _kernels, _grid
+    from gatv.voting import _grid, _passes
     pts = np.random.default_rng(0).uniform(size=(10000, 3))
     b = vote(pts)
     vote(pts, b.sigma, b.normals, saliency=b.surfaceness)
     stats = {}
-    for name, f in [("ball_pass", _kernels.ball_pass), ("stick_pass", _kernels.stick_pass),
+    for name, f in [("ball_pass", _passes.ball_pass), ("stick_pass", _passes.stick_pass),
                     ("bin", _grid._bin), ("sort", _grid._counting_sort)]:
         stats[name] = [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
     print(json.dumps(stats))
@@ -438,7 +439,7 @@ def test_second_process_hits_the_numba_cache():
 def test_exp_neg_small_matches_math_exp():
     from numba import njit
 
-    from gatv.voting._kernels import EXP_NEG_MAX, exp_neg_small
+    from gatv.voting._passes import EXP_NEG_MAX, exp_neg_small
 
     f = njit(lambda x: exp_neg_small(x))
     xs = np.r_[np.linspace(0.0, EXP_NEG_MAX, 20001), np.random.default_rng(0).uniform(0, EXP_NEG_MAX, 5000)]
@@ -477,9 +478,9 @@ def _ball_both(db, cnt, tab, tscale, out_v, out_s):
 
 @njit
 def _eig_both(t6, v_new, e_new, v_old, e_old):
-    K._eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
+    E.eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
     for i in range(t6.shape[0]):
-        r = K.eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
+        r = E.eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
         for k in range(3):
             v_old[i, k] = r[k]
             e_old[i, k] = r[3 + k]
@@ -641,7 +642,7 @@ def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row, simd):
     # the reference votes
     from numba import get_num_threads
 
-    from gatv.voting._kernels import NL_ROW
+    from gatv.voting._passes import NL_ROW
     from gatv.voting.api import NL_BYTES_PER_PAIR, SCRATCH_BYTES, _Engine
 
     rng = np.random.default_rng(3)

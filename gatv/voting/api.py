@@ -3,7 +3,9 @@
 Public functions: :func:`vote` (one sparse ball or stick pass),
 :func:`extract_surfaces` (section 3.3 in full) and :func:`default_sigma`.
 The voting fields are described in :mod:`gatv.voting._fields`; the numba
-kernels live in :mod:`gatv.voting._kernels` and :mod:`gatv.voting._grid`.
+kernels live in :mod:`gatv.voting._passes` (ball and stick passes),
+:mod:`gatv.voting._eigen` (3×3 eigen-solver), :mod:`gatv.voting._simd`
+(8-lane helpers) and :mod:`gatv.voting._grid` (neighbour grid).
 
 Neighbour search.  A numba uniform grid (cells of side ``r`` for voting
 radius ``r = 2σ``, tokens counting-sorted by cell; every token scans the 5
@@ -25,7 +27,7 @@ stick votes share the distance); chunks of ``reach`` cell keys, run even then
 odd, keep the parallel loop race-free and the sums in a fixed order.  This
 halves the neighbour search and the ball votes (250k tokens, 1 thread,
 shared machine: ball pass 0.69 → 0.44 CPU-s incl. a separate eigen pass).
-See :mod:`gatv.voting._kernels`.
+See :mod:`gatv.voting._passes`.
 
 Neighbour lists.  :func:`extract_surfaces` runs its ball pass and its first
 stick pass at the same σ, so the ball pass records each token's upper
@@ -35,7 +37,7 @@ get the memory budget left after the O(N) storage; tokens whose list does
 not fit their chunk's share are scanned as before, with the same results.
 Later stick passes grow σ, so they scan the grid.
 
-Eight lanes.  On x86 hosts with AVX2 or AVX-512 (``_kernels.SIMD``) the
+Eight lanes.  On x86 hosts with AVX2 or AVX-512 (``_simd.SIMD``) the
 distance test of the scan, the ball and stick votes and the eigen-analysis
 run on 8 tokens at a time through explicit LLVM vectors: the scan
 compress-stores the indices and offsets of the tokens inside the sphere, so
@@ -86,7 +88,7 @@ BYTES_PER_TOKEN = 512
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
 NL_BYTES_PER_PAIR = 4
 #: Bytes per entry of a thread's scratch buffers, sized by
-#: :func:`gatv.voting._kernels.half_shell_capacity`: an int64 index, 7 stick
+#: :func:`gatv.voting._passes.half_shell_capacity`: an int64 index, 7 stick
 #: inputs (4 offsets in the ball pass) and 6 outputs (float64).
 SCRATCH_BYTES = 8 * (1 + 7 + 6)
 
@@ -229,16 +231,17 @@ class _Engine:
     """Grid over the tokens at one σ; passes return sorted-order arrays.
 
     ``ball(record=True)`` also keeps each token's upper-neighbour list (CSR,
-    int32; see :func:`gatv.voting._kernels.ball_pass`) that the next
+    int32; see :func:`gatv.voting._passes.ball_pass`) that the next
     :meth:`stick` at the same σ reuses instead of scanning the grid again;
     ``max_pairs`` (from the memory budget, less the kernels' per-thread
-    scratch buffers of :func:`~gatv.voting._kernels.half_shell_capacity`
+    scratch buffers of :func:`~gatv.voting._passes.half_shell_capacity`
     entries) caps their length; tokens whose list does not fit are scanned
     as usual.
     """
 
     def __init__(self, points: np.ndarray, sigma: float, max_pairs: int = 0):
-        from gatv.voting import _kernels as K
+        from gatv.voting import _passes as K
+        from gatv.voting._simd import SIMD
 
         self._K = K
         self.sigma = sigma
@@ -267,7 +270,7 @@ class _Engine:
         # SCRATCH_BYTES per entry) come out of the neighbour lists' share
         scratch = get_num_threads() * self.cap * SCRATCH_BYTES
         self.max_pairs = max(0, int(max_pairs) - scratch // NL_BYTES_PER_PAIR)
-        self.simd = K.SIMD  # tests switch it off to check the scalar loops
+        self.simd = SIMD  # tests switch it off to check the scalar loops
         self.lists = None  # (nbr, nstart, nup) after a recording ball pass
 
     @property

@@ -1,7 +1,9 @@
-"""Numba kernels for sparse tensor voting (private).
+"""Numba kernels for sparse tensor voting: the ball and stick passes (private).
 
 Arrays and scalars in, arrays out; float64 throughout; no Python objects.
-Tensors are stored as 6 components ``(xx, xy, xz, yy, yz, zz)``.
+Tensors are stored as 6 components ``(xx, xy, xz, yy, yz, zz)``.  The
+eigen-analysis of the passes comes from :mod:`gatv.voting._eigen`; the
+8-lane paths build on :mod:`gatv.voting._simd`.
 
 Every kernel is ``@njit(cache=True)``; only the outer loops over chunks of
 tokens or over tokens are ``prange``.  Voting visits each pair of tokens once
@@ -14,259 +16,15 @@ from __future__ import annotations
 
 import math
 
-import llvmlite.binding as llvm
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-_TWO_PI_3 = 2.0 * math.pi / 3.0
-
-# ---------------------------------------------------------------------------
-# 3x3 symmetric eigen-solver (closed form, robust for repeated eigenvalues).
-# Eberly, "A Robust Eigensolver for 3 × 3 Symmetric Matrices" (Geometric Tools,
-# 2014): trigonometric eigenvalues, eigenvectors by cross products of the rows
-# of A − λI for the well-separated eigenvalue and a 2×2 problem in its
-# orthogonal complement for the next one.
-# ---------------------------------------------------------------------------
-
-
-@njit(cache=True, inline="always")
-def _row_crosses(a00, a01, a02, a11, a12, a22, lam):
-    """Cross products of the rows of A − λI and their squared lengths.
-
-    Plain arithmetic: :func:`_evec_single` and the 8-lane
-    :func:`_eig_rows_simd` (through ``py_func``) share it.
-    """
-    r00 = a00 - lam
-    r11 = a11 - lam
-    r22 = a22 - lam
-    # rows: (r00, a01, a02), (a01, r11, a12), (a02, a12, r22)
-    c0x = a01 * a12 - a02 * r11
-    c0y = a02 * a01 - r00 * a12
-    c0z = r00 * r11 - a01 * a01
-    c1x = a01 * r22 - a02 * a12
-    c1y = a02 * a02 - r00 * r22
-    c1z = r00 * a12 - a01 * a02
-    c2x = r11 * r22 - a12 * a12
-    c2y = a12 * a02 - a01 * r22
-    c2z = a01 * a12 - r11 * a02
-    d0 = c0x * c0x + c0y * c0y + c0z * c0z
-    d1 = c1x * c1x + c1y * c1y + c1z * c1z
-    d2 = c2x * c2x + c2y * c2y + c2z * c2z
-    return c0x, c0y, c0z, c1x, c1y, c1z, c2x, c2y, c2z, d0, d1, d2
-
-
-@njit(cache=True, inline="always")
-def _evec_single(a00, a01, a02, a11, a12, a22, lam):
-    """Unit eigenvector for an eigenvalue of multiplicity one (max cross product)."""
-    c0x, c0y, c0z, c1x, c1y, c1z, c2x, c2y, c2z, d0, d1, d2 = _row_crosses(a00, a01, a02, a11, a12, a22, lam)
-    if d0 == 0.0 and d1 == 0.0 and d2 == 0.0:
-        # A − λI vanished in rounding (λ is, to the last bit, a triple
-        # eigenvalue that the exact test of _eigvals missed): every unit
-        # vector is an eigenvector; without this the division gives NaN.
-        return 1.0, 0.0, 0.0
-    if d0 >= d1 and d0 >= d2:
-        s = 1.0 / math.sqrt(d0)
-        return c0x * s, c0y * s, c0z * s
-    if d1 >= d2:
-        s = 1.0 / math.sqrt(d1)
-        return c1x * s, c1y * s, c1z * s
-    s = 1.0 / math.sqrt(d2)
-    return c2x * s, c2y * s, c2z * s
-
-
-@njit(cache=True, inline="always")
-def _complement_2x2(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam):
-    """``v = w × u`` and the 2×2 matrix of A − λI on the plane (u, v): ``(v, m00, m01, m11)``.
-
-    Plain arithmetic, shared with the 8-lane :func:`_eig_rows_simd`.
-    """
-    vx = wy * uz - wz * uy
-    vy = wz * ux - wx * uz
-    vz = wx * uy - wy * ux
-    aux = a00 * ux + a01 * uy + a02 * uz
-    auy = a01 * ux + a11 * uy + a12 * uz
-    auz = a02 * ux + a12 * uy + a22 * uz
-    avx = a00 * vx + a01 * vy + a02 * vz
-    avy = a01 * vx + a11 * vy + a12 * vz
-    avz = a02 * vx + a12 * vy + a22 * vz
-    m00 = ux * aux + uy * auy + uz * auz - lam
-    m01 = vx * aux + vy * auy + vz * auz
-    m11 = vx * avx + vy * avy + vz * avz - lam
-    return vx, vy, vz, m00, m01, m11
-
-
-@njit(cache=True, inline="always")
-def _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
-    """Unit eigenvector for ``lam`` orthogonal to the unit eigenvector ``w``."""
-    if abs(wx) > abs(wy):
-        s = 1.0 / math.sqrt(wx * wx + wz * wz)
-        ux, uy, uz = -wz * s, 0.0, wx * s
-    else:
-        s = 1.0 / math.sqrt(wy * wy + wz * wz)
-        ux, uy, uz = 0.0, wz * s, -wy * s
-    vx, vy, vz, m00, m01, m11 = _complement_2x2(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam)
-    b00 = abs(m00)
-    b01 = abs(m01)
-    b11 = abs(m11)
-    if b00 >= b11:
-        if max(b00, b01) > 0.0:
-            if b00 >= b01:
-                m01 /= m00
-                m00 = 1.0 / math.sqrt(1.0 + m01 * m01)
-                m01 *= m00
-            else:
-                m00 /= m01
-                m01 = 1.0 / math.sqrt(1.0 + m00 * m00)
-                m00 *= m01
-            return m01 * ux - m00 * vx, m01 * uy - m00 * vy, m01 * uz - m00 * vz
-        return ux, uy, uz
-    if max(b11, b01) > 0.0:
-        if b11 >= b01:
-            m01 /= m11
-            m11 = 1.0 / math.sqrt(1.0 + m01 * m01)
-            m01 *= m11
-        else:
-            m11 /= m01
-            m01 = 1.0 / math.sqrt(1.0 + m11 * m11)
-            m11 *= m01
-        return m11 * ux - m01 * vx, m11 * uy - m01 * vy, m11 * uz - m01 * vz
-    return ux, uy, uz
-
-
-@njit(cache=True, inline="always")
-def _eigvals(a00, a01, a02, a11, a12, a22):
-    """Scaled eigen-setup: returns (scale, l1, l2, l3, half_det, degenerate) on scaled A."""
-    mx = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
-    if mx == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 0.0, True
-    inv = 1.0 / mx
-    a00 *= inv
-    a01 *= inv
-    a02 *= inv
-    a11 *= inv
-    a12 *= inv
-    a22 *= inv
-    q = (a00 + a11 + a22) / 3.0
-    b00 = a00 - q
-    b11 = a11 - q
-    b22 = a22 - q
-    off = a01 * a01 + a02 * a02 + a12 * a12
-    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off) / 6.0
-    if off == 0.0 and b00 == 0.0 and b11 == 0.0 and b22 == 0.0:
-        return mx, q, q, q, 0.0, True
-    p = math.sqrt(p2)
-    c00 = b11 * b22 - a12 * a12
-    c01 = a01 * b22 - a12 * a02
-    c02 = a01 * a12 - b11 * a02
-    hd = 0.5 * (b00 * c00 - a01 * c01 + a02 * c02) / (p * p2)
-    hd = min(max(hd, -1.0), 1.0)
-    ang = math.acos(hd) / 3.0
-    beta2 = 2.0 * math.cos(ang)
-    beta0 = 2.0 * math.cos(ang + _TWO_PI_3)
-    beta1 = min(max(-(beta0 + beta2), beta0), beta2)  # keep the order under rounding
-    return mx, q + p * beta2, q + p * beta1, q + p * beta0, hd, False
-
-
-@njit(cache=True, inline="always")
-def eig3_top(a00, a01, a02, a11, a12, a22):
-    """Eigenvalues (descending) and unit e1 of a symmetric 3×3 tensor.
-
-    Returns ``(l1, l2, l3, e1x, e1y, e1z)``.
-    """
-    mx, l1, l2, l3, hd, degen = _eigvals(a00, a01, a02, a11, a12, a22)
-    if degen:
-        return l1 * mx, l2 * mx, l3 * mx, 1.0, 0.0, 0.0
-    inv = 1.0 / mx
-    a00 *= inv
-    a01 *= inv
-    a02 *= inv
-    a11 *= inv
-    a12 *= inv
-    a22 *= inv
-    if hd >= 0.0:
-        ex, ey, ez = _evec_single(a00, a01, a02, a11, a12, a22, l1)
-    else:
-        wx, wy, wz = _evec_single(a00, a01, a02, a11, a12, a22, l3)
-        ex, ey, ez = _evec_complement(a00, a01, a02, a11, a12, a22, wx, wy, wz, l1)
-    return l1 * mx, l2 * mx, l3 * mx, ex, ey, ez
-
-
-@njit(cache=True, inline="always")
-def _eig3_full_one(a00, a01, a02, a11, a12, a22, vals, vecs, i):
-    mx, l1, l2, l3, hd, degen = _eigvals(a00, a01, a02, a11, a12, a22)
-    vals[i, 0] = l1 * mx
-    vals[i, 1] = l2 * mx
-    vals[i, 2] = l3 * mx
-    if degen:
-        for r in range(3):
-            for c in range(3):
-                vecs[i, r, c] = 1.0 if r == c else 0.0
-        return
-    inv = 1.0 / mx
-    a00 *= inv
-    a01 *= inv
-    a02 *= inv
-    a11 *= inv
-    a12 *= inv
-    a22 *= inv
-    if hd >= 0.0:
-        ax, ay, az = _evec_single(a00, a01, a02, a11, a12, a22, l1)
-        bx, by, bz = _evec_complement(a00, a01, a02, a11, a12, a22, ax, ay, az, l2)
-        cx = ay * bz - az * by
-        cy = az * bx - ax * bz
-        cz = ax * by - ay * bx
-    else:
-        cx, cy, cz = _evec_single(a00, a01, a02, a11, a12, a22, l3)
-        bx, by, bz = _evec_complement(a00, a01, a02, a11, a12, a22, cx, cy, cz, l2)
-        ax = by * cz - bz * cy
-        ay = bz * cx - bx * cz
-        az = bx * cy - by * cx
-    # columns are eigenvectors (numpy.linalg.eigh convention), descending order
-    vecs[i, 0, 0] = ax
-    vecs[i, 1, 0] = ay
-    vecs[i, 2, 0] = az
-    vecs[i, 0, 1] = bx
-    vecs[i, 1, 1] = by
-    vecs[i, 2, 1] = bz
-    vecs[i, 0, 2] = cx
-    vecs[i, 1, 2] = cy
-    vecs[i, 2, 2] = cz
-
-
-@njit(cache=True, parallel=True)
-def eig3_batch(t6, vals, vecs):
-    """Eigen-decomposition of ``(N, 6)`` tensors into ``vals (N,3)``, ``vecs (N,3,3)``.
-
-    Eigenvalues descending; ``vecs[i, :, k]`` is the unit eigenvector of
-    ``vals[i, k]``; right-handed.
-    """
-    for i in prange(t6.shape[0]):
-        _eig3_full_one(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5], vals, vecs, i)
-
-
-@njit(cache=True, parallel=True)
-def eig3_top_batch(t6, vals, e1, simd=False):
-    """Eigenvalues (descending) and e1 of ``(N, 6)`` C-contiguous tensors (unfused variant).
-
-    ``simd``: blocks of 256 tokens through :func:`_eig_rows_simd`, as the
-    fused passes do when :data:`SIMD` is on.
-    """
-    if simd:
-        nb = (t6.shape[0] + 255) // 256
-        for b in prange(nb):
-            _eig_rows_simd(t6, vals, e1, 256 * b, min(256 * (b + 1), t6.shape[0]))
-        return
-    for i in prange(t6.shape[0]):
-        l1, l2, l3, ex, ey, ez = eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
-        vals[i, 0] = l1
-        vals[i, 1] = l2
-        vals[i, 2] = l3
-        e1[i, 0] = ex
-        e1[i, 1] = ey
-        e1[i, 2] = ez
+from gatv.voting._eigen import eig3_top, eig_rows_simd
+from gatv.voting._simd import LANES, Ops, lane_sums, row_vector_ptr
+from gatv.voting._simd import splat as splat_ir
 
 
 @njit(cache=True, inline="always")
@@ -387,42 +145,6 @@ NL_ROW = 48
 _FLUSH_FLAGS = {"reassoc", "contract"}
 
 
-#: Whether the kernels take their explicit 8-lane paths (:func:`_collect_simd`,
-#: :func:`_ball_pairs_simd`, :func:`_stick_pairs_simd`, :func:`_eig_rows_simd`).  They are correct on any target (LLVM expands
-#: what the CPU lacks), but faster than the scalar code was measured only for
-#: x86 code with AVX2 or AVX-512, so other hosts keep the scalar loops.  Fixed
-#: per host, as numba's cache is.
-SIMD = bool(llvm.get_host_cpu_features().get("avx2", False))
-_W = 8
-
-
-def _splat(builder, value, vty):
-    """``value`` in every lane of a vector of type ``vty``."""
-    i32 = ir.IntType(32)
-    u = builder.insert_element(ir.Constant(vty, ir.Undefined), value, ir.Constant(i32, 0))
-    return builder.shuffle_vector(u, u, ir.Constant(ir.VectorType(i32, vty.count), [0] * vty.count))
-
-
-def _lane_sums(builder, slots):
-    """The lanes of each vector in ``slots`` (allocas) summed from lane 0 to the last: a fixed order."""
-    i32 = ir.IntType(32)
-    out = []
-    for slot in slots:
-        v = builder.load(slot)
-        acc = builder.extract_element(v, ir.Constant(i32, 0))
-        for q in range(1, v.type.count):
-            acc = builder.fadd(acc, builder.extract_element(v, ir.Constant(i32, q)))
-        out.append(acc)
-    return out
-
-
-def _row_vector_ptr(builder, arr, rowlen, r, k, vty):
-    """Pointer to the vector at ``arr[r, k : k + lanes]`` of a C-contiguous 2-D array with rows of ``rowlen``."""
-    i64 = ir.IntType(64)
-    at = builder.add(builder.mul(ir.Constant(i64, r), rowlen), k)
-    return builder.bitcast(builder.gep(arr.data, [at]), vty.as_pointer())
-
-
 @intrinsic
 def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
     """:func:`_collect` for the dense layout, 8 candidates at a time.
@@ -452,26 +174,26 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
         pdb = dba.data
         row = cgutils.unpack_tuple(builder, dba.shape, 2)[1]  # C order: row r starts at r * shape[1]
         mod = builder.module
-        o = _Ops(builder, mod)
+        o = Ops(builder, mod)
         f64, i64, i32, vd, vi, vm = o.lane_types
-        mask_t = ir.IntType(_W)
+        mask_t = ir.IntType(LANES)
         mload = o.intrinsic("load")
         cstore = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(ir.VoidType(), [vi, i64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}i64")
+            mod, ir.FunctionType(ir.VoidType(), [vi, i64.as_pointer(), vm]), f"llvm.masked.compressstore.v{LANES}i64")
         cstore_d = cgutils.get_or_insert_function(
-            mod, ir.FunctionType(ir.VoidType(), [vd, f64.as_pointer(), vm]), f"llvm.masked.compressstore.v{_W}f64")
-        ctpop = cgutils.get_or_insert_function(mod, ir.FunctionType(mask_t, [mask_t]), f"llvm.ctpop.i{_W}")
+            mod, ir.FunctionType(ir.VoidType(), [vd, f64.as_pointer(), vm]), f"llvm.masked.compressstore.v{LANES}f64")
+        ctpop = cgutils.get_or_insert_function(mod, ir.FunctionType(mask_t, [mask_t]), f"llvm.ctpop.i{LANES}")
 
         def splat(v, ty):
-            return _splat(builder, v, ty)
+            return splat_ir(builder, v, ty)
 
         centre = [splat(v, vd) for v in (vxi, vyi, vzi)]
         vr2s = splat(vr2, vd)
         end = splat(aj1, vi)
-        iota = ir.Constant(vi, list(range(_W)))
-        zero = ir.Constant(vd, [0.0] * _W)
+        iota = ir.Constant(vi, list(range(LANES)))
+        zero = ir.Constant(vd, [0.0] * LANES)
         cntp = cgutils.alloca_once_value(builder, acnt)
-        with cgutils.for_range_slice(builder, aj0, aj1, ir.Constant(i64, _W), inc=True) as (base, _):
+        with cgutils.for_range_slice(builder, aj0, aj1, ir.Constant(i64, LANES), inc=True) as (base, _):
             idx = builder.add(splat(base, vi), iota)
             lane = builder.icmp_signed("<", idx, end)
             offs = []
@@ -738,12 +460,12 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch, simd):
     Called after odd chunk ``ch`` is done: its tokens and those of even chunk
     ``ch + 1`` (written only by ``ch`` and itself) have their final tensors,
     and no other iteration of the parallel loop writes them.  ``simd``: use
-    :func:`_eig_rows_simd`.
+    :func:`eig_rows_simd`.
     """
     c0 = 0 if ch == 1 else ch
     c1 = min(ch + 2, nch)
     if c0 < c1 and simd:
-        _eig_rows_simd(acc, vals, e1, cb[c0], cb[c1])
+        eig_rows_simd(acc, vals, e1, cb[c0], cb[c1])
     elif c0 < c1:
         for i in range(cb[c0], cb[c1]):
             l1, l2, l3, ex, ey, ez = eig3_top(acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5])
@@ -768,7 +490,7 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     ``nth``: number of numba threads (passed in: calling
     ``numba.get_num_threads`` here would make the function uncachable);
     ``cap``: :func:`half_shell_capacity`; ``simd``: the 8-lane scan, votes
-    and eigen-analysis (pass :data:`SIMD`).
+    and eigen-analysis (pass :data:`gatv.voting._simd.SIMD`).
 
     Recording (``nstart.shape[0] == N``): the upper neighbours of token i go
     to ``nbr[nstart[i] : nstart[i] + nup[i]]`` (int32), each chunk ``c``
@@ -924,53 +646,6 @@ def _stick_pairs(buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
     return s00, s01, s02, s11, s12, s22
 
 
-class _Lanes:
-    """An LLVM vector of float64 lanes with Python arithmetic (for :func:`_stick_pairs_simd`).
-
-    Lets the scalar polynomials (:func:`arcsin_ratio2`, :func:`exp_neg_small`)
-    be emitted lane-wise from their own Python source, so the two stay one
-    formula.  Products and sums carry the ``contract`` flag, as the scalar
-    flush's ``_FLUSH_FLAGS`` allow.
-    """
-
-    __slots__ = ("b", "v")
-
-    def __init__(self, builder, value):
-        self.b = builder
-        self.v = value
-
-    def _lift(self, other):
-        if isinstance(other, _Lanes):
-            return other.v
-        return ir.Constant(self.v.type, [float(other)] * self.v.type.count)
-
-    def _op(self, name, a, c):
-        inst = getattr(self.b, name)(a, c)
-        inst.flags.append("contract")
-        return _Lanes(self.b, inst)
-
-    def __add__(self, o):
-        return self._op("fadd", self.v, self._lift(o))
-
-    def __radd__(self, o):
-        return self._op("fadd", self._lift(o), self.v)
-
-    def __sub__(self, o):
-        return self._op("fsub", self.v, self._lift(o))
-
-    def __rsub__(self, o):
-        return self._op("fsub", self._lift(o), self.v)
-
-    def __mul__(self, o):
-        return self._op("fmul", self.v, self._lift(o))
-
-    def __rmul__(self, o):
-        return self._op("fmul", self._lift(o), self.v)
-
-    def __rtruediv__(self, o):
-        return _Lanes(self.b, self.b.fdiv(self._lift(o), self.v))
-
-
 @intrinsic
 def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamma4, lmin2, out):
     """:func:`_stick_pairs` on 8 pairs at a time (explicit LLVM vectors).
@@ -998,12 +673,12 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
         brow = cgutils.unpack_tuple(builder, bufa.shape, 2)[1]
         orow = cgutils.unpack_tuple(builder, outa.shape, 2)[1]
         mod = builder.module
-        o = _Ops(builder, mod)
+        o = Ops(builder, mod)
         _, i64, i32, vd, vi, _ = o.lane_types
         mload, mstore = o.intrinsic("load"), o.intrinsic("store")
 
         def splat(v, ty=vd):
-            return _splat(builder, v, ty)
+            return splat_ir(builder, v, ty)
 
         L = o.L
         const = o.v
@@ -1017,7 +692,7 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
         ni = [L(splat(v)) for v in (vnx, vny, vnz)]
         wiv = L(splat(vwi))
         end = splat(acnt, vi)
-        iota = ir.Constant(vi, list(range(_W)))
+        iota = ir.Constant(vi, list(range(LANES)))
         # an inactive lane is a voter at unit distance along x with weight 0
         idle = [const(1.0), const(0.0), const(0.0), const(1.0), const(0.0), const(0.0), const(0.0)]
         sums = [cgutils.alloca_once_value(builder, const(0.0)) for _ in range(6)]
@@ -1038,11 +713,11 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
             dmy = df * my
             return dmx * mx, dmx * my, dmx * mz, dmy * my, dmy * mz, df * mz * mz
 
-        with cgutils.for_range_slice(builder, ir.Constant(i64, 0), acnt, ir.Constant(i64, _W), inc=True) as (k, _):
+        with cgutils.for_range_slice(builder, ir.Constant(i64, 0), acnt, ir.Constant(i64, LANES), inc=True) as (k, _):
             lane = builder.icmp_signed("<", builder.add(splat(k, vi), iota), end)
 
             def row_ptr(arr, rowlen, r):
-                return _row_vector_ptr(builder, arr, rowlen, r, k, vd)
+                return row_vector_ptr(builder, arr, rowlen, r, k, vd)
 
             col = [L(builder.call(mload, [row_ptr(bufa, brow, r), ir.Constant(i32, 8), lane, idle[r]]))
                    for r in range(7)]
@@ -1059,237 +734,9 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
                 t = stick_one(d, d2, inv, rho2, gl, ni, wiv)
                 for r in range(6):
                     builder.call(mstore, [t[r].v, row_ptr(outa, orow, r), ir.Constant(i32, 8), lane])
-        return context.make_tuple(builder, signature.return_type, _lane_sums(builder, sums))
+        return context.make_tuple(builder, signature.return_type, lane_sums(builder, sums))
 
     return sig, codegen
-
-
-#: Chebyshev coefficients (in x = 2u − 1, u ∈ [0, 1]) of cos(⅔ acos u) and of
-#: sin(⅔ acos u) / sin(acos u); both are analytic on [0, 1] (even in acos u at
-#: u = 1), so truncated series reach 1e-17 (computed with mpmath at 40 digits).
-_COS_THIRD = (0.7580911654351291, 0.24933602102708852, -0.008021174548795317, 0.000655646818891165,
-              -6.89243563279823e-05, 8.188877173129078e-06, -1.0466055460825932e-06, 1.4043322846141953e-07,
-              -1.9510326190769272e-08, 2.782320375264605e-09, -4.049391221915355e-10, 5.990386523100158e-11,
-              -8.980957670148084e-12, 1.3615450721784287e-12, -2.0837359679227866e-13, 3.2149357013701097e-14,
-              -4.995217667621266e-15, 7.80925676827245e-16, -1.2275110870926396e-16)
-_SIN_THIRD_RATIO = (0.7540347438607463, -0.09794691839370434, 0.012053361558961478, -0.001692823808160549,
-                    0.0002517188189205075, -3.8639256288973876e-05, 6.052503726635105e-06, -9.61456630000523e-07,
-                    1.5430813125548396e-07, -2.4960972843598082e-08, 4.0628309911953e-09, -6.646255121059554e-10,
-                    1.091758859491952e-10, -1.7996559855293435e-11, 2.9753703192777506e-12,
-                    -4.931777247420255e-13, 8.192818804465196e-14, -1.3636828650383968e-14, 2.273769008272972e-15,
-                    -3.7970890978346075e-16, 6.349767363173025e-17, -1.0631844237236111e-17)
-
-
-def _clenshaw(co, x):
-    """Σ co[k] T_k(x) by Clenshaw's recurrence (x: a float or :class:`_Lanes`)."""
-    x2 = 2.0 * x
-    b1 = co[-1] + 0.0 * x
-    b2 = 0.0 * x
-    for k in range(len(co) - 2, 0, -1):
-        b1, b2 = co[k] + x2 * b1 - b2, b1
-    return co[0] + x * b1 - b2
-
-
-class _Ops:
-    """Lane-wise comparisons, selects and math of the 8-lane intrinsics, and their LLVM types.
-
-    ``lane_types``: ``(f64, i64, i32, vd, vi, vm)``, the scalar types and the
-    vectors of ``_W`` doubles, int64 and bools; ``vpd`` a vector of double
-    pointers. :meth:`intrinsic` declares the masked memory intrinsics the
-    kernels use (once per module).
-    """
-
-    def __init__(self, builder, mod):
-        self.b = builder
-        self.mod = mod
-        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
-        vd = ir.VectorType(f64, _W)
-        self.vd = vd
-        self.lane_types = (f64, i64, i32, vd, ir.VectorType(i64, _W), ir.VectorType(ir.IntType(1), _W))
-        self.vpd = ir.VectorType(f64.as_pointer(), _W)
-        self._sqrt = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vd]), f"llvm.sqrt.v{_W}f64")
-        self._fabs = cgutils.get_or_insert_function(mod, ir.FunctionType(vd, [vd]), f"llvm.fabs.v{_W}f64")
-
-    def intrinsic(self, name):
-        """Declaration of ``llvm.masked.<name>`` on vectors of doubles: load, store, gather or scatter."""
-        _, _, i32, vd, _, vm = self.lane_types
-        vpd, void = self.vpd, ir.VoidType()
-        ty, suffix = {
-            "load": (ir.FunctionType(vd, [vd.as_pointer(), i32, vm, vd]), f"v{_W}f64.p0v{_W}f64"),
-            "store": (ir.FunctionType(void, [vd, vd.as_pointer(), i32, vm]), f"v{_W}f64.p0v{_W}f64"),
-            "gather": (ir.FunctionType(vd, [vpd, i32, vm, vd]), f"v{_W}f64.v{_W}p0f64"),
-            "scatter": (ir.FunctionType(void, [vd, vpd, i32, vm]), f"v{_W}f64.v{_W}p0f64"),
-        }[name]
-        return cgutils.get_or_insert_function(self.mod, ty, f"llvm.masked.{name}.{suffix}")
-
-    def v(self, a):
-        """The LLVM vector of lanes, an LLVM value as it is, or a float in every lane."""
-        if isinstance(a, _Lanes):
-            return a.v
-        if isinstance(a, ir.Value):
-            return a
-        return ir.Constant(self.vd, [float(a)] * _W)
-
-    def L(self, x):
-        return _Lanes(self.b, x)
-
-    def cmp(self, op, a, c):
-        return self.b.fcmp_ordered(op, self.v(a), self.v(c))
-
-    def sel(self, m, a, c):
-        return self.L(self.b.select(m, self.v(a), self.v(c)))
-
-    def max(self, a, c):  # numba's max(a, c): c if c > a else a
-        return self.sel(self.cmp(">", c, a), c, a)
-
-    def min(self, a, c):  # numba's min(a, c): c if c < a else a
-        return self.sel(self.cmp("<", c, a), c, a)
-
-    def sqrt(self, a):
-        return self.L(self.b.call(self._sqrt, [self.v(a)]))
-
-    def abs(self, a):
-        return self.L(self.b.call(self._fabs, [self.v(a)]))
-
-    def div(self, a, c):
-        return self.L(self.b.fdiv(self.v(a), self.v(c)))
-
-    def and_(self, *ms):
-        out = ms[0]
-        for m in ms[1:]:
-            out = self.b.and_(out, m)
-        return out
-
-    def not_(self, m):
-        return self.b.not_(m)
-
-
-def _evec_single_lanes(o, a00, a01, a02, a11, a12, a22, lam):
-    r = _row_crosses.py_func(a00, a01, a02, a11, a12, a22, lam)
-    c0, c1, c2 = r[0:3], r[3:6], r[6:9]
-    d0, d1, d2 = r[9:12]
-    zero = o.and_(o.cmp("==", d0, 0.0), o.cmp("==", d1, 0.0), o.cmp("==", d2, 0.0))
-    pick0 = o.and_(o.cmp(">=", d0, d1), o.cmp(">=", d0, d2))
-    pick1 = o.cmp(">=", d1, d2)
-    c = [o.sel(pick0, c0[k], o.sel(pick1, c1[k], c2[k])) for k in range(3)]
-    d = o.sel(pick0, d0, o.sel(pick1, d1, d2))
-    s = o.div(1.0, o.sqrt(o.sel(zero, 1.0, d)))
-    return [o.sel(zero, 1.0 if k == 0 else 0.0, c[k] * s) for k in range(3)]
-
-
-def _evec_complement_lanes(o, a00, a01, a02, a11, a12, a22, wx, wy, wz, lam):
-    big = o.cmp(">", o.abs(wx), o.abs(wy))
-    sa = o.div(1.0, o.sqrt(wx * wx + wz * wz))
-    sb = o.div(1.0, o.sqrt(wy * wy + wz * wz))
-    ux = o.sel(big, (0.0 - wz) * sa, 0.0)
-    uy = o.sel(big, 0.0, wz * sb)
-    uz = o.sel(big, wx * sa, (0.0 - wy) * sb)
-    vx, vy, vz, m00, m01, m11 = _complement_2x2.py_func(a00, a01, a02, a11, a12, a22, wx, wy, wz, ux, uy, uz, lam)
-    b00 = o.abs(m00)
-    b01 = o.abs(m01)
-    b11 = o.abs(m11)
-    case_a = o.cmp(">=", b00, b11)
-    p = o.sel(case_a, m00, m11)
-    bp = o.sel(case_a, b00, b11)
-    nonzero = o.cmp(">", o.max(bp, b01), 0.0)
-    lead = o.sel(o.cmp(">=", bp, b01), p, m01)
-    sgn = o.sel(o.cmp(">", lead, 0.0), 1.0, -1.0)
-    k = o.div(1.0, sgn * o.sqrt(p * p + m01 * m01))
-    ga = o.sel(case_a, m01, p)  # coefficient of u
-    gb = o.sel(case_a, p, m01)  # coefficient of v
-    return [o.sel(nonzero, (ga * uu - gb * vv) * k, uu) for uu, vv in ((ux, vx), (uy, vy), (uz, vz))]
-
-
-def _eig3_top_lanes(o, a):
-    """Lane-wise :func:`eig3_top`: returns (l1, l2, l3, e1x, e1y, e1z) as lanes."""
-    mx = o.abs(a[0])
-    for k in range(1, 6):
-        mx = o.max(mx, o.abs(a[k]))
-    inv = o.div(1.0, o.sel(o.cmp(">", mx, 0.0), mx, 1.0))
-    a00, a01, a02, a11, a12, a22 = (x * inv for x in a)
-    q = o.div(a00 + a11 + a22, 3.0)
-    b00 = a00 - q
-    b11 = a11 - q
-    b22 = a22 - q
-    off = a01 * a01 + a02 * a02 + a12 * a12
-    p2 = o.div(b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off, 6.0)
-    degen = o.cmp("==", p2, 0.0)
-    p = o.sqrt(p2)
-    c00 = b11 * b22 - a12 * a12
-    c01 = a01 * b22 - a12 * a02
-    c02 = a01 * a12 - b11 * a02
-    hd = o.div(0.5 * (b00 * c00 - a01 * c01 + a02 * c02), o.sel(degen, 1.0, p * p2))
-    hd = o.min(o.max(hd, -1.0), 1.0)
-    u = o.sqrt(0.5 + 0.5 * hd)
-    x = 2.0 * u - 1.0
-    c = _clenshaw(_COS_THIRD, x)  # cos(acos(hd) / 3)
-    s = o.sqrt(0.5 - 0.5 * hd) * _clenshaw(_SIN_THIRD_RATIO, x)  # sin(acos(hd) / 3)
-    beta2 = 2.0 * c
-    beta0 = (0.0 - c) - math.sqrt(3.0) * s  # 2 cos(acos(hd)/3 + 2π/3)
-    beta1 = o.min(o.max(0.0 - (beta0 + beta2), beta0), beta2)
-    l1 = q + p * beta2
-    l2 = q + p * beta1
-    l3 = q + p * beta0
-    first = o.cmp(">=", hd, 0.0)
-    w = _evec_single_lanes(o, a00, a01, a02, a11, a12, a22, o.sel(first, l1, l3))
-    e = _evec_complement_lanes(o, a00, a01, a02, a11, a12, a22, w[0], w[1], w[2], l1)
-    e1 = [o.sel(degen, 1.0 if k == 0 else 0.0, o.sel(first, w[k], e[k])) for k in range(3)]
-    return (l1 * mx, l2 * mx, l3 * mx, *e1)
-
-
-@intrinsic
-def _eig_rows_simd(typingctx, acc, vals, e1, i0, i1):
-    """:func:`eig3_top` of the tensors ``acc[i0:i1]`` into ``vals`` and ``e1``, 8 tokens at a time.
-
-    Branch-free: both of Eberly's eigenvector branches are computed and
-    selected per lane, and the trigonometric eigenvalues take no libm call:
-    with ``u = √((1 + hd)/2)``, ``cos(acos(hd)/3)`` and
-    ``sin(acos(hd)/3) / √((1 − hd)/2)`` are smooth in u on [0, 1] and are
-    summed from their Chebyshev series.  Eigenvalues agree with
-    :func:`eig3_top` to 1e-15 of the largest where they are separated (both
-    lose ~1e-8 at near-double eigenvalues, as any trigonometric solver), e1
-    to 1e-15 where λ1 − λ2 > 1e-6 λ1.  At 250k tokens, one thread:
-    254 → 59 ns a token.
-    """
-    for a in (acc, vals, e1):
-        if not (isinstance(a, types.Array) and a.ndim == 2 and a.layout == "C" and a.dtype == types.float64):
-            return None
-    sig = types.void(acc, vals, e1, types.int64, types.int64)
-
-    def codegen(context, builder, signature, args):
-        aacc, avals, ae1, ai0, ai1 = args
-        arrs = [context.make_array(signature.args[k])(context, builder, args[k]) for k in range(3)]
-        mod = builder.module
-        o = _Ops(builder, mod)
-        _, i64, i32, vd, vi, _ = o.lane_types
-        vpd = o.vpd
-        gather, scatter = o.intrinsic("gather"), o.intrinsic("scatter")
-
-        def splat(v, ty):
-            return _splat(builder, v, ty)
-
-        iota = ir.Constant(vi, list(range(_W)))
-        end = splat(ai1, vi)
-        one = ir.Constant(vd, [1.0] * _W)
-        bases = [splat(builder.ptrtoint(a.data, i64), vi) for a in arrs]
-        with cgutils.for_range_slice(builder, ai0, ai1, ir.Constant(i64, _W), inc=True) as (i, _):
-            idx = builder.add(splat(i, vi), iota)
-            lane = builder.icmp_signed("<", idx, end)
-
-            def ptrs(k, width, col):
-                off = builder.mul(builder.add(builder.mul(idx, ir.Constant(vi, [width] * _W)),
-                                              ir.Constant(vi, [col] * _W)), ir.Constant(vi, [8] * _W))
-                return builder.inttoptr(builder.add(bases[k], off), vpd)
-
-            a = [o.L(builder.call(gather, [ptrs(0, 6, c), ir.Constant(i32, 8), lane, one])) for c in range(6)]
-            res = _eig3_top_lanes(o, a)
-            for c in range(3):
-                builder.call(scatter, [o.v(res[c]), ptrs(1, 3, c), ir.Constant(i32, 8), lane])
-                builder.call(scatter, [o.v(res[3 + c]), ptrs(2, 3, c), ir.Constant(i32, 8), lane])
-        return context.get_dummy_value()
-
-    return sig, codegen
-
 
 @intrinsic
 def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
@@ -1314,33 +761,33 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
         drow = cgutils.unpack_tuple(builder, dba.shape, 2)[1]
         orow = cgutils.unpack_tuple(builder, outa.shape, 2)[1]
         mod = builder.module
-        o = _Ops(builder, mod)
+        o = Ops(builder, mod)
         _, i64, i32, vd, vi, _ = o.lane_types
         vpd = o.vpd
         mload, mstore, gather = o.intrinsic("load"), o.intrinsic("store"), o.intrinsic("gather")
 
         def splat(v, ty=vd):
-            return _splat(builder, v, ty)
+            return splat_ir(builder, v, ty)
 
         end = splat(acnt, vi)
-        iota = ir.Constant(vi, list(range(_W)))
-        zero = ir.Constant(vd, [0.0] * _W)
+        iota = ir.Constant(vi, list(range(LANES)))
+        zero = ir.Constant(vd, [0.0] * LANES)
         tsc = splat(vts)
         tbase = splat(builder.ptrtoint(taba.data, i64), vi)
         sums = [cgutils.alloca_once_value(builder, zero) for _ in range(6)]
-        with cgutils.for_range_slice(builder, ir.Constant(i64, 0), acnt, ir.Constant(i64, _W), inc=True) as (k, _):
+        with cgutils.for_range_slice(builder, ir.Constant(i64, 0), acnt, ir.Constant(i64, LANES), inc=True) as (k, _):
             lane = builder.icmp_signed("<", builder.add(splat(k, vi), iota), end)
 
             def row_ptr(arr, rowlen, r):
-                return _row_vector_ptr(builder, arr, rowlen, r, k, vd)
+                return row_vector_ptr(builder, arr, rowlen, r, k, vd)
 
             dx, dy, dz, d2 = (o.L(builder.call(mload, [row_ptr(dba, drow, r), ir.Constant(i32, 8), lane, zero]))
                               for r in range(4))
             q = d2 * o.L(tsc)
             t = builder.fptoui(q.v, vi)
             f = q - o.L(builder.uitofp(t, vd))
-            row = builder.add(tbase, builder.mul(t, ir.Constant(vi, [32] * _W)))
-            tv = [o.L(builder.call(gather, [builder.inttoptr(builder.add(row, ir.Constant(vi, [8 * c] * _W)), vpd),
+            row = builder.add(tbase, builder.mul(t, ir.Constant(vi, [32] * LANES)))
+            tv = [o.L(builder.call(gather, [builder.inttoptr(builder.add(row, ir.Constant(vi, [8 * c] * LANES)), vpd),
                                             ir.Constant(i32, 8), lane, zero])) for c in range(4)]
             a = tv[0] + tv[1] * f
             b = tv[2] + tv[3] * f
@@ -1355,7 +802,7 @@ def _ball_pairs_simd(typingctx, db, cnt, tab, tscale, out):
                 builder.call(mstore, [tt[r].v, row_ptr(outa, orow, r), ir.Constant(i32, 8), lane])
                 part = o.sel(lane, tt[r], 0.0)
                 builder.store((o.L(builder.load(sums[r])) + part).v, sums[r])
-        return context.make_tuple(builder, signature.return_type, _lane_sums(builder, sums))
+        return context.make_tuple(builder, signature.return_type, lane_sums(builder, sums))
 
     return sig, codegen
 
@@ -1386,7 +833,7 @@ def stick_pass(xs, ys, zs, normals, ws, cix, ciy, ciz, start, nx, ny, nz, hashed
     outputs as in :func:`ball_pass`.
 
     ``simd``: scan with :func:`_collect_simd` and vote with
-    :func:`_stick_pairs_simd` (pass :data:`SIMD`).
+    :func:`_stick_pairs_simd` (pass :data:`gatv.voting._simd.SIMD`).
 
     ``nbr, nstart, nup``: upper-neighbour lists recorded by :func:`ball_pass`
     at the same σ; a token with ``nstart[i] ≥ 0`` takes its upper neighbours

@@ -683,7 +683,7 @@ def test_extract_surfaces_memory_budget_only_drops_the_neighbour_lists(monkeypat
     a = extract_surfaces(pts)
     from gatv.voting import api
 
-    b = extract_surfaces(pts, memory_budget=api.BYTES_PER_TOKEN * len(pts) * 1.05 + 2**22)
+    b = extract_surfaces(pts, memory_budget=api.VOTING_BYTES_PER_TOKEN * len(pts) * 1.05 + 2**22)
     np.testing.assert_array_equal(a.indices, b.indices)
     np.testing.assert_allclose(a.normals, b.normals, atol=1e-12)
 

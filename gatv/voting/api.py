@@ -84,7 +84,7 @@ GRID_SUBDIV = 1
 #: pass 104 (tensor, eigen output, counts) kept sorted plus 104 unsorted for the
 #: result, list starts and lengths 16, stick inputs 96 (weights, normals, the
 #: (N, 8) voter records) and outputs 104.
-BYTES_PER_TOKEN = 512
+VOTING_BYTES_PER_TOKEN = 512
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
 NL_BYTES_PER_PAIR = 4
 #: Bytes per entry of a thread's scratch buffers, sized by
@@ -356,7 +356,7 @@ def _check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
     n = points.shape[0]
     radius = voting_radius(sigma)
     _, _, dims, hashed, nkeys = grid_layout(points, radius, GRID_SUBDIV)
-    nbytes = n * BYTES_PER_TOKEN + 8 * (nkeys + 1)
+    nbytes = n * VOTING_BYTES_PER_TOKEN + 8 * (nkeys + 1)
     check_memory(nbytes, f"Voting on {n} tokens", memory_budget)
     spare = _memory_budget(memory_budget) - nbytes
     return max(0, int(spare // NL_BYTES_PER_PAIR))

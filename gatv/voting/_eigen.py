@@ -381,8 +381,8 @@ def eig_rows_simd(typingctx, acc, vals, e1, i0, i1):
     summed from their Chebyshev series.  Eigenvalues agree with
     :func:`eig3_top` to 1e-15 of the largest where they are separated (both
     lose ~1e-8 at near-double eigenvalues, as any trigonometric solver), e1
-    to 1e-15 where λ1 − λ2 > 1e-6 λ1.  At 250k tokens, one thread:
-    254 → 59 ns a token.
+    to 1e-15 where λ1 − λ2 > 1e-6 λ1.  Used instead of the scalar loop
+    where :data:`gatv.voting._simd.SIMD` is on: it is several times faster.
     """
     for a in (acc, vals, e1):
         if not (isinstance(a, types.Array) and a.ndim == 2 and a.layout == "C" and a.dtype == types.float64):

@@ -105,7 +105,7 @@ def _counting_sort(key, nkeys, points, lo, inv_h, nx, ny, nz):
     Only the coordinates are gathered through ``order`` (one random read per
     token); the cells are recomputed from the sorted coordinates with
     :func:`_bin`'s formula, which gives the same integers and reads
-    sequentially (measured at 250k tokens, one thread: 20 → 7 ms).
+    sequentially (faster than gathering them).
     """
     n = key.shape[0]
     start = np.zeros(nkeys + 1, np.int64)

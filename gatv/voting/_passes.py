@@ -128,7 +128,7 @@ def exp_neg_small(x):
 # buffers are allocated once per chunk with room for every token of the
 # half-shell runs (``cap``, see :func:`half_shell_capacity`): an array
 # variable reassigned inside the token loop would cost numba's atomic
-# reference counting on every token (measured: +45 % on the neighbour scan).
+# reference counting on every token.
 # ---------------------------------------------------------------------------
 
 _H1 = 73856093
@@ -154,8 +154,8 @@ def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
     precision as the scalar test, and LLVM compress-stores of the lanes
     inside the sphere: indices to ``bj[cnt:]``, dx, dy, dz, d² to
     ``db[:4, cnt:]`` (a C-contiguous float64 array).  Same output as
-    :func:`_collect`; the whole scan takes about half the time (250k tokens,
-    AVX-512; AVX2 code, where the compress-store is emulated, gains less).
+    :func:`_collect`, in less time (most with AVX-512; AVX2 code emulates
+    the compress-store).
     """
     if not all(isinstance(a, types.Array) and a.dtype == types.float64 for a in (xs, ys, zs)):
         return None
@@ -652,8 +652,7 @@ def _stick_pairs_simd(typingctx, buf, cnt, nix, niy, niz, wi, both, inv_s2, gamm
 
     The scalar loop is latency-bound (each pair is a long chain: division,
     two polynomials, three squarings) and LLVM vectorises it 4 wide; 8 lanes
-    (two 4-wide chains in flight) cut its time by a third (measured for
-    AVX-512 and AVX2 code, 25 pairs: 17 → 10 and 17 → 11 ns a pair).  Lanes at
+    keep two 4-wide chains in flight, which is faster.  Lanes at
     or past ``cnt`` load a zero-weight voter (so they add nothing) and store
     nothing.  Same arithmetic as :func:`_stick_pairs`, up to FMA contraction;
     the sums are reduced lane 0 to 7, so results stay independent of threads.

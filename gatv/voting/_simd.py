@@ -20,10 +20,9 @@ __all__ = ["SIMD", "LANES", "Lanes", "Ops", "splat", "lane_sums", "row_vector_pt
 
 #: Whether the kernels take their explicit 8-lane paths (the scan, ball and
 #: stick votes of :mod:`gatv.voting._passes`, :func:`gatv.voting._eigen.eig_rows_simd`).
-#: They are correct on any target (LLVM expands what the CPU lacks), but
-#: faster than the scalar code was measured only for x86 code with AVX2 or
-#: AVX-512, so other hosts keep the scalar loops.  Fixed per host, as numba's
-#: cache is.
+#: They are correct on any target (LLVM expands what the CPU lacks), but were
+#: shown faster than the scalar loops only for x86 code with AVX2 or AVX-512,
+#: so other hosts keep the scalar loops.  Fixed per host, as numba's cache is.
 SIMD = bool(llvm.get_host_cpu_features().get("avx2", False))
 #: Lanes of the explicit vectors (float64, int64 and bool).
 LANES = 8

@@ -5,29 +5,25 @@ Public functions: :func:`vote` (one sparse ball or stick pass),
 The voting fields are described in :mod:`gatv.voting._fields`; the numba
 kernels live in :mod:`gatv.voting._passes` (ball and stick passes),
 :mod:`gatv.voting._eigen` (3×3 eigen-solver), :mod:`gatv.voting._simd`
-(8-lane helpers) and :mod:`gatv.voting._grid` (neighbour grid).
+(8-lane helpers) and :mod:`gatv.voting._grid` (neighbour grid).  Timings
+behind the choices below are in ``docs/design-notes.md``.
 
 Neighbour search.  A numba uniform grid (cells of side ``r`` for voting
 radius ``r = 2σ``, tokens counting-sorted by cell; every token scans the 5
 of the 3×3 x-rows of cells around its own that lie after it in cell order,
-each x-row a contiguous run trimmed to the voting sphere: at 250k, 4.8 rows
-and 112 candidates for 25 pairs per token) won against
-``scipy.spatial.cKDTree``: on 250k tokens (2 shared cores) building the grid
-takes 0.05–0.11 s while ``cKDTree`` build + ``query_ball_point(r,
-workers=2, return_length=True)`` — counts only, no neighbour lists — takes
-7.5–12 s, i.e. ~100× more (``benchmarks/voting.py``).  Cells of side ``r``
-beat ``r/2`` (12.6 rows, 60 candidates; ball pass 0.47 → 0.37 CPU-s median
-at 250k, 1 thread, load avg 4.7): a row costs far more than a candidate (a
-dependent ``start`` lookup and a mispredicted loop exit), so the runs are
-found first and their first tokens touched before any is scanned.
+each x-row a contiguous run trimmed to the voting sphere), not
+``scipy.spatial.cKDTree``, whose build and ball queries cost about 100× more
+than building the grid (``benchmarks/voting.py``).  Cells of side ``r``, not
+``r/2``: a row costs far more than a candidate (a dependent ``start`` lookup
+and a mispredicted loop exit), so fewer, longer rows win; the runs are found
+first and their first tokens touched before any is scanned.
 
 Each pair of tokens is visited once, from its lower sorted index, and its
 votes are added to both tokens (the ball vote is the same both ways; the two
 stick votes share the distance); chunks of ``reach`` cell keys, run even then
 odd, keep the parallel loop race-free and the sums in a fixed order.  This
-halves the neighbour search and the ball votes (250k tokens, 1 thread,
-shared machine: ball pass 0.69 → 0.44 CPU-s incl. a separate eigen pass).
-See :mod:`gatv.voting._passes`.
+halves the neighbour search and the ball votes.  See
+:mod:`gatv.voting._passes`.
 
 Neighbour lists.  :func:`extract_surfaces` runs its ball pass and its first
 stick pass at the same σ, so the ball pass records each token's upper
@@ -45,8 +41,7 @@ the ball votes read contiguous offsets; the stick flush keeps two 4-wide
 dependency chains in flight; the eigen-analysis sums Chebyshev series
 instead of calling acos and cos.  Same arithmetic as the scalar loops up to
 rounding (property tests; the scalar loops stay, for other hosts and for the
-tests).  At 250k tokens, one thread: scan 0.19 → 0.085 CPU-s, stick loop
-17 → 10 ns a pair, eigen-analysis 254 → 59 ns a token.
+tests).  Each is faster than its scalar loop on those hosts.
 """
 
 from __future__ import annotations
@@ -424,8 +419,7 @@ def _default_sigma(pts: np.ndarray, k: int, sample: int = 2000, seed: int = 0) -
     k = min(k, n - 1)
     rng = np.random.default_rng(seed)
     q = pts if n <= sample else pts[rng.choice(n, size=sample, replace=False)]
-    # an unbalanced, non-compact tree builds ~2x faster (250k tokens: 0.26 -> 0.12 s)
-    # and answers the same exact queries
+    # an unbalanced, non-compact tree builds faster and answers the same exact queries
     d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(q, k=[k + 1])
     d = d[:, 0]
     r = float(np.median(d))

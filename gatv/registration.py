@@ -1,8 +1,14 @@
-"""Rigid registration without initialization (paper sections 2.1–3.4, Algorithm 1).
+"""Registration without initialization (paper sections 2.1–3.4, Algorithm 1).
 
-:func:`register` finds the rigid motion between two point sets with an
-unknown motion of any size and many outliers in both sets, and a
-one-to-one set of correspondences, with no initial guess.
+:func:`register` finds the rigid motion (or, with ``model="similarity"``,
+the similarity) between two point sets with an unknown motion of any size
+and many outliers in both sets, and a one-to-one set of correspondences,
+with no initial guess.  It is a short sequence of the stages of
+:mod:`gatv.stages`: ``prepare`` → the model's ``trial_motions`` → ``judge``
+(``candidate_tokens`` → ``vote_tokens`` → ``constraint`` →
+``select_one_to_one`` → ``fit_and_gate``) → ``refine`` → ``grow_tolerance``
+→ ``make_result``.  The steps below are written for the rigid model; the
+similarity model replaces side lengths by their ratios.
 
 How it works
 ------------
@@ -137,8 +143,9 @@ def register(
     max_translation : float, optional
         Bound on ``|t|`` (data units) in the small-motion mode.
     noise : float, optional
-        Standard deviation of the point noise (data units). Default: a
-        schedule from exact to a fifth of the point spacing.
+        Standard deviation of the point noise (data units). Default: the
+        schedule :data:`gatv.stages.NOISE_SCHEDULE`, from exact (1e-6 of
+        the point spacing) to 5% of the point spacing.
     refine : bool, default: True
         Polish the motion with one-to-one ICP iterations inside the
         noise gate.

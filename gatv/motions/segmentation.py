@@ -209,7 +209,7 @@ class Hypothesis:
         return np.abs((d - t) @ self.axis) <= tau
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SearchOptions:
     """Bounds of the trial search and of the voting runs of :func:`segment`."""
 
@@ -461,8 +461,8 @@ def segment(
         Seed of the random triple sampling; same seed, same result.
     noise : float, optional
         Standard deviation of the point noise (data units).  Default: the
-        schedule of :func:`gatv.register`, from exact to a fifth of the
-        point spacing.
+        schedule of :func:`gatv.register`, from exact to 5% of the point
+        spacing.
     grouping : {"graph", "greedy"}, default: "graph"
         How tokens are grouped into motions: dense components of the
         eq.-41 graph inside each salient surface, or each judged

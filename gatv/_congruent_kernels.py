@@ -2,7 +2,9 @@
 
 Side lengths of a triangle survive any rigid motion, so three true
 matches ``(a, b, c) <-> (k, l, m)`` are found by looking up target pairs
-of the same length.  The kernels here are pure: arrays and scalars in,
+of the same length (:func:`triple_hypotheses`); side-length *ratios*
+survive any similarity, so :func:`similar_triple_hypotheses` looks up
+target triangles of the same shape at any scale in a range.  The kernels here are pure: arrays and scalars in,
 arrays out.  :mod:`gatv.congruent` validates input and drives them.
 """
 
@@ -11,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ._fit_kernels import kabsch3
+from ._fit_kernels import kabsch3, umeyama3
 
 
 @njit(cache=True)
@@ -283,3 +285,130 @@ def triple_hypotheses(
                     break
         nmatch[q] = found
     return scores, rots, trans, nmatch
+
+
+@njit(cache=True, parallel=True)
+def similar_triple_hypotheses(
+    source,
+    target,
+    triples,
+    starts,
+    ndist,
+    nidx,
+    eps,
+    s_min,
+    s_max,
+    start,
+    order,
+    origin,
+    cell,
+    dims,
+    radius,
+    max_matches,
+):
+    """Best similar match of each source triple, scored by inlier count.
+
+    A similarity ``x' = s R x + t`` keeps a triangle's shape: target triple
+    ``(k, l, m)`` matches source triple ``(a, b, c)`` when
+    ``|kl| / |ab| = |km| / |ac| = |lm| / |bc| = s``.  The side ``ab`` is
+    taken as the triple's longest (the caller orders the triples so), which
+    conditions the scale ``s = |kl| / |ab|`` best and keeps the ratios
+    ``rho1 = |ac| / |ab|``, ``rho2 = |bc| / |ab|`` at most 1.
+
+    For every target point ``k`` (from ``starts[q]`` on, cyclically, so
+    that the ``max_matches`` cap samples the target without favouring low
+    indices) the neighbours ``l`` of ``k``'s sorted list with
+    ``s_min |ab| - eps <= |kl| <= s_max |ab| + eps`` are walked in
+    increasing distance while a second pointer into the same list keeps the
+    window ``|km| = rho1 |kl| ± eps (1 + rho1)`` (both ends grow with
+    ``|kl|``): a merge, ``O(M)`` per ``k``, ``O(M²)`` per source triple.
+    Each ``m`` of the window with ``| |lm| - s |bc| | <= eps (1 + rho2)``
+    is a similar triangle; ``eps`` is the side-length tolerance in
+    **target** units (noise of ``eps`` on ``|kl|`` moves ``s |ac|`` by
+    ``rho1 eps``, hence the widened windows).  Each similar triangle gives
+    a motion (:func:`gatv._fit_kernels.umeyama3` on the three pairs) whose
+    support is the number of source points its linear part ``s R`` and
+    translation bring within ``radius`` of a target point
+    (:func:`count_inliers`).  At most ``max_matches`` similar triangles are
+    scored per source triple.
+
+    Returns ``(score, A, t, n_matches)`` per triple with ``A = s R`` the
+    linear part; ``score = -1`` when no similar triangle exists.
+    """
+    nt = triples.shape[0]
+    n2 = target.shape[0]
+    scores = np.full(nt, -1, np.int64)
+    lins = np.zeros((nt, 3, 3))
+    trans = np.zeros((nt, 3))
+    nmatch = np.zeros(nt, np.int64)
+    for q in prange(nt):
+        a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
+        dab = _dist(source, a, source, b)
+        dac = _dist(source, a, source, c)
+        dbc = _dist(source, b, source, c)
+        if dab <= 0.0:
+            nmatch[q] = 0
+            continue
+        rho1 = dac / dab
+        rho2 = dbc / dab
+        tol1 = eps * (1.0 + rho1)
+        tol2 = eps * (1.0 + rho2)
+        len_lo = s_min * dab - eps
+        len_hi = s_max * dab + eps
+        src = np.empty((3, 3))
+        dst = np.empty((3, 3))
+        for r in range(3):
+            src[0, r] = source[a, r]
+            src[1, r] = source[b, r]
+            src[2, r] = source[c, r]
+        found = 0
+        for kk in range(n2):
+            if found >= max_matches:
+                break
+            k = (starts[q] + kk) % n2
+            row = ndist[k]
+            nrow = row.shape[0]
+            u0 = _lower_bound(row, len_lo)
+            m_lo = 0
+            m_hi = 0
+            for u in range(u0, nrow):
+                dkl = row[u]
+                if dkl > len_hi:
+                    break
+                want = rho1 * dkl
+                while m_lo < nrow and row[m_lo] < want - tol1:
+                    m_lo += 1
+                if m_hi < m_lo:
+                    m_hi = m_lo
+                while m_hi < nrow and row[m_hi] <= want + tol1:
+                    m_hi += 1
+                if m_lo >= m_hi:
+                    continue
+                l = nidx[k, u]
+                s = dkl / dab
+                want2 = s * dbc
+                for v in range(m_lo, m_hi):
+                    m = nidx[k, v]
+                    if m == l:
+                        continue
+                    if abs(_dist(target, l, target, m) - want2) > tol2:
+                        continue
+                    found += 1
+                    for r in range(3):
+                        dst[0, r] = target[k, r]
+                        dst[1, r] = target[l, r]
+                        dst[2, r] = target[m, r]
+                    sc, R, t = umeyama3(src, dst)
+                    A = sc * R
+                    n_in = count_inliers(A, t, source, target, start, order, origin, cell, dims,
+                                         radius, scores[q] + 1)
+                    if n_in > scores[q]:
+                        scores[q] = n_in
+                        lins[q] = A
+                        trans[q] = t
+                    if found >= max_matches:
+                        break
+                if found >= max_matches:
+                    break
+        nmatch[q] = found
+    return scores, lins, trans, nmatch

@@ -1,0 +1,277 @@
+"""Several motions of any model, peeled one at a time (paper, section 5).
+
+"After the first plane was detected, we removed its tokens from the
+voting space and the process was repeated until no more planes were
+found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
+(rigid, similarity, 2D affine), as a sequence of the named stages of
+:mod:`gatv.stages`:
+
+1. **Trial motions** on the points no motion explains yet: the model's
+   invariant-sample search (:meth:`MotionModel.trial_motions`), in round
+   robin over the tolerance schedule as :func:`gatv.register` does, with a
+   RANSAC budget for the smallest motion wanted.
+2. **Judge** (:func:`judge`): candidate tokens within the voting reach of
+   the trial, one ball pass in each of the model's joint spaces (one for
+   rigid and similarity motions; Kang's two, ``(x, y, x')`` and
+   ``(x, y, y')``, for 2D affine motions — a token is salient when it is
+   salient in every space), the model's constraint against the most salient
+   tokens, one-to-one selection by saliency, fit and residual gate.
+3. **Keep** the motion when its support beats the chance level
+   (``problem.chance(gate, n_tests)``), after ICP refinement and growing the
+   tolerance while the support grows beyond chance; **remove** its source
+   and target points; repeat.
+
+It stops when no trial beats chance, ``max_motions`` motions were found,
+or too few points are left (``info["reason"]`` says which).
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import replace
+from math import comb
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import stages
+from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
+from ..errors import InputError
+from ..stages import NOISE_SCHEDULE, Fit, Problem, gate
+from .segmentation import Segmentation
+
+__all__ = ["peel", "judge", "joint_spaces", "samples_needed"]
+
+#: Judged trials per round; the family-wise chance level counts them.
+N_JUDGED = 4
+#: Default cap on the samples drawn per tolerance level and round.
+MAX_SAMPLES = 200_000
+
+
+def samples_needed(inlier_share: float, confidence: float, sample_points: int) -> int:
+    """Samples to draw so one is all-inlier with ``confidence`` (the RANSAC bound)."""
+    w = float(inlier_share) ** sample_points
+    if w >= 1.0:
+        return 1
+    return int(np.ceil(np.log1p(-confidence) / np.log1p(-w)))
+
+
+def joint_spaces(model, tokens: stages.Tokens) -> tuple:
+    """The joint-space coordinates voted on: the model's ``joint_spaces`` or its one ``tokens``."""
+    spaces = getattr(model, "joint_spaces", None)
+    if spaces is None:
+        return (tokens.coords,)
+    return tuple(spaces(tokens.source_points, tokens.target_points))
+
+
+def _sample_space(model, n: int) -> int:
+    f = getattr(model, "sample_space", None)
+    return int(f(n)) if f is not None else comb(n, model.sample_size)
+
+
+def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: float | None = None,
+          max_candidates: int = 8, n_refs: int = 4) -> stages.Judged | None:
+    """:func:`gatv.stages.judge` with a ball pass in each of the model's joint spaces.
+
+    tokens → votes in every joint space (saliency: their geometric mean) →
+    the model's constraint → one-to-one by saliency → fit and gate.  For a
+    model with one joint space this is :func:`gatv.stages.judge`.
+    """
+    n1, n2 = problem.source.shape[0], problem.target.shape[0]
+    g = gate(tolerance)
+    false_spacing = (n1 * n2 / problem.volume) ** (-1.0 / problem.dim)
+    sig = float(sigma) if sigma is not None else max(g, 0.5 * min(false_spacing, problem.spacing))
+    tokens = stages.candidate_tokens(problem, matrix, 2.0 * sig, max_candidates)
+    if len(tokens) < problem.model.sample_size:
+        return None
+    per_space = [stages.vote_tokens(replace(tokens, coords=c), sig) for c in joint_spaces(problem.model, tokens)]
+    saliency = np.exp(np.mean([np.log(np.maximum(v.saliency, 1e-300)) for v in per_space], axis=0))
+    votes = stages.Votes(saliency, per_space[0].normals, sig)
+    best = stages.constraint(tokens, votes, 2.0 * g, problem.model, n_refs=n_refs)
+    if best is None:
+        return None
+    sub = best[stages.select_one_to_one(tokens.pairs[best], -votes.saliency[best])]
+    fit = stages.fit_and_gate(problem, tokens.pairs, tokens.pairs[sub], g)
+    if fit is None:
+        return None
+    return stages.Judged(fit, len(tokens), sig)
+
+
+def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
+    """The points not yet explained, with the full problem's scale facts."""
+    Y = P.target[tgt]
+    return Problem(P.source[src], Y, P.model, cKDTree(Y), P.spacing, P.extent, P.volume)
+
+
+def _find_one(S: Problem, levels, rng, *, budget: int, chunk: int, accept_tests: float, sigma,
+              max_candidates, refine, fixed_noise, min_support, memory_budget, log):
+    """One round: the first trial motion, over the tolerance levels, whose judged support beats chance."""
+    model = S.model
+    n, m = S.source.shape[0], S.target.shape[0]
+    base = model.index(S.target, gate(levels[0]), memory_budget=memory_budget)
+    indexes = []
+    for tol in levels:
+        idx = copy.copy(base)
+        idx.set_radius(gate(tol))
+        indexes.append(idx)
+    max_matches = 64
+    accept = [model.chance(n, m, idx.volume, idx.radius, accept_tests * max_matches) for idx in indexes]
+    rec = [{"tolerance": tol, "samples": 0, "matches": 0, "best_support": 0} for tol in levels]
+    done = [0] * len(levels)
+    while min(done) < budget:
+        for level, tol in enumerate(levels):
+            if done[level] >= budget:
+                continue
+            k = int(min(chunk, budget - done[level]))
+            done[level] += k
+            g = gate(tol)
+            trials = model.trial_motions(S.source, indexes[level], eps=2.0 * g, max_triples=k, rng=rng,
+                                         keep=N_JUDGED, max_matches=max_matches, accept=accept[level])
+            rec[level]["samples"] += trials.n_triples
+            rec[level]["matches"] += trials.n_congruent
+            if len(trials):
+                rec[level]["best_support"] = max(rec[level]["best_support"], int(trials.support[0]))
+            if not len(trials) or trials.support[0] < accept[level]:
+                continue
+            threshold = min_support if min_support is not None else max(
+                model.sample_size, S.chance(g, N_JUDGED))
+            for kk, matrix in enumerate(trials.matrices):
+                if trials.support[kk] < accept[level]:
+                    break
+                judged = judge(S, matrix, tol, sigma=sigma, max_candidates=max_candidates)
+                if judged is None or judged.fit.support < threshold:
+                    continue
+                fit = judged.fit
+                if refine:
+                    polished = stages.refine(S, fit, g)
+                    if polished.support >= fit.support:
+                        fit = polished
+                grown = level
+                if not fixed_noise:
+                    fit, grown = stages.grow_tolerance(S, fit, levels, level)
+                log.append({"levels": rec, "support": fit.support, "threshold": int(threshold),
+                            "trial_support": int(trials.support[kk]), "n_tokens": judged.n_tokens,
+                            "sigma": judged.sigma})
+                return fit, levels[grown]
+    log.append({"levels": rec})
+    return None, None
+
+
+def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
+         noise: float | None = None, refine: bool = True, min_inlier_share: float = 0.03,
+         confidence: float = 0.999, max_triples: int | None = None, sigma: float | None = None,
+         max_candidates: int = 8, memory_budget: float | None = None, progress=None) -> Segmentation:
+    """Find several motions of ``problem.model``, one at a time (section 5).
+
+    Parameters
+    ----------
+    problem : gatv.stages.Problem
+        From :func:`gatv.stages.prepare` (any model).
+    max_motions : int, optional
+        Stop after this many motions.
+    min_support : int, optional
+        Smallest support kept; default the chance level (at least the
+        model's ``sample_size``).
+    seed : int or numpy.random.Generator, default: 0
+    noise : float, optional
+        Point-noise standard deviation (data units); default the tolerance
+        schedule :data:`gatv.stages.NOISE_SCHEDULE` times ``problem.spacing``.
+    refine : bool, default: True
+        ICP polish of each motion inside its gate.
+    min_inlier_share : float, default: 0.03
+        Smallest motion wanted, as a share of all source points; sets the
+        samples drawn per round (with ``confidence``; the model's
+        ``trial_sample_size`` points a sample, at most 3 times its
+        ``sample_space``).
+    confidence : float, default: 0.999
+    max_triples : int, optional
+        Cap on the samples per tolerance level and round (default 200,000).
+    sigma : float, optional
+        Voting scale; default as in :func:`gatv.stages.judge`.
+    max_candidates : int, default: 8
+    memory_budget : float, optional
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Segmentation
+        Motions largest first, labels per point (``-1``: unexplained),
+        ``tokens`` the kept correspondences with ``token_labels`` their
+        motion; ``info["reason"]`` says why the peeling stopped.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(problem, Problem):
+        raise InputError(f"Expected `problem` to be a gatv.stages.Problem (from gatv.stages.prepare), "
+                         f"got {type(problem).__name__}.")
+    P = problem
+    model = P.model
+    max_motions = check_int(max_motions, "max_motions", 1, allow_none=True)
+    min_support = check_int(min_support, "min_support", model.sample_size, allow_none=True)
+    noise = check_positive(noise, "noise", allow_none=True)
+    check_fraction(min_inlier_share, "min_inlier_share")
+    check_fraction(confidence, "confidence", open_high=True)
+    max_triples = check_int(max_triples, "max_triples", 1, allow_none=True) or MAX_SAMPLES
+    if sigma is not None:
+        sigma = check_positive(sigma, "sigma")
+    max_candidates = check_int(max_candidates, "max_candidates", 1)
+    report = check_progress(progress)
+    rng = as_rng(seed)
+    levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
+    n1, n2 = P.source.shape[0], P.target.shape[0]
+    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    smallest = max(float(min_inlier_share) * n1, float(k_pts))
+    used_s = np.zeros(n1, bool)
+    used_t = np.zeros(n2, bool)
+    fits: list[Fit] = []
+    tolerances: list[float] = []
+    log: list = []
+    reason = ""
+    while True:
+        if max_motions is not None and len(fits) >= max_motions:
+            reason = "max_motions reached"
+            break
+        src, tgt = np.flatnonzero(~used_s), np.flatnonzero(~used_t)
+        need_pts = max(k_pts + 1, min_support or 0)
+        if src.size < need_pts or tgt.size < need_pts:
+            reason = "too few points left"
+            break
+        S = _subproblem(P, src, tgt)
+        n_possible = _sample_space(model, src.size)
+        budget = samples_needed(min(1.0, smallest / src.size), confidence, k_pts)
+        budget = int(min(budget, 3 * n_possible, max_triples))
+        report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
+        fit, tol = _find_one(S, levels, rng, budget=max(budget, 1), chunk=2048, accept_tests=budget,
+                             sigma=sigma, max_candidates=max_candidates, refine=refine,
+                             fixed_noise=noise is not None, min_support=min_support,
+                             memory_budget=memory_budget, log=log)
+        if fit is None:
+            reason = "no trial motion beat the chance level"
+            break
+        kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
+        fits.append(Fit(fit.matrix, kept))
+        tolerances.append(float(tol))
+        used_s[kept[:, 0]] = True
+        used_t[kept[:, 1]] = True
+
+    order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
+    src_lab = np.full(n1, -1, np.int64)
+    tgt_lab = np.full(n2, -1, np.int64)
+    motions, tokens, labels = [], [], []
+    for new, k in enumerate(order):
+        fit = fits[k]
+        c = fit.correspondences
+        src_lab[c[:, 0]] = new
+        tgt_lab[c[:, 1]] = new
+        motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k],
+                                                   "round": k}))
+        c = c[np.argsort(c[:, 0], kind="stable")]
+        tokens.append(c)
+        labels.append(np.full(c.shape[0], new, np.int64))
+    info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
+            "mode": "peel", "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+    report(1.0, f"found {len(motions)} motions ({reason})")
+    return Segmentation(tuple(motions), src_lab, tgt_lab,
+                        np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),
+                        np.concatenate(labels) if labels else np.empty(0, np.int64), info)

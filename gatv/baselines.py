@@ -27,37 +27,13 @@ import time
 import numpy as np
 
 from ._validation import as_points, check_positive
+from .candidates import median_spacing
 from .errors import InputError
 from .motion import RigidMotion, fit_rigid
 
 __all__ = ["fitzgibbon_icp", "icp", "median_spacing", "closest_pairs"]
 
 _LOSSES = ("huber", "cauchy", "linear")
-
-
-def median_spacing(points) -> float:
-    """Median distance from each point to its nearest other point.
-
-    Parameters
-    ----------
-    points : (N, 3) array_like
-        ``N >= 2``.
-
-    Returns
-    -------
-    float
-        Positive; if more than half the points are duplicates, a small
-        fraction (1e-6) of the bounding-box diagonal instead.
-    """
-    from scipy.spatial import cKDTree
-
-    p = as_points(points, "points", min_points=2)
-    d, _ = cKDTree(p).query(p, k=2)
-    spacing = float(np.median(d[:, 1]))
-    if spacing > 0:
-        return spacing
-    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
-    return 1e-6 * diag if diag > 0 else 1.0
 
 
 def closest_pairs(moved_source, target, threshold: float, *, tree=None) -> tuple[np.ndarray, np.ndarray]:

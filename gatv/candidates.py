@@ -12,7 +12,8 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from ._validation import check_memory
+from ._validation import check_finite_array, check_memory
+from .errors import InputError
 
 __all__ = [
     "all_pairs",
@@ -23,24 +24,45 @@ __all__ = [
 ]
 
 #: Bytes one candidate pair costs downstream (indices, token, votes, eigen).
-BYTES_PER_TOKEN = 2 * 8 + 3 * 8 + 9 * 8 + 12 * 8
+BYTES_PER_CANDIDATE_PAIR = 2 * 8 + 3 * 8 + 9 * 8 + 12 * 8
 
 
-def median_spacing(points: np.ndarray) -> float:
-    """Median distance from each point to its nearest neighbour (> 0)."""
-    if points.shape[0] < 2:
+def median_spacing(points) -> float:
+    """Median distance from each point to its nearest other point (> 0).
+
+    Duplicated points are left out of the median (their distance 0 says
+    nothing of the sampling).  When no positive distance is left, a small
+    fraction (1e-6) of the bounding-box diagonal, or 1.0 for a single point.
+
+    Parameters
+    ----------
+    points : (N, d) array_like or object with ``.points``
+
+    Examples
+    --------
+    >>> median_spacing([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])
+    1.0
+    """
+    if hasattr(points, "points") and not isinstance(points, np.ndarray):
+        points = points.points
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[0] < 1:
+        raise InputError(f"Expected `points` to have shape (N, d), got {p.shape}.")
+    check_finite_array(p, "points")
+    if p.shape[0] < 2:
         return 1.0
-    d, _ = cKDTree(points).query(points, k=2)
+    d, _ = cKDTree(p).query(p, k=2)
     nn = d[:, 1]
     pos = nn[nn > 0]
-    if pos.size == 0:
-        return 1.0
-    return float(np.median(pos))
+    if pos.size:
+        return float(np.median(pos))
+    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    return 1e-6 * diag if diag > 0 else 1.0
 
 
 def all_pairs(n_source: int, n_target: int, *, memory_budget=None) -> np.ndarray:
     """Every pair ``(i, j)``, the paper's default matching scheme (section 3.4)."""
-    check_memory(float(n_source) * n_target * BYTES_PER_TOKEN,
+    check_memory(float(n_source) * n_target * BYTES_PER_CANDIDATE_PAIR,
                  f"{n_source} x {n_target} = {n_source * n_target} candidate pairs", memory_budget)
     i, j = np.meshgrid(np.arange(n_source), np.arange(n_target), indexing="ij")
     return np.stack([i.ravel(), j.ravel()], axis=1)
@@ -60,7 +82,7 @@ def pairs_within(moved_source: np.ndarray, target: np.ndarray, radius, *,
     n_t = target.shape[0]
     vol = float(np.prod(np.maximum(np.ptp(target, axis=0), 1e-300)))
     expected = float(np.sum(np.minimum(n_t, n_t * (4.0 / 3.0) * np.pi * r**3 / vol)))
-    check_memory(expected * BYTES_PER_TOKEN, f"about {expected:.3g} candidate pairs", memory_budget)
+    check_memory(expected * BYTES_PER_CANDIDATE_PAIR, f"about {expected:.3g} candidate pairs", memory_budget)
     m = cKDTree(moved_source).sparse_distance_matrix(tree, float(r.max()), output_type="ndarray")
     keep = m["v"] <= r[m["i"]]
     pairs = np.stack([m["i"][keep], m["j"][keep]], axis=1).astype(np.int64)

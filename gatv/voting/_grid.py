@@ -137,7 +137,7 @@ def _counting_sort(key, nkeys, points, lo, inv_h, nx, ny, nz):
     return start, order, xs, ys, zs, sx, sy, sz
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Grid:
     """Tokens sorted by cell plus the cell index (all arrays in sorted order)."""
 

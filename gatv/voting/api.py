@@ -101,7 +101,7 @@ def voting_radius(sigma: float) -> float:
 # ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TensorVotes:
     """Accumulated tensors of one sparse voting pass, one row per token.
 
@@ -159,7 +159,7 @@ class TensorVotes:
         return self.eigenvalues.shape[0]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SurfaceResult:
     """Tokens kept by the surface detection of section 3.3.
 

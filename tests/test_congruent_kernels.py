@@ -1,0 +1,115 @@
+"""Numba kernels of the congruent-triple search against numpy references."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv import _congruent_kernels as k
+from gatv.congruent import TargetIndex, sample_triples, trial_motions
+from gatv.fitting import kabsch
+from gatv.ga import Rotor
+
+
+def _cloud(seed, n):
+    return np.random.default_rng(seed).uniform(-5, 5, (n, 3))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 30))
+def test_pair_table_is_every_pair_sorted_by_length(seed, n):
+    p = _cloud(seed, n)
+    lengths, pi, pj = k.pair_table(p)
+    assert lengths.shape == (n * (n - 1) // 2,)
+    assert np.all(np.diff(lengths) >= 0)
+    assert np.all(pi < pj)
+    assert np.allclose(lengths, np.linalg.norm(p[pi] - p[pj], axis=1))
+    assert {(int(a), int(b)) for a, b in zip(pi, pj)} == set(itertools.combinations(range(n), 2))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 30))
+def test_sorted_neighbours_match_numpy(seed, n):
+    p = _cloud(seed, n)
+    dist, idx = k.sorted_neighbours(p)
+    full = np.linalg.norm(p[:, None] - p[None], axis=2)
+    np.fill_diagonal(full, np.inf)
+    ref = np.sort(full, axis=1)[:, : n - 1]
+    assert np.allclose(dist, ref)
+    assert np.allclose(full[np.arange(n)[:, None], idx], dist)
+    for i in range(n):
+        assert i not in idx[i]
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 60), r=st.floats(0.05, 3.0))
+def test_grid_nearest_and_count_match_brute_force(seed, n, r):
+    target = _cloud(seed, n)
+    index = TargetIndex(target, r) if n >= 2 else None
+    if index is None:
+        return
+    queries = _cloud(seed + 1, 40)
+    got = index.nearest(queries)
+    d = np.linalg.norm(queries[:, None] - target[None], axis=2)
+    want = np.where(d.min(axis=1) <= r, d.argmin(axis=1), -1)
+    # ties aside, the same nearest point within the radius
+    assert np.array_equal(got >= 0, want >= 0)
+    hit = got >= 0
+    assert np.allclose(d[hit, got[hit]], d[hit].min(axis=1))
+    R = Rotor.from_axis_angle([1, 0, 0], 0.3).as_matrix()
+    t = np.array([0.2, -0.1, 0.4])
+    moved = queries @ R.T + t
+    dm = np.linalg.norm(moved[:, None] - target[None], axis=2)
+    count = k.count_inliers(R, t, queries, target, index.start, index.order, index.origin, index.cell,
+                            index.dims, index.radius, 0)
+    assert count == int(np.sum(dm.min(axis=1) <= r))
+
+
+def _reference_best(source, target, tri, eps, radius):
+    """Brute force over every ordered target triple: best inlier count of congruent ones."""
+    a, b, c = tri
+    sides = (np.linalg.norm(source[a] - source[b]), np.linalg.norm(source[a] - source[c]),
+             np.linalg.norm(source[b] - source[c]))
+    best = -1
+    n = target.shape[0]
+    for kk, ll, mm in itertools.permutations(range(n), 3):
+        s2 = (np.linalg.norm(target[kk] - target[ll]), np.linalg.norm(target[kk] - target[mm]),
+              np.linalg.norm(target[ll] - target[mm]))
+        if all(abs(u - v) <= eps for u, v in zip(sides, s2)):
+            R, t = kabsch(source[[a, b, c]], target[[kk, ll, mm]])
+            moved = source @ R.T + t
+            d = np.linalg.norm(moved[:, None] - target[None], axis=2).min(axis=1)
+            best = max(best, int(np.sum(d <= radius)))
+    return best
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_triple_hypotheses_find_the_best_congruent_triple(seed):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-5, 5, (9, 3))
+    R = Rotor.from_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi)).as_matrix()
+    y = np.vstack([x[:6] @ R.T + [1.0, 2.0, 3.0], rng.uniform(-5, 5, (4, 3))])
+    radius, eps = 1e-6, 2e-6
+    index = TargetIndex(y, radius)
+    tri = sample_triples(9, 6, rng)
+    scores, _, _, _ = k.triple_hypotheses(
+        x, y, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
+        index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15)
+    for q in range(tri.shape[0]):
+        assert scores[q] == _reference_best(x, y, tri[q], eps, radius)
+
+
+def test_trial_motions_recover_the_motion_and_rank_it_first():
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-5, 5, (30, 3))
+    R = Rotor.from_axis_angle([0, 1, 1], 2.0).as_matrix()
+    y = np.vstack([x @ R.T + [3.0, 0.0, -1.0], rng.uniform(-5, 5, (30, 3))])
+    index = TargetIndex(y, 1e-6)
+    trials = trial_motions(x, index, eps=2e-6, max_triples=200, rng=rng, keep=4)
+    assert len(trials) >= 1 and trials.support[0] == 30
+    assert np.allclose(trials.matrices[0][:3, :3], R, atol=1e-8)
+    assert np.allclose(trials.matrices[0][:3, 3], [3.0, 0.0, -1.0], atol=1e-8)

@@ -1,0 +1,123 @@
+"""The merged least-squares fits: numpy Kabsch/Umeyama, their numba twins, stacks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv._fit_kernels import kabsch3, umeyama3
+from gatv.errors import InputError
+from gatv.fitting import fit_rigid, kabsch, umeyama
+from gatv.ga import Rotor
+
+
+def _motion(seed):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    R = Rotor.from_axis_angle(axis, rng.uniform(0, np.pi)).as_matrix()
+    return rng, R, rng.uniform(-5, 5, 3)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(3, 40))
+def test_kabsch_recovers_exact_motions(seed, k):
+    rng, R, t = _motion(seed)
+    x = rng.normal(size=(k, 3)) * 3
+    Rf, tf = kabsch(x, x @ R.T + t)
+    assert np.allclose(Rf, R, atol=1e-9)
+    assert np.allclose(tf, t, atol=1e-9)
+    assert np.isclose(np.linalg.det(Rf), 1.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.1, 10.0))
+def test_umeyama_recovers_exact_similarities(seed, scale):
+    rng, R, t = _motion(seed)
+    x = rng.normal(size=(12, 3))
+    s, Rf, tf = umeyama(x, scale * x @ R.T + t)
+    assert s == pytest.approx(scale, rel=1e-9)
+    assert np.allclose(Rf, R, atol=1e-8)
+    assert np.allclose(tf, t, atol=1e-8)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(3, 12))
+def test_numba_kabsch3_matches_numpy(seed, k):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(k, 3))
+    y = rng.normal(size=(k, 3))  # not a rigid copy: a genuine least-squares problem
+    R0, t0 = kabsch(x, y)
+    R1, t1 = kabsch3(np.ascontiguousarray(x), np.ascontiguousarray(y))
+    assert np.allclose(R0, R1, atol=1e-10)
+    assert np.allclose(t0, t1, atol=1e-10)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(3, 12))
+def test_numba_umeyama3_matches_numpy(seed, k):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(k, 3))
+    y = 2.0 * rng.normal(size=(k, 3))
+    s0, R0, t0 = umeyama(x, y)
+    s1, R1, t1 = umeyama3(np.ascontiguousarray(x), np.ascontiguousarray(y))
+    assert s0 == pytest.approx(s1, rel=1e-10)
+    assert np.allclose(R0, R1, atol=1e-10)
+    assert np.allclose(t0, t1, atol=1e-10)
+
+
+def test_stacks_equal_one_problem_at_a_time():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(7, 5, 3))
+    B = rng.normal(size=(7, 5, 3))
+    w = rng.uniform(0.1, 1.0, size=(7, 5))
+    R, t = kabsch(A, B, w)
+    s, Rs, ts = umeyama(A, B)
+    Ro, to = kabsch(A, B, translation=False)
+    for k in range(7):
+        Rk, tk = kabsch(A[k], B[k], w[k])
+        assert np.allclose(R[k], Rk, atol=1e-12) and np.allclose(t[k], tk, atol=1e-12)
+        sk, Rsk, tsk = umeyama(A[k], B[k])
+        assert np.isclose(s[k], sk) and np.allclose(Rs[k], Rsk) and np.allclose(ts[k], tsk)
+        Rok, tok = kabsch(A[k], B[k], translation=False)
+        assert np.allclose(Ro[k], Rok) and np.allclose(tok, 0.0) and np.allclose(to[k], 0.0)
+
+
+def test_rotation_about_the_origin_on_rays():
+    rng, R, _ = _motion(5)
+    rays = rng.normal(size=(20, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    Rf, t = kabsch(rays, rays @ R.T, translation=False)
+    assert np.allclose(Rf, R) and np.all(t == 0)
+
+
+def test_weights_select_the_pairs_that_count():
+    rng, R, t = _motion(7)
+    x = rng.normal(size=(10, 3))
+    y = x @ R.T + t
+    y[:3] += 50.0  # three gross outliers, weight 0
+    w = np.r_[np.zeros(3), np.ones(7)]
+    Rf, tf = fit_rigid(x, y, w)
+    assert np.allclose(Rf, R) and np.allclose(tf, t)
+
+
+def test_reflections_are_turned_into_rotations():
+    x = np.eye(3)
+    y = -np.eye(3)  # a point reflection: the best proper rotation has det +1
+    R, _ = kabsch(x, y)
+    assert np.isclose(np.linalg.det(R), 1.0)
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        ((np.zeros((3, 3)), np.zeros((4, 3))), "paired"),
+        ((np.zeros((3, 3)), np.zeros((3, 3)), -np.ones(3)), "weights"),
+        ((np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3)), "weights"),
+        ((np.zeros(3), np.zeros(3)), "paired"),
+    ],
+)
+def test_bad_input(args, match):
+    with pytest.raises(InputError, match=match):
+        kabsch(*args)

@@ -1,0 +1,94 @@
+"""Tests of gatv.motions.peeling.peel: several motions of any model, one at a time (section 5)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gatv import stages
+from gatv.errors import InputError
+from gatv.models import get_model
+from gatv.motions import Segmentation, multi_motion_scene, segment
+from gatv.motions.peeling import peel, samples_needed
+
+
+def _overlap(found, true):
+    return len(set(map(tuple, found.tolist())) & set(map(tuple, true.tolist())))
+
+
+def _check_one_to_one(seg):
+    s = np.concatenate([m.correspondences[:, 0] for m in seg.motions])
+    t = np.concatenate([m.correspondences[:, 1] for m in seg.motions])
+    assert len(np.unique(s)) == len(s) and len(np.unique(t)) == len(t)
+
+
+def test_peel_with_the_rigid_model_finds_two_motions():
+    scene = multi_motion_scene(
+        [Rotation.from_rotvec([0, 0, 1.2]).as_matrix(), Rotation.from_rotvec([0.8, -0.4, 0.3]).as_matrix()],
+        [[2.0, -1.0, 0.5], [-3.0, 1.0, 2.0]], [40, 30], n_outliers=15, seed=0)
+    P = stages.prepare(scene.source, scene.target, get_model("rigid"))
+    seg = peel(P, seed=0)
+    assert isinstance(seg, Segmentation) and len(seg) == 2
+    for m in seg.motions:
+        k = int(np.argmax([_overlap(m.correspondences, p) for p in scene.true_pairs]))
+        np.testing.assert_allclose(m.rotation, scene.rotations[k], atol=1e-9)
+        np.testing.assert_allclose(m.translation, scene.translations[k], atol=1e-9)
+        np.testing.assert_array_equal(m.correspondences, scene.true_pairs[k])
+    assert [m.support for m in seg] == [40, 30]
+    assert seg.info["reason"] == "no trial motion beat the chance level"
+    _check_one_to_one(seg)
+    for k, m in enumerate(seg.motions):
+        assert (seg.source_labels[m.correspondences[:, 0]] == k).all()
+        assert (seg.target_labels[m.correspondences[:, 1]] == k).all()
+    assert (seg.source_labels >= 0).sum() == 70
+
+
+def test_peel_with_the_similarity_model():
+    rng = np.random.default_rng(1)
+    src, tgt, truth = [], [], []
+    for k, s in enumerate([1.5, 0.8]):
+        X = rng.uniform(-5, 5, (40, 3))
+        R = Rotation.random(random_state=k).as_matrix()
+        t = rng.uniform(-3, 3, 3)
+        src.append(X)
+        tgt.append(s * X @ R.T + t)
+        truth.append((s, R, t))
+    src.append(rng.uniform(-5, 5, (20, 3)))
+    tgt.append(rng.uniform(-8, 8, (20, 3)))
+    seg = segment(np.vstack(src), np.vstack(tgt), model="similarity", seed=0)
+    assert len(seg) == 2
+    for m in seg.motions:
+        k = int(np.argmin([abs(m.scale - s) for s, _, _ in truth]))
+        s, R, t = truth[k]
+        assert abs(m.scale - s) < 1e-9
+        np.testing.assert_allclose(m.rotation, R, atol=1e-9)
+        np.testing.assert_allclose(m.translation, t, atol=1e-9)
+        np.testing.assert_array_equal(m.correspondences, np.column_stack([np.arange(40) + 40 * k] * 2))
+    _check_one_to_one(seg)
+
+
+def test_too_few_points_left():
+    rng = np.random.default_rng(2)
+    X = rng.uniform(0, 100, (12, 2))
+    A, t = np.array([[1.1, 0.2], [-0.1, 0.9]]), np.array([3.0, 4.0])
+    seg = peel(stages.prepare(X, X @ A.T + t, "affine2d"), seed=0)
+    assert len(seg) == 1 and seg[0].support == 12
+    assert seg.info["reason"] == "too few points left"
+
+
+def test_peel_checks_its_arguments():
+    X = np.random.default_rng(0).normal(size=(10, 2))
+    with pytest.raises(InputError, match="Problem"):
+        peel(X)
+    P = stages.prepare(X, X, "affine2d")
+    with pytest.raises(InputError, match="max_motions"):
+        peel(P, max_motions=0)
+    with pytest.raises(InputError, match="noise"):
+        peel(P, noise=-1.0)
+
+
+def test_samples_needed_is_the_ransac_bound():
+    assert samples_needed(1.0, 0.999, 4) == 1
+    n = samples_needed(0.5, 0.99, 4)
+    assert (1 - 0.5**4) ** n <= 0.01 < (1 - 0.5**4) ** (n - 1)

@@ -71,7 +71,8 @@ def _voxel_for(points: np.ndarray, n_points: int) -> float:
     return float(np.sqrt(lo * hi))
 
 
-def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0):
+def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0,
+                   memory_budget: float | None = None):
     """Points on salient surfaces and their normals, by tensor voting (section 3.3).
 
     Parameters
@@ -79,6 +80,8 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     points : (N, 3) ndarray
     max_points : int
         Larger inputs are randomly subsampled first (voting cost is linear).
+    memory_budget : float, optional
+        Bytes; a voting run needing more fails at once.
 
     Returns
     -------
@@ -95,7 +98,7 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     if pts.shape[0] > max_points:
         rng = np.random.default_rng(seed)
         pick = np.sort(rng.choice(pts.shape[0], max_points, replace=False))
-    surf = extract_surfaces(pts[pick], n_stick_passes=1)
+    surf = extract_surfaces(pts[pick], n_stick_passes=1, memory_budget=memory_budget)
     idx = np.asarray(surf.indices)
     order = np.argsort(idx, kind="stable")
     return pick[idx[order]], np.asarray(surf.normals)[order]
@@ -161,6 +164,7 @@ def register_scans(
     n_judged: int = 4,
     refine: bool = True,
     clutter: bool = True,
+    memory_budget: float | None = None,
     progress=None,
 ) -> RigidMotion:
     """Register two real scans of one object, with no initial guess.
@@ -192,6 +196,9 @@ def register_scans(
         ICP polish at full resolution.
     clutter : bool, default: True
         Drop points off salient surfaces by tensor voting before matching.
+    memory_budget : float, optional
+        Bytes; a voting run or a congruent-triple index needing more fails
+        at once (see :func:`gatv._validation.check_memory`).
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -216,8 +223,8 @@ def register_scans(
 
     report(0.0, "surface tokens")
     if clutter:
-        ix, _ = surface_points(X, seed=seed)
-        iy, nys = surface_points(Y, seed=seed)
+        ix, _ = surface_points(X, seed=seed, memory_budget=memory_budget)
+        iy, nys = surface_points(Y, seed=seed, memory_budget=memory_budget)
     else:
         ix, iy = np.arange(X.shape[0]), np.arange(Y.shape[0])
         nys = None
@@ -236,7 +243,7 @@ def register_scans(
     # Trial motions: voxel-sized tolerances; long sides for a stable rotation.
     report(0.1, "trial motions")
     gate = voxel
-    index = TargetIndex(Yd, gate)
+    index = TargetIndex(Yd, gate, memory_budget=memory_budget)
     diameter = float(np.linalg.norm(Xd.max(axis=0) - Xd.min(axis=0)))
     budget = n_triples_needed(float(min_overlap), confidence)
     if max_triples is not None:

@@ -96,9 +96,11 @@ class TrialMotions:
 
     @property
     def matrices(self) -> np.ndarray:
-        """(K, 4, 4) homogeneous matrices of the trial motions."""
+        """(K, d + 1, d + 1) homogeneous matrices of the trial motions (``rotations`` holds the
+        linear parts: rotations for rigid motions, ``s R`` for similarities, ``A`` for affine maps)."""
         if len(self) == 0:
-            return np.zeros((0, 4, 4))
+            d = self.rotations.shape[-1] if self.rotations.ndim == 3 else 3
+            return np.zeros((0, d + 1, d + 1))
         return np.stack([homogeneous(R, t) for R, t in zip(self.rotations, self.translations)])
 
 

@@ -132,7 +132,8 @@ class Segmentation:
         }
 
     def __repr__(self) -> str:
-        inner = ", ".join(f"{m.angle_deg:.2f} deg/{m.support}" for m in self.motions)
+        inner = ", ".join((f"{m.angle_deg:.2f} deg/{m.support}" if hasattr(m, "angle_deg")
+                           else f"{m.model}/{m.support}") for m in self.motions)
         return f"Segmentation({len(self.motions)} motions: [{inner}])"
 
 

@@ -29,17 +29,14 @@ import numpy as np
 from . import _congruent_kernels as _k
 from ._validation import check_memory
 from .models.base import homogeneous
-from .stats import chance_support
+from .stats import chance_support, samples_needed
 
 __all__ = ["TargetIndex", "TrialMotions", "trial_motions", "sample_triples", "n_triples_needed", "chance_support"]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
-    """Source triples to draw so one is all-inlier with ``confidence``."""
-    w3 = float(inlier_share) ** 3
-    if w3 >= 1.0:
-        return 1
-    return int(np.ceil(np.log1p(-confidence) / np.log1p(-w3)))
+    """Source triples to draw so one is all-inlier with ``confidence`` (:func:`gatv.stats.samples_needed`)."""
+    return samples_needed(inlier_share, confidence, 3)
 
 
 class TargetIndex:

@@ -32,6 +32,7 @@ __all__ = [
     "Tokens",
     "candidate_tokens",
     "Votes",
+    "joint_spaces",
     "vote_tokens",
     "constraint",
     "select_one_to_one",
@@ -190,12 +191,35 @@ class Votes:
     sigma: float
 
 
-def vote_tokens(tokens: Tokens, sigma: float) -> Votes:
-    """One sparse ball pass over the tokens' joint-space coordinates."""
+def joint_spaces(model: MotionModel, tokens: Tokens) -> tuple[np.ndarray, ...]:
+    """The joint spaces voted on: the model's ``joint_spaces`` when it has several, else ``coords``.
+
+    Kang et al.'s 2D affine motions live in two 3D joint spaces, ``(x, y, x')``
+    and ``(x, y, y')`` (paper, eqs. 1–4); rigid motions and similarities in one.
+    """
+    spaces = getattr(model, "joint_spaces", None)
+    if spaces is None:
+        return (tokens.coords,)
+    return tuple(spaces(tokens.source_points, tokens.target_points))
+
+
+def vote_tokens(tokens: Tokens, sigma: float, model: MotionModel | None = None) -> Votes:
+    """One sparse ball pass in each joint space of ``model`` (just ``coords`` without one).
+
+    With several spaces a token is salient when it is salient in all of
+    them: its saliency is the geometric mean over the spaces; the normals
+    are those of the first space.
+    """
     from .voting import vote
 
-    ball = vote(tokens.coords, sigma)
-    return Votes(ball.eigenvalues.sum(axis=1), np.asarray(ball.normals), float(sigma))
+    spaces = (tokens.coords,) if model is None else joint_spaces(model, tokens)
+    balls = [vote(c, sigma) for c in spaces]
+    if len(balls) == 1:
+        saliency = balls[0].eigenvalues.sum(axis=1)
+    else:
+        logs = [np.log(np.maximum(b.eigenvalues.sum(axis=1), 1e-300)) for b in balls]
+        saliency = np.exp(np.mean(logs, axis=0))
+    return Votes(saliency, np.asarray(balls[0].normals), float(sigma))
 
 
 # --------------------------------------------------------------- constraint
@@ -326,7 +350,8 @@ def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: floa
     """Tensor voting judges a trial motion (section 3.4).
 
     tokens within the voting reach (2σ) of the trial motion → one ball pass
-    → eq. 41 against the most salient tokens → one-to-one by saliency → fit
+    in each of the model's joint spaces → eq. 41 (the model's constraint)
+    against the most salient tokens → one-to-one by saliency → fit
     and residual gate.  σ defaults to half the spacing of false tokens near
     the trial translation (each source point contributes the target's
     density there), at least the gate.
@@ -338,7 +363,7 @@ def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: floa
     tokens = candidate_tokens(problem, matrix, 2.0 * sig, max_candidates)
     if len(tokens) < problem.model.sample_size:
         return None
-    votes = vote_tokens(tokens, sig)
+    votes = vote_tokens(tokens, sig, problem.model)
     best = constraint(tokens, votes, 2.0 * g, problem.model, n_refs=n_refs)
     if best is None:
         return None

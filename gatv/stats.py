@@ -15,7 +15,7 @@ import math
 
 from scipy.stats import poisson
 
-__all__ = ["ball_measure", "chance_count", "chance_support"]
+__all__ = ["ball_measure", "chance_count", "chance_support", "samples_needed"]
 
 
 def ball_measure(radius: float, dim: int = 3) -> float:
@@ -57,3 +57,23 @@ def chance_support(n_source: int, n_target: int, measure: float, radius: float,
     """
     return chance_count(n_source, n_target, measure, radius, dim=dim, alpha=alpha,
                         n_tests=n_tests) + int(sample_size)
+
+
+def samples_needed(inlier_share: float, confidence: float = 0.999, sample_points: int = 3) -> int:
+    """Samples to draw so that one is all-inlier with ``confidence`` (the RANSAC bound).
+
+    With an inlier share ``w``, a sample of ``k`` points is all-inlier with
+    probability ``w**k``, so ``log(1 - confidence) / log(1 - w**k)`` samples
+    find one.
+
+    Examples
+    --------
+    >>> samples_needed(1.0, 0.999, 4)
+    1
+    >>> samples_needed(0.5, 0.99, 3)
+    35
+    """
+    w = float(inlier_share) ** sample_points
+    if w >= 1.0:
+        return 1
+    return int(math.ceil(math.log1p(-confidence) / math.log1p(-w)))

@@ -10,7 +10,8 @@ from gatv import stages
 from gatv.errors import InputError
 from gatv.models import get_model
 from gatv.motions import Segmentation, multi_motion_scene, segment
-from gatv.motions.peeling import peel, samples_needed
+from gatv.motions.peeling import peel
+from gatv.stats import samples_needed
 
 
 def _overlap(found, true):

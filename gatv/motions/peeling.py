@@ -10,7 +10,7 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
    invariant-sample search (:meth:`MotionModel.trial_motions`), in round
    robin over the tolerance schedule as :func:`gatv.register` does, with a
    RANSAC budget for the smallest motion wanted.
-2. **Judge** (:func:`judge`): candidate tokens within the voting reach of
+2. **Judge** (:func:`gatv.stages.judge`): candidate tokens within the voting reach of
    the trial, one ball pass in each of the model's joint spaces (one for
    rigid and similarity motions; Kang's two, ``(x, y, x')`` and
    ``(x, y, y')``, for 2D affine motions — a token is salient when it is
@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import replace
 from math import comb
 
 import numpy as np
@@ -39,9 +38,10 @@ from .. import stages
 from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
 from ..errors import InputError
 from ..stages import NOISE_SCHEDULE, Fit, Problem, gate
+from ..stats import samples_needed
 from .segmentation import Segmentation
 
-__all__ = ["peel", "judge", "joint_spaces", "samples_needed"]
+__all__ = ["peel"]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
@@ -49,53 +49,10 @@ N_JUDGED = 4
 MAX_SAMPLES = 200_000
 
 
-def samples_needed(inlier_share: float, confidence: float, sample_points: int) -> int:
-    """Samples to draw so one is all-inlier with ``confidence`` (the RANSAC bound)."""
-    w = float(inlier_share) ** sample_points
-    if w >= 1.0:
-        return 1
-    return int(np.ceil(np.log1p(-confidence) / np.log1p(-w)))
-
-
-def joint_spaces(model, tokens: stages.Tokens) -> tuple:
-    """The joint-space coordinates voted on: the model's ``joint_spaces`` or its one ``tokens``."""
-    spaces = getattr(model, "joint_spaces", None)
-    if spaces is None:
-        return (tokens.coords,)
-    return tuple(spaces(tokens.source_points, tokens.target_points))
-
-
 def _sample_space(model, n: int) -> int:
+    """Distinct trial samples among ``n`` points: the model's ``sample_space`` or C(n, sample_size)."""
     f = getattr(model, "sample_space", None)
     return int(f(n)) if f is not None else comb(n, model.sample_size)
-
-
-def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: float | None = None,
-          max_candidates: int = 8, n_refs: int = 4) -> stages.Judged | None:
-    """:func:`gatv.stages.judge` with a ball pass in each of the model's joint spaces.
-
-    tokens → votes in every joint space (saliency: their geometric mean) →
-    the model's constraint → one-to-one by saliency → fit and gate.  For a
-    model with one joint space this is :func:`gatv.stages.judge`.
-    """
-    n1, n2 = problem.source.shape[0], problem.target.shape[0]
-    g = gate(tolerance)
-    false_spacing = (n1 * n2 / problem.volume) ** (-1.0 / problem.dim)
-    sig = float(sigma) if sigma is not None else max(g, 0.5 * min(false_spacing, problem.spacing))
-    tokens = stages.candidate_tokens(problem, matrix, 2.0 * sig, max_candidates)
-    if len(tokens) < problem.model.sample_size:
-        return None
-    per_space = [stages.vote_tokens(replace(tokens, coords=c), sig) for c in joint_spaces(problem.model, tokens)]
-    saliency = np.exp(np.mean([np.log(np.maximum(v.saliency, 1e-300)) for v in per_space], axis=0))
-    votes = stages.Votes(saliency, per_space[0].normals, sig)
-    best = stages.constraint(tokens, votes, 2.0 * g, problem.model, n_refs=n_refs)
-    if best is None:
-        return None
-    sub = best[stages.select_one_to_one(tokens.pairs[best], -votes.saliency[best])]
-    fit = stages.fit_and_gate(problem, tokens.pairs, tokens.pairs[sub], g)
-    if fit is None:
-        return None
-    return stages.Judged(fit, len(tokens), sig)
 
 
 def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
@@ -139,7 +96,7 @@ def _find_one(S: Problem, levels, rng, *, budget: int, chunk: int, accept_tests:
             for kk, matrix in enumerate(trials.matrices):
                 if trials.support[kk] < accept[level]:
                     break
-                judged = judge(S, matrix, tol, sigma=sigma, max_candidates=max_candidates)
+                judged = stages.judge(S, matrix, tol, sigma=sigma, max_candidates=max_candidates)
                 if judged is None or judged.fit.support < threshold:
                     continue
                 fit = judged.fit

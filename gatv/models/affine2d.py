@@ -21,7 +21,7 @@ How the pieces fit the stages of :mod:`gatv.stages`
 * **Tokens** are Kang's first joint space ``(x, y, x')`` with ``x`` the
   source moved by the trial's linear part (the stages' convention);
   :meth:`Affine2D.joint_spaces` gives both spaces, and
-  :func:`gatv.motions.peel` votes in each and keeps a token salient only
+  :func:`gatv.stages.vote_tokens` votes in each and keeps a token salient only
   when it is salient in both (geometric mean of the two ball-pass
   saliencies).
 * **The constraint** (:meth:`Affine2D.consistent`), the analogue of eq. 41:

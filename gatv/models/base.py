@@ -18,6 +18,13 @@ depends on the kind of motion (paper, sections 2–5):
 * ``chance``: the support a random motion collects;
 * ``result``: the frozen result object.
 
+Optional hooks, read with ``getattr`` where a model needs them:
+``joint_spaces(source, target)`` (several 3D joint spaces to vote in, as
+Kang's two for 2D affine motions; :func:`gatv.stages.vote_tokens`),
+``trial_sample_size`` (points per trial sample when it exceeds
+``sample_size``, for the RANSAC bound) and ``sample_space(n)`` (distinct
+samples among ``n`` points); :func:`gatv.motions.peel` reads the last two.
+
 Every motion is carried between stages as its ``(dim + 1) × (dim + 1)``
 homogeneous matrix ``T``: ``target ≈ source @ T[:d, :d].T + T[:d, d]``.
 See ``docs/extending.md`` for a worked example (the 2D affine model).

@@ -287,6 +287,34 @@ def triple_hypotheses(
     return scores, rots, trans, nmatch
 
 
+@njit(cache=True)
+def count_distinct_inliers(A, t, source, target, start, order, origin, cell, dims, radius, need,
+                           mark, stamp):
+    """Number of distinct target points the moved source points land on (within ``radius``).
+
+    Like :func:`count_inliers` with linear part ``A``, but a target point
+    already claimed by an earlier source point does not count again: a
+    similarity that shrinks the source onto a few target points (which
+    :func:`count_inliers` would reward on dense data) scores low.
+    ``mark`` (one int64 per target point) holds ``stamp`` for the claimed
+    ones; give a new ``stamp`` per call instead of clearing it.  Gives up
+    (returning a count below ``need``) once ``need`` is out of reach.
+    """
+    n = 0
+    p = np.empty(3)
+    m = source.shape[0]
+    for i in range(m):
+        if n + (m - i) < need:
+            return n
+        for r in range(3):
+            p[r] = A[r, 0] * source[i, 0] + A[r, 1] * source[i, 1] + A[r, 2] * source[i, 2] + t[r]
+        j = nearest_in_grid(p, target, start, order, origin, cell, dims, radius)
+        if j >= 0 and mark[j] != stamp:
+            mark[j] = stamp
+            n += 1
+    return n
+
+
 @njit(cache=True, parallel=True)
 def similar_triple_hypotheses(
     source,
@@ -326,11 +354,17 @@ def similar_triple_hypotheses(
     is a similar triangle; ``eps`` is the side-length tolerance in
     **target** units (noise of ``eps`` on ``|kl|`` moves ``s |ac|`` by
     ``rho1 eps``, hence the widened windows).  Each similar triangle gives
-    a motion (:func:`gatv._fit_kernels.umeyama3` on the three pairs) whose
-    support is the number of source points its linear part ``s R`` and
-    translation bring within ``radius`` of a target point
-    (:func:`count_inliers`).  At most ``max_matches`` similar triangles are
-    scored per source triple.
+    a motion (:func:`gatv._fit_kernels.umeyama3` on the three pairs); one
+    whose fitted scale is outside ``[s_min, s_max]`` is dropped (the
+    ``eps`` slack of the length window lets such triangles through, and a
+    tiny scale that shrinks the whole source onto a few target points would
+    win the density test on dense surfaces), the others are counted
+    against ``max_matches`` and their support is the number of distinct
+    target points that the motion (linear part ``s R``, translation ``t``)
+    brings source points within ``radius`` of
+    (:func:`count_distinct_inliers`; distinct, so that shrinking the source
+    onto a few target points does not pay).  At most ``max_matches``
+    similar triangles are scored per source triple.
 
     Returns ``(score, A, t, n_matches)`` per triple with ``A = s R`` the
     linear part; ``score = -1`` when no similar triangle exists.
@@ -361,6 +395,7 @@ def similar_triple_hypotheses(
             src[0, r] = source[a, r]
             src[1, r] = source[b, r]
             src[2, r] = source[c, r]
+        mark = np.full(n2, -1, np.int64)
         found = 0
         for kk in range(n2):
             if found >= max_matches:
@@ -393,15 +428,17 @@ def similar_triple_hypotheses(
                         continue
                     if abs(_dist(target, l, target, m) - want2) > tol2:
                         continue
-                    found += 1
                     for r in range(3):
                         dst[0, r] = target[k, r]
                         dst[1, r] = target[l, r]
                         dst[2, r] = target[m, r]
                     sc, R, t = umeyama3(src, dst)
+                    if sc < s_min or sc > s_max:
+                        continue
+                    found += 1
                     A = sc * R
-                    n_in = count_inliers(A, t, source, target, start, order, origin, cell, dims,
-                                         radius, scores[q] + 1)
+                    n_in = count_distinct_inliers(A, t, source, target, start, order, origin, cell,
+                                                  dims, radius, scores[q] + 1, mark, found)
                     if n_in > scores[q]:
                         scores[q] = n_in
                         lins[q] = A

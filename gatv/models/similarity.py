@@ -14,8 +14,14 @@ once the trial motion's linear part ``s R0`` has been applied to the source:
   dense pure-translation cluster of section 3.4 as for rigid motions.
 * **Consistency** is eq. 41 on the trial-moved points
   (:func:`gatv.models.rigid.eq41_consistent`), after the residual scale
-  ``k`` the trial left is taken out (the similarity analogue of eq. 41's
-  length half, ``|Δx'|² - k² |Δx|² = 0``), see :meth:`Similarity.consistent`.
+  ``k`` the trial left is taken out: ``k`` is the value most tokens agree
+  on in the similarity analogue of eq. 41's length half,
+  ``|Δx'|² - k² |Δx|² = 0`` (:func:`residual_scale`), see
+  :meth:`Similarity.consistent`.
+* **Scoring** of trials counts distinct target points hit
+  (:func:`gatv._congruent_kernels.count_distinct_inliers`): unlike a
+  rigid motion, a similarity can shrink the source onto a few target
+  points, which a plain inlier count rewards on dense data.
 * The least-squares fit is Umeyama's (:func:`gatv.fitting.umeyama`).
 
 Units: residuals, gates and side-length tolerances are in **target** units
@@ -38,7 +44,7 @@ from .base import Motion, homogeneous
 from .rigid import check_dimension, check_spread, eq41_consistent
 
 __all__ = ["Similarity", "SimilarityMotion", "MODEL", "similar_trial_motions", "order_triples",
-           "DEFAULT_SCALE_RANGE"]
+           "residual_scale", "DEFAULT_SCALE_RANGE"]
 
 #: Scales the trial search looks for by default (``s_min``, ``s_max``).
 DEFAULT_SCALE_RANGE = (0.1, 10.0)
@@ -333,6 +339,39 @@ def similar_trial_motions(
     return TrialMotions(As[kept_idx], ts[kept_idx], s[kept_idx], threshold, drawn, n_similar)
 
 
+def residual_scale(xs: np.ndarray, ys: np.ndarray, ref: int, tau: float,
+                   bounds=(0.8, 1.25)) -> float | None:
+    """The scale ``k`` most pairs ``(xs[j], ys[j])`` agree on against pair ``ref``.
+
+    Pair ``j`` admits ``k`` when ``| |ys[j] - ys[ref]| - k |xs[j] - xs[ref]| | <= tau``,
+    an interval of ``k``; the point of ``bounds`` covered by the most
+    intervals (a sweep) is returned, refined to the least-squares ``k`` of
+    the pairs that admit it.  ``None`` when fewer than 3 pairs agree.
+    """
+    dx = np.linalg.norm(xs - xs[ref], axis=1)
+    dy = np.linalg.norm(ys - ys[ref], axis=1)
+    use = dx > tau
+    if use.sum() < 3:
+        return None
+    dx, dy = dx[use], dy[use]
+    r, w = dy / dx, tau / dx
+    lo, hi = np.maximum(r - w, bounds[0]), np.minimum(r + w, bounds[1])
+    ok = lo <= hi
+    if ok.sum() < 3:
+        return None
+    lo, hi = lo[ok], hi[ok]
+    # Max overlap of closed intervals: sweep the starts, count ends passed.
+    starts, ends = np.sort(lo), np.sort(hi)
+    depth = np.arange(1, starts.size + 1) - np.searchsorted(ends, starts, side="left")
+    best = int(np.argmax(depth))
+    if depth[best] < 3:
+        return None
+    k0 = starts[best]
+    agree = (lo <= k0) & (hi >= k0)
+    k = float(dx[ok][agree] @ dy[ok][agree]) / float(dx[ok][agree] @ dx[ok][agree])
+    return k if np.isfinite(k) and k > 0 else None
+
+
 # ------------------------------------------------------------------- model
 class Similarity:
     """Rotation, uniform scale and translation in 3D: 3-point samples, 7 degrees of freedom.
@@ -404,25 +443,20 @@ class Similarity:
         rigid motion, and eq. 41 (:func:`gatv.models.rigid.eq41_consistent`)
         applies to ``x = s0 R0 x_source`` and ``x'``.  A trial from three
         noisy points leaves a small residual scale ``k`` as well, which
-        breaks eq. 41's length half (``|Δx'|² - |Δx|² = 0``) on long pairs;
-        so the tokens eq. 41 keeps give ``k`` (least squares of
-        ``|Δx'| ≈ k |Δx|`` against the reference), and eq. 41 is applied
-        again to ``k x`` and ``x'`` (the similarity analogue
-        ``|Δx'|² - k² |Δx|² = 0`` plus the axis half).  The larger
+        breaks eq. 41's length half (``|Δx'|² - |Δx|² = 0``) on long pairs
+        (by about ``|k - 1| |Δx|``).  So first the similarity analogue of
+        that half, ``|Δx'| - k |Δx| = 0`` (that is ``|Δx'|² - k² |Δx|² = 0``),
+        picks ``k``: the value in ``[0.8, 1.25]`` that most tokens agree
+        on within ``tau`` against the reference (:func:`residual_scale`);
+        then eq. 41 proper is applied to ``k x`` and ``x'``.  With ``k = 1``
+        this is the rigid model's test, which is also run; the larger
         consistent set wins.
         """
         xs, ys = tokens.source_points, tokens.target_points
         pairs = tokens.pairs
         cons = eq41_consistent(ys - xs, ys + xs, pairs, ref, tau)
-        if cons.size < 4:
-            return cons
-        dx = np.linalg.norm(xs[cons] - xs[ref], axis=1)
-        dy = np.linalg.norm(ys[cons] - ys[ref], axis=1)
-        den = float(dx @ dx)
-        if den <= 0:
-            return cons
-        k = float(dx @ dy) / den
-        if not np.isfinite(k) or k <= 0 or abs(k - 1.0) < 1e-12:
+        k = residual_scale(xs, ys, ref, tau)
+        if k is None or abs(k - 1.0) < 1e-12:
             return cons
         kx = k * xs
         again = eq41_consistent(ys - kx, ys + kx, pairs, ref, tau)

@@ -210,6 +210,7 @@ class NonRigidMotion:
     def to_dict(self) -> dict:
         """JSON-friendly dictionary."""
         return {
+            "model": "nonrigid",
             "correspondences": self.correspondences.tolist(),
             "support": self.support,
             "rotors": self.rotors.tolist(),

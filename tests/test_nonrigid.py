@@ -190,6 +190,26 @@ def test_same_seed_same_result(twisted):
     np.testing.assert_array_equal(again.warp(trial.source), m.warp(trial.source))
 
 
+def test_progress_reports_each_stage_and_to_dict_names_the_model(twisted):
+    trial, m = twisted
+    calls = []
+    again = register(trial.source, trial.target, progress=lambda f, msg: calls.append((f, msg)))
+    assert np.array_equal(again.correspondences, m.correspondences)
+    fractions = [f for f, _ in calls]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert len(calls) >= 6 and all(isinstance(msg, str) and msg for _, msg in calls)
+    record = m.to_dict()
+    assert record["model"] == "nonrigid" and record["support"] == m.support
+
+
+def test_generator_seed_is_reproducible(twisted):
+    trial, _ = twisted
+    a = register(trial.source, trial.target, seed=np.random.default_rng(7))
+    b = register(trial.source, trial.target, seed=np.random.default_rng(7))
+    assert np.array_equal(a.correspondences, b.correspondences)
+    assert correspondence_stats(a.correspondences, trial.true_pairs)[0] >= 0.95
+
+
 # ------------------------------------------------------------------ bad input
 @pytest.mark.parametrize(
     ("source", "kwargs", "match"),
@@ -207,6 +227,8 @@ def test_same_seed_same_result(twisted):
         (None, {"seed": -1}, "`seed`"),
         (None, {"prealign": "always"}, "`prealign`"),
         (None, {"memory_budget": 1.0}, "memory budget"),
+        (None, {"progress": "yes"}, "`progress`"),
+        (None, {"seed": 1.5}, "`seed`"),
     ],
 )
 def test_bad_input_raises_clear_value_errors(source, kwargs, match):

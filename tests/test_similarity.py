@@ -135,6 +135,13 @@ def test_consistent_removes_a_residual_scale():
     assert set(range(60)) <= set(cons.tolist()) and len(set(cons.tolist()) - set(range(60))) <= 1
 
 
+def test_chance_needs_a_point_beyond_the_sample():
+    from gatv.stats import chance_support
+
+    assert MODEL.chance(500, 500, 1000.0, 1e-6) == chance_support(500, 500, 1000.0, 1e-6) + 1 == 4
+    assert MODEL.chance(500, 500, 1000.0, 0.5, 1e4) == chance_support(500, 500, 1000.0, 0.5, 1e4) + 1
+
+
 # ------------------------------------------------------------------ motion
 @settings(max_examples=40, deadline=None)
 @given(st.floats(0.1, 10.0), st.integers(0, 2**31 - 1))
@@ -323,6 +330,16 @@ def test_exact_recovery_sweep(scale, outlier_fraction, seed):
     assert m.scale == pytest.approx(scale, rel=1e-9)
     np.testing.assert_allclose(m.rotation, R, atol=1e-9)
     assert _pairs(m) == set(map(tuple, true.tolist()))
+
+
+@pytest.mark.slow
+def test_unrelated_point_sets_give_no_motion():
+    # Before the +1 in Similarity.chance, a random similar triangle (support
+    # 3, its own sample) passed the exact tolerance's chance level here.
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-5, 5, (500, 3)), rng.uniform(-5, 5, (500, 3))
+    m = register(x, y, model="similarity", max_triples=1000)
+    assert not m and m.info["reason"]
 
 
 @pytest.mark.slow

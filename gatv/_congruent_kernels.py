@@ -413,8 +413,7 @@ def similar_triple_hypotheses(
                 want = rho1 * dkl
                 while m_lo < nrow and row[m_lo] < want - tol1:
                     m_lo += 1
-                if m_hi < m_lo:
-                    m_hi = m_lo
+                m_hi = max(m_hi, m_lo)
                 while m_hi < nrow and row[m_hi] <= want + tol1:
                     m_hi += 1
                 if m_lo >= m_hi:

@@ -43,8 +43,8 @@ from ..stats import chance_support
 from .base import Motion, homogeneous
 from .rigid import check_dimension, check_spread, eq41_consistent
 
-__all__ = ["Similarity", "SimilarityMotion", "MODEL", "similar_trial_motions", "order_triples",
-           "residual_scale", "DEFAULT_SCALE_RANGE"]
+__all__ = ["DEFAULT_SCALE_RANGE", "MODEL", "Similarity", "SimilarityMotion", "order_triples",
+           "residual_scale", "similar_trial_motions"]
 
 #: Scales the trial search looks for by default (``s_min``, ``s_max``).
 DEFAULT_SCALE_RANGE = (0.1, 10.0)
@@ -389,6 +389,11 @@ class Similarity:
     sample_size = 3
     n_params = 7
     result_type = SimilarityMotion
+    #: The motion changes units: residuals, gates and tolerances are in the
+    #: target's, so the point spacing they are relative to should be the
+    #: target's (not the mean of both sets', which :func:`gatv.stages.prepare`
+    #: uses for rigid motions).
+    changes_scale = True
 
     def __init__(self, scale_range=DEFAULT_SCALE_RANGE):
         self.scale_range = _check_scale_range(scale_range)

@@ -257,6 +257,7 @@ def register(
     # microsecond-like units: 1 per triple drawn plus (2 + 0.03 n) per
     # congruent triangle scored, so the same seed gives the same result.
     share = 20000.0
+    triple_cost = getattr(P.model, "triple_cost", None)
     done = [0] * len(levels)
     per_triple = [share / 64.0] * len(levels)  # first chunk: 64 triples, then measured
     while min(done) < budget:
@@ -274,7 +275,9 @@ def register(
             rec = tried[level]
             rec["triples"] += trials.n_triples
             rec["congruent"] += trials.n_congruent
-            per_triple[level] = 1.0 + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
+            # a model whose sample search scans the target (similarity: O(M²)) says its cost
+            cost = triple_cost(n2) if triple_cost is not None else 0.0
+            per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

@@ -74,7 +74,9 @@ class Problem:
     tree : scipy.spatial.cKDTree
         Of the target points.
     spacing : float
-        Mean of the two sets' median nearest-neighbour distances.
+        Mean of the two sets' median nearest-neighbour distances (the
+        target's alone for a model that changes scale: residuals are in
+        target units).
     extent : float
         Largest coordinate offset of a source point from the source centroid.
     volume : float
@@ -116,7 +118,10 @@ def prepare(source, target, model="rigid") -> Problem:
     model = get_model(model)
     X = model.check_points(source, "source")
     Y = model.check_points(target, "target")
-    spacing = 0.5 * (median_spacing(X) + median_spacing(Y))
+    if getattr(model, "changes_scale", False):
+        spacing = median_spacing(Y)  # residuals, gates and tolerances are in target units
+    else:
+        spacing = 0.5 * (median_spacing(X) + median_spacing(Y))
     lo, hi = Y.min(axis=0), Y.max(axis=0)
     extent = float(np.abs(X - X.mean(axis=0)).max())
     volume = float(np.prod(np.maximum(hi - lo, spacing)))

@@ -23,7 +23,11 @@ Optional hooks, read with ``getattr`` where a model needs them:
 Kang's two for 2D affine motions; :func:`gatv.stages.vote_tokens`),
 ``trial_sample_size`` (points per trial sample when it exceeds
 ``sample_size``, for the RANSAC bound) and ``sample_space(n)`` (distinct
-samples among ``n`` points); :func:`gatv.motions.peel` reads the last two.
+samples among ``n`` points); :func:`gatv.motions.peel` reads the last two;
+``changes_scale`` (true when the motion scales: :func:`gatv.stages.prepare`
+then measures the spacing in the target alone) and ``triple_cost(m)``
+(work units of one trial sample against ``m`` targets, for the round robin
+of :func:`gatv.register`).
 
 Every motion is carried between stages as its ``(dim + 1) × (dim + 1)``
 homogeneous matrix ``T``: ``target ≈ source @ T[:d, :d].T + T[:d, d]``.

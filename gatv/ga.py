@@ -59,6 +59,7 @@ __all__ = [
     "pair_differences",
     "eq41",
     "eq41_length_residual",
+    "rotation_angle_deg",
     "eq41_residual",
 ]
 
@@ -466,3 +467,11 @@ def eq41_length_residual(d_i, s_i, d_j, s_j) -> np.ndarray:
     Vs = np.asarray(s_i, dtype=np.float64) - np.asarray(s_j, dtype=np.float64)
     nvs = np.linalg.norm(Vs, axis=-1)
     return np.abs(np.einsum("...i,...i->...", V, Vs)) / np.where(nvs > 0, nvs, 1.0)
+
+
+def rotation_angle_deg(rotation) -> float:
+    """Angle of a rotation matrix in degrees (robust near 0 and 180)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    c = (np.trace(r) - 1.0) / 2.0
+    s = 0.5 * np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return float(np.degrees(np.arctan2(s, c)))

@@ -11,17 +11,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validation import frozen_array as _frozen
 from .errors import InputError
 from .fitting import fit_rigid
-from .ga import Rotor
-from .models.base import Motion, homogeneous
+from .ga import rotation_angle_deg
+from .models.base import Motion, Rotational, freeze_fields, homogeneous
 
 __all__ = ["RigidMotion", "fit_rigid", "rotation_angle_deg"]
 
 
 @dataclass(frozen=True, eq=False)
-class RigidMotion(Motion):
+class RigidMotion(Rotational, Motion):
     """A rigid motion with the correspondences that support it.
 
     Attributes
@@ -56,16 +55,7 @@ class RigidMotion(Motion):
     info: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        rot = np.asarray(self.rotation, dtype=np.float64)
-        if rot.shape != (3, 3):
-            raise InputError(f"Expected `rotation` to have shape (3, 3), got {rot.shape}.")
-        t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
-        if t.shape != (3,):
-            raise InputError(f"Expected `translation` to have 3 entries, got {t.shape}.")
-        c = np.asarray(self.correspondences, dtype=np.int64).reshape(-1, 2)
-        object.__setattr__(self, "rotation", _frozen(rot))
-        object.__setattr__(self, "translation", _frozen(t))
-        object.__setattr__(self, "correspondences", _frozen(c, np.int64))
+        freeze_fields(self, rotation=(3, 3), translation=(3,))
 
     @classmethod
     def from_matrix(cls, matrix, correspondences=None, *, score: float = 0.0,
@@ -82,16 +72,6 @@ class RigidMotion(Motion):
     def matrix(self) -> np.ndarray:
         """4×4 homogeneous matrix, ``p_target = T @ [p_source, 1]``."""
         return homogeneous(self.rotation, self.translation)
-
-    @property
-    def rotor(self) -> np.ndarray:
-        """``(q0, qx, qy, qz)`` of the rotor ``R = q0 + qx e23 + qy e31 + qz e12``."""
-        return Rotor.from_matrix(self.rotation).q.copy()
-
-    @property
-    def angle_deg(self) -> float:
-        """Rotation angle in degrees."""
-        return rotation_angle_deg(self.rotation)
 
     # ---------------------------------------------------------- operations
     def inverse(self) -> RigidMotion:
@@ -122,11 +102,3 @@ class RigidMotion(Motion):
             f"RigidMotion(angle={self.angle_deg:.4f} deg, translation={t}, "
             f"support={self.support}, rms={self.rms:.3g})"
         )
-
-
-def rotation_angle_deg(rotation) -> float:
-    """Angle of a rotation matrix in degrees (robust near 0 and 180)."""
-    r = np.asarray(rotation, dtype=np.float64)
-    c = (np.trace(r) - 1.0) / 2.0
-    s = 0.5 * np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    return float(np.degrees(np.arctan2(s, c)))

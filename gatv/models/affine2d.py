@@ -43,10 +43,9 @@ from scipy.spatial import cKDTree
 
 from .. import _affine_kernels as _k
 from .._validation import as_points, check_memory
-from .._validation import frozen_array as _frozen
 from ..errors import InputError
 from ..stats import chance_support
-from .base import Motion, homogeneous
+from .base import Motion, freeze_fields, homogeneous
 from .rigid import check_dimension, check_spread
 
 __all__ = ["Affine2D", "Affine2DMotion", "AffineIndex", "MODEL", "fit_affine", "Affine2DTrials"]
@@ -86,15 +85,7 @@ class Affine2DMotion(Motion):
     info: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        A = np.asarray(self.linear, dtype=np.float64)
-        if A.shape != (2, 2):
-            raise InputError(f"Expected `linear` to have shape (2, 2), got {A.shape}.")
-        t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
-        if t.shape != (2,):
-            raise InputError(f"Expected `translation` to have 2 entries, got {t.shape}.")
-        object.__setattr__(self, "linear", _frozen(A))
-        object.__setattr__(self, "translation", _frozen(t))
-        object.__setattr__(self, "correspondences", self._frozen_pairs(self.correspondences))
+        freeze_fields(self, linear=(2, 2), translation=(2,))
 
     @classmethod
     def from_matrix(cls, matrix, correspondences=None, *, score: float = 0.0,

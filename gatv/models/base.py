@@ -41,12 +41,15 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 import numpy as np
 
 from .._validation import as_points, frozen_array
+from ..errors import InputError
+from ..ga import Rotor, rotation_angle_deg
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..congruent import TrialMotions
     from ..stages import Tokens
 
-__all__ = ["MotionModel", "Motion", "homogeneous", "split_matrix", "apply_matrix"]
+__all__ = ["MotionModel", "Motion", "Rotational", "freeze_fields", "homogeneous", "split_matrix",
+           "apply_matrix"]
 
 
 def homogeneous(linear, translation) -> np.ndarray:
@@ -69,6 +72,29 @@ def apply_matrix(matrix, points: np.ndarray) -> np.ndarray:
     """``points @ A.T + t`` for the homogeneous matrix ``[[A, t], [0, 1]]``."""
     A, t = split_matrix(matrix)
     return points @ A.T + t
+
+
+def freeze_fields(obj, **shapes: tuple[int, ...]) -> None:
+    """Validate and freeze array fields of a frozen dataclass in ``__post_init__``.
+
+    ``shapes`` maps a field name to its shape; a 1-D shape accepts any array
+    with that many entries.  ``correspondences`` is always frozen as (K, 2)
+    integers.
+
+    Raises
+    ------
+    InputError
+        A field of the wrong shape, naming it.
+    """
+    for name, shape in shapes.items():
+        a = np.asarray(getattr(obj, name), dtype=np.float64)
+        if len(shape) == 1:
+            a = a.reshape(-1)
+        if a.shape != shape:
+            raise InputError(f"Expected `{name}` to have shape {shape}, got {a.shape}.")
+        object.__setattr__(obj, name, frozen_array(a))
+    pairs = np.asarray(obj.correspondences, dtype=np.int64).reshape(-1, 2)
+    object.__setattr__(obj, "correspondences", frozen_array(pairs, np.int64))
 
 
 @runtime_checkable
@@ -202,6 +228,19 @@ class Motion:
             out["reason"] = str(self.info["reason"])
         return out
 
-    @staticmethod
-    def _frozen_pairs(c) -> np.ndarray:
-        return frozen_array(np.asarray(c, dtype=np.int64).reshape(-1, 2), np.int64)
+
+
+class Rotational:
+    """What every motion with a ``rotation`` (3×3) field offers: its rotor and angle."""
+
+    rotation: np.ndarray
+
+    @property
+    def rotor(self) -> np.ndarray:
+        """``(q0, qx, qy, qz)`` of the rotor ``R = q0 + qx e23 + qy e31 + qz e12``."""
+        return Rotor.from_matrix(self.rotation).q.copy()
+
+    @property
+    def angle_deg(self) -> float:
+        """Rotation angle in degrees."""
+        return rotation_angle_deg(self.rotation)

@@ -35,12 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._validation import as_points, check_int
-from .._validation import frozen_array as _frozen
 from ..errors import InputError
 from ..fitting import umeyama
-from ..ga import Rotor
 from ..stats import chance_support
-from .base import Motion, homogeneous
+from .base import Motion, Rotational, freeze_fields, homogeneous
 from .rigid import check_dimension, check_spread, eq41_consistent
 
 __all__ = ["DEFAULT_SCALE_RANGE", "MODEL", "Similarity", "SimilarityMotion", "order_triples",
@@ -64,7 +62,7 @@ def _check_scale_range(scale_range) -> tuple[float, float]:
 
 # ------------------------------------------------------------------ result
 @dataclass(frozen=True, eq=False)
-class SimilarityMotion(Motion):
+class SimilarityMotion(Rotational, Motion):
     """A similarity ``target ≈ scale · source @ rotation.T + translation`` and its support.
 
     Attributes
@@ -106,17 +104,8 @@ class SimilarityMotion(Motion):
             raise InputError(f"Expected `scale` to be a positive number, got {self.scale!r}.") from exc
         if not (np.isfinite(s) and s > 0):
             raise InputError(f"Expected `scale` to be a positive finite number, got {s!r}.")
-        rot = np.asarray(self.rotation, dtype=np.float64)
-        if rot.shape != (3, 3):
-            raise InputError(f"Expected `rotation` to have shape (3, 3), got {rot.shape}.")
-        t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
-        if t.shape != (3,):
-            raise InputError(f"Expected `translation` to have 3 entries, got {t.shape}.")
-        c = np.asarray(self.correspondences, dtype=np.int64).reshape(-1, 2)
         object.__setattr__(self, "scale", s)
-        object.__setattr__(self, "rotation", _frozen(rot))
-        object.__setattr__(self, "translation", _frozen(t))
-        object.__setattr__(self, "correspondences", _frozen(c, np.int64))
+        freeze_fields(self, rotation=(3, 3), translation=(3,))
 
     @classmethod
     def from_matrix(cls, matrix, correspondences=None, *, score: float = 0.0,
@@ -147,18 +136,6 @@ class SimilarityMotion(Motion):
     def matrix(self) -> np.ndarray:
         """4×4 homogeneous matrix ``[[s R, t], [0, 1]]``, ``p_target = T @ [p_source, 1]``."""
         return homogeneous(self.scale * self.rotation, self.translation)
-
-    @property
-    def rotor(self) -> np.ndarray:
-        """``(q0, qx, qy, qz)`` of the rotor ``R = q0 + qx e23 + qy e31 + qz e12``."""
-        return Rotor.from_matrix(self.rotation).q.copy()
-
-    @property
-    def angle_deg(self) -> float:
-        """Rotation angle in degrees."""
-        from ..motion import rotation_angle_deg
-
-        return rotation_angle_deg(self.rotation)
 
     # ---------------------------------------------------------- operations
     def inverse(self) -> SimilarityMotion:

@@ -31,7 +31,8 @@ from ._validation import check_memory
 from .models.base import homogeneous
 from .stats import chance_support, samples_needed
 
-__all__ = ["TargetIndex", "TrialMotions", "trial_motions", "sample_triples", "n_triples_needed", "chance_support"]
+__all__ = ["TargetIndex", "TrialMotions", "TrialPool", "accept_level", "trial_motions", "sample_triples",
+           "n_triples_needed", "chance_support"]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
@@ -101,6 +102,67 @@ class TrialMotions:
         return np.stack([homogeneous(R, t) for R, t in zip(self.rotations, self.translations)])
 
 
+class TrialPool:
+    """The best trial motions of a search, collected batch by batch.
+
+    Each batch offers its per-sample best motions; the ``4 * keep`` best of
+    those scoring at least ``min_score`` are kept.  :meth:`trials` ranks
+    them and keeps ``keep`` distinct ones: a motion is a repeat when its
+    linear part is within ``1e-3`` of a kept one's (Frobenius norm; relative
+    to the kept one's norm with ``relative=True``, for models that scale)
+    and its translation within ``radius``.
+    """
+
+    def __init__(self, keep: int, min_score: int, dim: int = 3):
+        self.keep, self.min_score, self.dim = int(keep), int(min_score), int(dim)
+        self.scores: list = []
+        self.linear: list = []
+        self.translations: list = []
+
+    @property
+    def best(self) -> int:
+        """Best score so far (0 when empty)."""
+        return max(self.scores) if self.scores else 0
+
+    def add(self, scores: np.ndarray, linear: np.ndarray, translations: np.ndarray) -> None:
+        good = np.flatnonzero(scores >= self.min_score)
+        if good.size:
+            top = good[np.argsort(-scores[good], kind="stable")[: 4 * self.keep]]
+            self.scores.extend(scores[top].tolist())
+            self.linear.extend(linear[top])
+            self.translations.extend(translations[top])
+
+    def trials(self, radius: float, threshold: int, n_samples: int, n_matches: int, *,
+               relative: bool = False) -> TrialMotions:
+        d = self.dim
+        if not self.scores:
+            return TrialMotions(np.zeros((0, d, d)), np.zeros((0, d)), np.zeros(0, np.int64),
+                                threshold, n_samples, n_matches)
+        s = np.asarray(self.scores)
+        order = np.argsort(-s, kind="stable")
+        As = np.asarray(self.linear)[order]
+        ts = np.asarray(self.translations)[order]
+        s = s[order]
+        kept: list[int] = []
+        for i in range(len(s)):
+            if all(np.linalg.norm(As[i] - As[j]) > (1e-3 * np.linalg.norm(As[j]) if relative else 1e-3)
+                   or np.linalg.norm(ts[i] - ts[j]) > radius for j in kept):
+                kept.append(i)
+            if len(kept) >= self.keep:
+                break
+        k = np.asarray(kept)
+        return TrialMotions(As[k], ts[k], s[k], threshold, n_samples, n_matches)
+
+
+def accept_level(accept: int | None, threshold: int) -> int:
+    """The support that stops a trial search early: ``threshold`` by default, never for ``<= 0``."""
+    if accept is None:
+        return threshold
+    if accept <= 0:
+        return np.iinfo(np.int64).max
+    return accept
+
+
 def sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
     """``count`` random triples of distinct indices below ``n``, (count, 3)."""
     t = np.empty((count, 3), np.int64)
@@ -165,16 +227,11 @@ def trial_motions(
     n = source.shape[0]
     threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
                                n_tests=max_triples * max_matches)
-    if accept is None:
-        accept = threshold
-    elif accept <= 0:
-        accept = np.iinfo(np.int64).max
+    accept = accept_level(accept, threshold)
     no_normals = np.zeros((0, 3))
     sn = no_normals if source_normals is None else np.ascontiguousarray(source_normals, np.float64)
     tn = no_normals if target_normals is None else np.ascontiguousarray(target_normals, np.float64)
-    best_s = []
-    best_R = []
-    best_t = []
+    pool = TrialPool(keep, 3)
     drawn = 0
     n_congruent = 0
     while drawn < max_triples:
@@ -195,32 +252,9 @@ def trial_motions(
             index.radius, int(max_matches), sn, tn, float(feature_tol),
         )
         n_congruent += int(nm.sum())
-        good = np.flatnonzero(scores >= 3)
-        if good.size:
-            top = good[np.argsort(-scores[good], kind="stable")[: 4 * keep]]
-            best_s.extend(scores[top].tolist())
-            best_R.extend(R[top])
-            best_t.extend(t[top])
+        pool.add(scores, R, t)
         if progress is not None:
-            progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support "
-                     f"{max(best_s) if best_s else 0}")
-        if best_s and max(best_s) >= accept:
+            progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
+        if pool.best >= accept:
             break
-    if not best_s:
-        return TrialMotions(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
-                            threshold, drawn, n_congruent)
-    s = np.asarray(best_s)
-    order = np.argsort(-s, kind="stable")
-    Rs = np.asarray(best_R)[order]
-    ts = np.asarray(best_t)[order]
-    s = s[order]
-    # keep distinct motions only
-    kept = []
-    for i in range(len(s)):
-        if all(np.linalg.norm(Rs[i] - Rs[j]) > 1e-3 or np.linalg.norm(ts[i] - ts[j]) > index.radius
-               for j in kept):
-            kept.append(i)
-        if len(kept) >= keep:
-            break
-    kept = np.asarray(kept)
-    return TrialMotions(Rs[kept], ts[kept], s[kept], threshold, drawn, n_congruent)
+    return pool.trials(index.radius, threshold, drawn, n_congruent)

@@ -273,21 +273,16 @@ class Affine2D:
         Returns :class:`gatv.congruent.TrialMotions` with ``rotations`` the
         (K, 2, 2) linear parts and ``translations`` the (K, 2) vectors.
         """
-        from ..congruent import TrialMotions
+        from ..congruent import TrialPool, accept_level
 
         n = source.shape[0]
         m = index.target.shape[0]
         threshold = self.chance(n, m, index.volume, index.radius, max_triples * max_matches)
-        if accept is None:
-            accept = threshold
-        elif accept <= 0:
-            accept = np.iinfo(np.int64).max
-        empty = TrialMotions(np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros(0, np.int64), threshold,
-                             0, 0)
+        accept = accept_level(accept, threshold)
+        pool = TrialPool(keep, 4, dim=2)
         if n < 4 or len(index) == 0:
-            return empty
+            return pool.trials(index.radius, threshold, 0, 0)
         src = np.ascontiguousarray(source, dtype=np.float64)
-        best_s, best_A, best_t = [], [], []
         drawn = n_match = 0
         while drawn < max_triples:
             cnt = int(min(batch, max_triples - drawn))
@@ -298,31 +293,12 @@ class Affine2D:
                 index.bstart, index.border, index.GRID, float(eps), index.gstart, index.gorder,
                 index.origin, index.cell, index.dims, index.radius, int(max_matches), self.max_cond)
             n_match += int(nm.sum())
-            good = np.flatnonzero(sc >= 4)
-            if good.size:
-                top = good[np.argsort(-sc[good], kind="stable")[: 4 * keep]]
-                best_s.extend(sc[top].tolist())
-                best_A.extend(A[top])
-                best_t.extend(t[top])
+            pool.add(sc, A, t)
             if progress is not None:
                 progress(min(1.0, drawn / max_triples), f"{drawn} samples")
-            if best_s and max(best_s) >= accept:
+            if pool.best >= accept:
                 break
-        if not best_s:
-            return TrialMotions(empty.rotations, empty.translations, empty.support, threshold, drawn,
-                                n_match)
-        s = np.asarray(best_s)
-        order = np.argsort(-s, kind="stable")
-        As, ts, s = np.asarray(best_A)[order], np.asarray(best_t)[order], s[order]
-        kept: list[int] = []
-        for i in range(len(s)):
-            if all(np.abs(As[i] - As[j]).max() > 1e-3 or np.linalg.norm(ts[i] - ts[j]) > index.radius
-                   for j in kept):
-                kept.append(i)
-            if len(kept) >= keep:
-                break
-        kk = np.asarray(kept)
-        return TrialMotions(As[kk], ts[kk], s[kk], threshold, drawn, n_match)
+        return pool.trials(index.radius, threshold, drawn, n_match)
 
     # ----------------------------------------------------------- tokens
     def joint_spaces(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -259,20 +259,15 @@ def similar_trial_motions(
         (not a rotation), so that ``.matrices`` are the trial similarities.
     """
     from .. import _congruent_kernels as _k
-    from ..congruent import TrialMotions
+    from ..congruent import TrialPool, accept_level
 
     s_min, s_max = _check_scale_range(scale_range)
     max_triples = check_int(max_triples, "max_triples", 1)
     n = source.shape[0]
     n2 = index.target.shape[0]
     threshold = chance_support(n, n2, index.volume, index.radius, n_tests=max_triples * max_matches)
-    if accept is None:
-        accept = threshold
-    elif accept <= 0:
-        accept = np.iinfo(np.int64).max
-    best_s: list = []
-    best_A: list = []
-    best_t: list = []
+    accept = accept_level(accept, threshold)
+    pool = TrialPool(keep, 3)
     drawn = 0
     n_similar = 0
     while drawn < max_triples:
@@ -286,34 +281,12 @@ def similar_trial_motions(
             int(max_matches),
         )
         n_similar += int(nm.sum())
-        good = np.flatnonzero(scores >= 3)
-        if good.size:
-            top = good[np.argsort(-scores[good], kind="stable")[: 4 * keep]]
-            best_s.extend(scores[top].tolist())
-            best_A.extend(A[top])
-            best_t.extend(t[top])
+        pool.add(scores, A, t)
         if progress is not None:
-            progress(min(1.0, drawn / max_triples),
-                     f"{drawn} triples, best support {max(best_s) if best_s else 0}")
-        if best_s and max(best_s) >= accept:
+            progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
+        if pool.best >= accept:
             break
-    if not best_s:
-        return TrialMotions(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
-                            threshold, drawn, n_similar)
-    s = np.asarray(best_s)
-    order = np.argsort(-s, kind="stable")
-    As = np.asarray(best_A)[order]
-    ts = np.asarray(best_t)[order]
-    s = s[order]
-    kept: list = []
-    for i in range(len(s)):
-        if all(np.linalg.norm(As[i] - As[j]) > 1e-3 * np.linalg.norm(As[j])
-               or np.linalg.norm(ts[i] - ts[j]) > index.radius for j in kept):
-            kept.append(i)
-        if len(kept) >= keep:
-            break
-    kept_idx = np.asarray(kept)
-    return TrialMotions(As[kept_idx], ts[kept_idx], s[kept_idx], threshold, drawn, n_similar)
+    return pool.trials(index.radius, threshold, drawn, n_similar, relative=True)
 
 
 def residual_scale(xs: np.ndarray, ys: np.ndarray, ref: int, tau: float,

@@ -49,7 +49,6 @@ for real scans.
 
 from __future__ import annotations
 
-import copy
 import time
 
 import numpy as np
@@ -59,8 +58,8 @@ from ._validation import as_rng, check_fraction, check_int, check_positive, chec
 from .candidates import bounded_pairs
 from .congruent import n_triples_needed
 from .errors import InputError
-from .models import Motion, get_model
-from .stages import NOISE_SCHEDULE, Fit, Problem, gate
+from .models import Motion
+from .stages import NOISE_SCHEDULE, Problem, gate
 
 __all__ = ["register", "NOISE_SCHEDULE"]
 
@@ -238,67 +237,15 @@ def register(
     budget = int(min(need, 3 * n_possible if n_possible < 10**6 else need))
     if max_triples is not None:
         budget = min(budget, max_triples)
-    # One index of the target's samples; one scoring grid per tolerance.
-    base = P.model.index(P.target, gate(levels[0]), memory_budget=memory_budget)
-    indexes = []
-    for tol in levels:
-        idx = copy.copy(base)
-        idx.set_radius(gate(tol))
-        indexes.append(idx)
-    max_matches = 64
-    accept = [P.model.chance(n, n2, idx.volume, idx.radius, budget * max_matches) for idx in indexes]
-    tried = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
-             for tol, a in zip(levels, accept)]
-    # Round robin over the tolerances with an equal share of work each: a
-    # motion that shows at a coarse tolerance is not kept waiting for the
-    # whole budget of the finer, fruitless ones, and a coarse tolerance
-    # (many congruent but wrong triangles, each scored on every point) does
-    # not slow down an exact one.  Work is counted deterministically, in
-    # microsecond-like units: 1 per triple drawn plus (2 + 0.03 n) per
-    # congruent triangle scored, so the same seed gives the same result.
-    share = 20000.0
-    triple_cost = getattr(P.model, "triple_cost", None)
-    done = [0] * len(levels)
-    per_triple = [share / 64.0] * len(levels)  # first chunk: 64 triples, then measured
-    while min(done) < budget:
-        for level, tol in enumerate(levels):
-            if done[level] >= budget:
-                continue
-            m = int(min(budget - done[level], max(16, min(4096, share / per_triple[level]))))
-            done[level] += m
-            report(sum(done) / (budget * len(levels)),
-                   f"tolerance {tol:.3g}: {tried[level]['triples']} triples")
-            g = gate(tol)
-            eps = 2.0 * g  # side-length tolerance: two points' noise per side
-            trials = P.model.trial_motions(P.source, indexes[level], eps=eps, max_triples=m, rng=rng,
-                                           keep=n_judged, max_matches=max_matches, accept=accept[level])
-            rec = tried[level]
-            rec["triples"] += trials.n_triples
-            rec["congruent"] += trials.n_congruent
-            # a model whose sample search scans the target (similarity: O(M²)) says its cost
-            cost = triple_cost(n2) if triple_cost is not None else 0.0
-            per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
-            if len(trials):
-                rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
-            if not len(trials) or trials.support[0] < accept[level]:
-                continue
-            threshold = P.chance(g)
-            for k, matrix in enumerate(trials.matrices):
-                if trials.support[k] < accept[level]:
-                    break
-                judged = stages.judge(P, matrix, tol, sigma=sigma, max_candidates=max_candidates)
-                if judged is None or judged.fit.support < threshold:
-                    continue
-                fit = judged.fit
-                if refine:
-                    fit = stages.refine(P, fit, g)
-                if noise is None:
-                    fit, grown = stages.grow_tolerance(P, fit, levels, level)
-                    tol = levels[grown]
-                info.update(tolerance=tol, sigma=judged.sigma, n_tokens=judged.n_tokens, trials=tried,
-                            trial_support=int(trials.support[k]), chance_support=threshold,
-                            time_s=time.perf_counter() - t_start)
-                report(1.0, f"found {fit.support} correspondences")
-                return stages.make_result(P, fit, info)
-    info.update(trials=tried, time_s=time.perf_counter() - t_start)
-    return stages.failure(P.model, "no trial motion beat the chance level", info)
+    tried: list = []
+    found = stages.search(P, levels, budget=budget, rng=rng, keep=n_judged, sigma=sigma,
+                          max_candidates=max_candidates, polish=refine, grow=noise is None,
+                          memory_budget=memory_budget, progress=report, tried=tried)
+    if found is None:
+        info.update(trials=tried, time_s=time.perf_counter() - t_start)
+        return stages.failure(P.model, "no trial motion beat the chance level", info)
+    info.update(tolerance=found.tolerance, sigma=found.judged.sigma, n_tokens=found.judged.n_tokens,
+                trials=tried, trial_support=found.trial_support, chance_support=found.threshold,
+                time_s=time.perf_counter() - t_start)
+    report(1.0, f"found {found.fit.support} correspondences")
+    return stages.make_result(P, found.fit, info)

@@ -15,6 +15,7 @@ Motions travel between stages as homogeneous matrices ``T``
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,8 @@ __all__ = [
     "grow_tolerance",
     "Judged",
     "judge",
+    "Found",
+    "search",
     "make_result",
     "motion_result",
     "failure",
@@ -377,6 +380,117 @@ def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: floa
     if fit is None:
         return None
     return Judged(fit, len(tokens), sig)
+
+
+# ------------------------------------------------------------------- search
+@dataclass(frozen=True, eq=False)
+class Found:
+    """The first trial motion of a :func:`search` whose judged support beat chance.
+
+    Attributes
+    ----------
+    fit : Fit
+        After refinement and the tolerance growth.
+    tolerance : float
+        The tolerance it was accepted at (after growth).
+    judged : Judged
+        What tensor voting made of the trial.
+    trial_support : int
+        The trial's density-test support.
+    threshold : int
+        The support it had to reach.
+    """
+
+    fit: Fit
+    tolerance: float
+    judged: Judged
+    trial_support: int
+    threshold: int
+
+
+#: Work units per round of :func:`search` at each tolerance (see there).
+SEARCH_SHARE = 20000.0
+#: Best model matches scored per trial sample.
+MAX_MATCHES = 64
+
+
+def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
+           sigma: float | None = None, max_candidates: int = 8, polish: bool = True, grow: bool = True,
+           threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
+           progress=None, tried: list | None = None) -> Found | None:
+    """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
+
+    Round robin over the tolerance ``levels`` with an equal share of work
+    each: a motion that shows at a coarse tolerance is not kept waiting for
+    the whole ``budget`` of samples of the finer, fruitless ones, and a
+    coarse tolerance (many matching but wrong samples, each scored on every
+    point) does not slow down an exact one.  Work is counted
+    deterministically, in microsecond-like units: 1 per sample drawn (plus
+    the model's ``triple_cost``) and ``2 + 0.03 n`` per match scored, so the
+    same seed gives the same result.  The ``keep`` best trials of a chunk
+    that reach the density test's chance level are judged by tensor voting
+    (:func:`judge`); the first whose support reaches the chance level of
+    the gate (family-wise over ``threshold_tests``; or ``min_support``) is
+    refined (``polish``, :func:`refine`) and its tolerance grown while its
+    support grows beyond chance (``grow``, :func:`grow_tolerance`).
+
+    ``tried`` (a list) receives one record per tolerance: samples drawn,
+    matches scored, best trial support, the density test's threshold.
+    Returns ``None`` when the budget runs out.
+    """
+    model = problem.model
+    report = progress if progress is not None else (lambda fraction, message="": None)
+    n, n2 = problem.source.shape[0], problem.target.shape[0]
+    # One index of the target's samples; one scoring grid per tolerance.
+    base = model.index(problem.target, gate(levels[0]), memory_budget=memory_budget)
+    indexes = []
+    for tol in levels:
+        idx = copy.copy(base)
+        idx.set_radius(gate(tol))
+        indexes.append(idx)
+    accept = [model.chance(n, n2, idx.volume, idx.radius, budget * MAX_MATCHES) for idx in indexes]
+    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
+               for tol, a in zip(levels, accept)]
+    if tried is not None:
+        tried.extend(records)
+    triple_cost = getattr(model, "triple_cost", None)
+    done = [0] * len(levels)
+    per_triple = [SEARCH_SHARE / 64.0] * len(levels)  # first chunk: 64 samples, then measured
+    while min(done) < budget:
+        for level, tol in enumerate(levels):
+            if done[level] >= budget:
+                continue
+            m = int(min(budget - done[level], max(16, min(4096, SEARCH_SHARE / per_triple[level]))))
+            done[level] += m
+            rec = records[level]
+            report(sum(done) / (budget * len(levels)), f"tolerance {tol:.3g}: {rec['triples']} triples")
+            g = gate(tol)
+            eps = 2.0 * g  # side-length tolerance: two points' noise per side
+            trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
+                                         keep=keep, max_matches=MAX_MATCHES, accept=accept[level])
+            rec["triples"] += trials.n_triples
+            rec["congruent"] += trials.n_congruent
+            cost = triple_cost(n2) if triple_cost is not None else 0.0
+            per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
+            if len(trials):
+                rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
+            if not len(trials) or trials.support[0] < accept[level]:
+                continue
+            threshold = min_support if min_support is not None else problem.chance(g, threshold_tests)
+            for k, matrix in enumerate(trials.matrices):
+                if trials.support[k] < accept[level]:
+                    break
+                judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
+                if judged is None or judged.fit.support < threshold:
+                    continue
+                fit = judged.fit
+                if polish:
+                    fit = refine(problem, fit, g)
+                if grow:
+                    fit, grown = grow_tolerance(problem, fit, levels, level)
+                    tol = levels[grown]
+                return Found(fit, tol, judged, int(trials.support[k]), int(threshold))
+    return None
 
 
 # ------------------------------------------------------------------- result

@@ -6,10 +6,10 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
 (rigid, similarity, 2D affine), as a sequence of the named stages of
 :mod:`gatv.stages`:
 
-1. **Trial motions** on the points no motion explains yet: the model's
-   invariant-sample search (:meth:`MotionModel.trial_motions`), in round
-   robin over the tolerance schedule as :func:`gatv.register` does, with a
-   RANSAC budget for the smallest motion wanted.
+1. **Search** (:func:`gatv.stages.search`, as :func:`gatv.register`) on
+   the points no motion explains yet: the model's invariant-sample trial
+   motions in round robin over the tolerance schedule, with a RANSAC
+   budget for the smallest motion wanted.
 2. **Judge** (:func:`gatv.stages.judge`): candidate tokens within the voting reach of
    the trial, one ball pass in each of the model's joint spaces (one for
    rigid and similarity motions; Kang's two, ``(x, y, x')`` and
@@ -27,7 +27,6 @@ or too few points are left (``info["reason"]`` says which).
 
 from __future__ import annotations
 
-import copy
 import time
 from math import comb
 
@@ -37,7 +36,7 @@ from scipy.spatial import cKDTree
 from .. import stages
 from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
 from ..errors import InputError
-from ..stages import NOISE_SCHEDULE, Fit, Problem, gate
+from ..stages import NOISE_SCHEDULE, Fit, Problem
 from ..stats import samples_needed
 from .segmentation import Segmentation
 
@@ -59,60 +58,6 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
     """The points not yet explained, with the full problem's scale facts."""
     Y = P.target[tgt]
     return Problem(P.source[src], Y, P.model, cKDTree(Y), P.spacing, P.extent, P.volume)
-
-
-def _find_one(S: Problem, levels, rng, *, budget: int, chunk: int, accept_tests: float, sigma,
-              max_candidates, refine, fixed_noise, min_support, memory_budget, log):
-    """One round: the first trial motion, over the tolerance levels, whose judged support beats chance."""
-    model = S.model
-    n, m = S.source.shape[0], S.target.shape[0]
-    base = model.index(S.target, gate(levels[0]), memory_budget=memory_budget)
-    indexes = []
-    for tol in levels:
-        idx = copy.copy(base)
-        idx.set_radius(gate(tol))
-        indexes.append(idx)
-    max_matches = 64
-    accept = [model.chance(n, m, idx.volume, idx.radius, accept_tests * max_matches) for idx in indexes]
-    rec = [{"tolerance": tol, "samples": 0, "matches": 0, "best_support": 0} for tol in levels]
-    done = [0] * len(levels)
-    while min(done) < budget:
-        for level, tol in enumerate(levels):
-            if done[level] >= budget:
-                continue
-            k = int(min(chunk, budget - done[level]))
-            done[level] += k
-            g = gate(tol)
-            trials = model.trial_motions(S.source, indexes[level], eps=2.0 * g, max_triples=k, rng=rng,
-                                         keep=N_JUDGED, max_matches=max_matches, accept=accept[level])
-            rec[level]["samples"] += trials.n_triples
-            rec[level]["matches"] += trials.n_congruent
-            if len(trials):
-                rec[level]["best_support"] = max(rec[level]["best_support"], int(trials.support[0]))
-            if not len(trials) or trials.support[0] < accept[level]:
-                continue
-            threshold = min_support if min_support is not None else max(
-                model.sample_size, S.chance(g, N_JUDGED))
-            for kk, matrix in enumerate(trials.matrices):
-                if trials.support[kk] < accept[level]:
-                    break
-                judged = stages.judge(S, matrix, tol, sigma=sigma, max_candidates=max_candidates)
-                if judged is None or judged.fit.support < threshold:
-                    continue
-                fit = judged.fit
-                if refine:
-                    polished = stages.refine(S, fit, g)
-                    if polished.support >= fit.support:
-                        fit = polished
-                grown = level
-                if not fixed_noise:
-                    fit, grown = stages.grow_tolerance(S, fit, levels, level)
-                log.append({"levels": rec, "support": fit.support, "threshold": int(threshold),
-                            "trial_support": int(trials.support[kk]), "n_tokens": judged.n_tokens,
-                            "sigma": judged.sigma})
-                return fit, levels[grown]
-    log.append({"levels": rec})
-    return None, None
 
 
 def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
@@ -199,13 +144,19 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         budget = samples_needed(min(1.0, smallest / src.size), confidence, k_pts)
         budget = int(min(budget, 3 * n_possible, max_triples))
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
-        fit, tol = _find_one(S, levels, rng, budget=max(budget, 1), chunk=2048, accept_tests=budget,
-                             sigma=sigma, max_candidates=max_candidates, refine=refine,
-                             fixed_noise=noise is not None, min_support=min_support,
-                             memory_budget=memory_budget, log=log)
-        if fit is None:
+        tried: list = []
+        found = stages.search(S, levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
+                              max_candidates=max_candidates, polish=refine, grow=noise is None,
+                              threshold_tests=N_JUDGED, min_support=min_support,
+                              memory_budget=memory_budget, tried=tried)
+        if found is None:
+            log.append({"levels": tried})
             reason = "no trial motion beat the chance level"
             break
+        fit, tol = found.fit, found.tolerance
+        log.append({"levels": tried, "support": fit.support, "threshold": found.threshold,
+                    "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
+                    "sigma": found.judged.sigma})
         kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
         fits.append(Fit(fit.matrix, kept))
         tolerances.append(float(tol))

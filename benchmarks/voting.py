@@ -64,7 +64,7 @@ def worker(n: int, repeats: int) -> dict:
     from gatv.voting import default_sigma, vote
     from gatv.voting import _eigen as K
     from gatv.voting._simd import SIMD
-    from gatv.voting.api import _check_budget, _Engine
+    from gatv.voting.api import check_budget, Engine
 
     warm = tokens(2000, seed=1)  # compile / load the cache
     b = vote(warm)
@@ -81,7 +81,7 @@ def worker(n: int, repeats: int) -> dict:
     pairs = 0
     for _ in range(repeats):
         t0 = time.perf_counter()
-        eng = _Engine(pts, sigma, _check_budget(pts, sigma, None))
+        eng = Engine(pts, sigma, check_budget(pts, sigma, None))
         t1 = time.perf_counter()
         t6, vals, e1, cnt_b = eng.ball(record=True)
         t2 = time.perf_counter()

@@ -79,7 +79,7 @@ def render_matches(image1, image2, pixels1, pixels2, correspondences, path, *, t
         if ok.any():
             plotter.add_points(q[ok], color="#9E9E9E", point_size=4, render_points_as_spheres=True)
     if pairs.size:
-        colors = np.array([render._rgb(render.motion_color(k)) for k in range(8)], dtype=np.uint8)
+        colors = np.array([render.rgb(render.motion_color(k)) for k in range(8)], dtype=np.uint8)
         c = colors[np.arange(len(pairs)) % len(colors)]
         ends = np.vstack([q1[pairs[:, 0]], q2[pairs[:, 1]]])
         ends[:, 2] = 2.0

@@ -114,7 +114,7 @@ def main(out_dir, size=SIZE) -> dict:
     away = (d.tokens[i] - d.tokens[j]) / max(float(np.linalg.norm(d.tokens[i] - d.tokens[j])), 1e-12)
     for k, name, sign in ((i, "x_i", 1.0), (j, "x_j", -1.0)):  # one call each: labels may not hide each other
         pl.add_point_labels(d.tokens[k] + sign * 0.12 * radius * away, [name],
-                            font_size=render._font_size(pl, 16.0), text_color="black", shape_opacity=0.0,
+                            font_size=render.font_size(pl, 16.0), text_color="black", shape_opacity=0.0,
                             show_points=False, always_visible=True, font_family="arial")
     render.add_axes_labels(pl, *fig13.LABELS)
     render.add_title(pl, f"Close-up of the joint-space surface: {len(close)} of {len(d.tokens)} kept tokens")

@@ -19,6 +19,7 @@ __all__ = [
     "check_positive",
     "check_finite_array",
     "check_memory",
+    "memory_budget_limit",
     "check_int",
     "check_fraction",
     "as_rng",
@@ -40,7 +41,8 @@ def frozen_array(a, dtype=np.float64) -> np.ndarray:
     return a
 
 
-def _memory_budget(budget: float | None) -> float:
+def memory_budget_limit(budget: float | None) -> float:
+    """The memory budget in bytes: ``budget``, else ``GATV_MEMORY_BUDGET``, else the default."""
     import os
 
     if budget is not None:
@@ -68,7 +70,7 @@ def check_memory(nbytes: float, what: str, budget: float | None = None) -> None:
         Budget in bytes; default :data:`DEFAULT_MEMORY_BUDGET` or the
         ``GATV_MEMORY_BUDGET`` environment variable.
     """
-    limit = _memory_budget(budget)
+    limit = memory_budget_limit(budget)
     if nbytes > limit:
         msg = (
             f"{what} would need about {nbytes / 1024**3:.2f} GiB, over the memory "

@@ -111,7 +111,8 @@ def motion_color(k: int) -> str:
     return PALETTE[int(k) % len(PALETTE)]
 
 
-def _rgb(color: str) -> tuple[int, int, int]:
+def rgb(color: str) -> tuple[int, int, int]:
+    """``(r, g, b)`` integers of a ``#rrggbb`` colour."""
     h = color.lstrip("#")
     return int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16)
 
@@ -222,7 +223,7 @@ def _panel_px(plotter) -> tuple[float, float]:
     return w / max(1, cols), h / max(1, rows)
 
 
-def _font_size(plotter, base: float = 10.0) -> int:
+def font_size(plotter, base: float = 10.0) -> int:
     """Font size that scales with the panel (``base`` at 500x400 px)."""
     w, h = _panel_px(plotter)
     return max(6, round(base * min(h / 400.0, w / 500.0)))
@@ -352,7 +353,7 @@ def add_tokens(plotter, tokens, saliency=None, *, title: str = "saliency", cmap:
         raise InputError(msg)
     cloud = pv.PolyData(p)
     cloud[title] = s
-    fs = _font_size(plotter, 13.0)
+    fs = font_size(plotter, 13.0)
     bar = {"title": title, "color": "black", "vertical": True, "position_x": 0.87, "position_y": 0.1,
            "width": 0.05, "height": 0.55, "title_font_size": fs, "label_font_size": fs, "n_labels": 4,
            "fmt": "%.3g", "font_family": _FONT, "unconstrained_font_size": True}
@@ -550,7 +551,7 @@ def add_surface(plotter, tokens, scalars=None, *, color: str = PALETTE[0], title
         msg = f"Expected `scalars` to hold {p.shape[0]} values, got {s.shape[0]}."
         raise InputError(msg)
     mesh[title] = s
-    fs = _font_size(plotter, 13.0)
+    fs = font_size(plotter, 13.0)
     bar = {"title": title, "color": "black", "vertical": True, "position_x": 0.87, "position_y": 0.1,
            "width": 0.05, "height": 0.55, "title_font_size": fs, "label_font_size": fs, "fmt": "%.3g",
            "font_family": _FONT, "unconstrained_font_size": True}
@@ -623,7 +624,7 @@ def add_axes_labels(plotter, xlabel: str = "x", ylabel: str = "y", zlabel: str =
         Wanted tick intervals per axis.
     """
     bounds, (nx, ny, nz) = nice_bounds(plotter.renderer.bounds, ticks)
-    fs = _font_size(plotter, 12.0)
+    fs = font_size(plotter, 12.0)
     plotter.show_bounds(bounds=bounds, xtitle=xlabel, ytitle=ylabel, ztitle=zlabel, color="#202020",
                         font_size=fs, font_family=_FONT, bold=False, location="outer", ticks="outside",
                         n_xlabels=nx, n_ylabels=ny, n_zlabels=nz, fmt=_tick_format(bounds, (nx, ny, nz)),
@@ -679,7 +680,7 @@ def add_legend(plotter, *, loc: str = "upper right"):
     h = min(0.5, (line * n * 1.25 + 6.0) / ph)
     leg = plotter.add_legend(bcolor="white", border=True, size=(w, h), face="circle", font_family=_FONT)
     right, top = corners[loc]
-    title = 2.2 * _font_size(plotter, 10.0) / ph  # room for the panel title
+    title = 2.2 * font_size(plotter, 10.0) / ph  # room for the panel title
     leg.SetPosition(1.0 - w - 0.01 if right else 0.01, 1.0 - h - title if top else 0.01)
     leg.GetProperty().SetColor(0.6, 0.6, 0.6)
     return leg
@@ -687,7 +688,7 @@ def add_legend(plotter, *, loc: str = "upper right"):
 
 def add_title(plotter, text: str, *, position: str = "upper_left"):
     """A title in the current panel's corner, scaled to its height."""
-    plotter.add_text(text, position=position, font_size=_font_size(plotter, 10.0), color="black", font=_FONT)
+    plotter.add_text(text, position=position, font_size=font_size(plotter, 10.0), color="black", font=_FONT)
 
 
 # ------------------------------------------------------------ image pairs

@@ -39,7 +39,7 @@ MOTION_COLOURS = {"fig12_three_motions": 3}
 
 
 def _count_colour(px: np.ndarray, color: str) -> int:
-    return int(np.all(px == np.array(render._rgb(color), np.uint8), axis=-1).sum())
+    return int(np.all(px == np.array(render.rgb(color), np.uint8), axis=-1).sum())
 
 
 def test_gallery_has_figures():

@@ -34,7 +34,7 @@ def assert_not_blank(path, size=SIZE, floor=20.0):
 
 
 def count_color(px: np.ndarray, color: str) -> int:
-    return int(np.all(px == np.array(render._rgb(color), np.uint8), axis=-1).sum())
+    return int(np.all(px == np.array(render.rgb(color), np.uint8), axis=-1).sum())
 
 
 @pytest.fixture

@@ -589,11 +589,11 @@ def test_simd_eigen_rows_equal_eig3_top(seed, n, split):
 def test_half_shell_capacity_bounds_every_votee(sigma):
     from scipy.spatial import cKDTree
 
-    from gatv.voting.api import _Engine, voting_radius
+    from gatv.voting.api import Engine, voting_radius
 
     rng = np.random.default_rng(5)
     p = np.vstack([rng.uniform(0.0, 1.0, (600, 3)), rng.normal(0.5, 0.01, (200, 3))])
-    eng = _Engine(p, sigma)
+    eng = Engine(p, sigma)
     g = eng.grid
     pairs = cKDTree(g.points).query_pairs(voting_radius(sigma) * (1 - 1e-9), output_type="ndarray")
     upper = np.bincount(pairs.min(axis=1), minlength=g.n)  # neighbours j > i in sorted order
@@ -643,7 +643,7 @@ def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row, simd):
     from numba import get_num_threads
 
     from gatv.voting._passes import NL_ROW
-    from gatv.voting.api import NL_BYTES_PER_PAIR, SCRATCH_BYTES, _Engine
+    from gatv.voting.api import NL_BYTES_PER_PAIR, SCRATCH_BYTES, Engine
 
     rng = np.random.default_rng(3)
     p = np.vstack([rng.uniform(0.0, 1.0, (600, 3)), rng.uniform(0.0, 0.05, (4 * NL_ROW + 50, 3))])
@@ -656,8 +656,8 @@ def test_stick_pass_from_recorded_neighbour_lists_matches_reference(row, simd):
     sigma = 0.08
     max_pairs = row * n
     # the engine's scratch buffers come out of the lists' share first
-    scratch = get_num_threads() * _Engine(p, sigma).cap * SCRATCH_BYTES // NL_BYTES_PER_PAIR
-    eng = _Engine(p, sigma, max_pairs + scratch if row else 0)
+    scratch = get_num_threads() * Engine(p, sigma).cap * SCRATCH_BYTES // NL_BYTES_PER_PAIR
+    eng = Engine(p, sigma, max_pairs + scratch if row else 0)
     assert eng.max_pairs == max_pairs
     eng.simd = simd  # the 8-lane or the scalar loops (both are correct on every host)
     t6, _, _, cnt = eng.ball(record=True)
@@ -704,7 +704,7 @@ def test_flat_clouds_are_chunked_along_their_longest_axis_and_match_reference(sc
     # the parallel loop runs over layers of cells along the grid's last axis;
     # a flat cloud gets its longest axis there (kernels in permuted axes,
     # outputs permuted back) so it still splits into many chunks
-    from gatv.voting.api import _Engine
+    from gatv.voting.api import Engine
 
     rng = np.random.default_rng(8)
     p = rng.uniform(0.0, 1.0, (500, 3)) * np.array(scale)
@@ -712,7 +712,7 @@ def test_flat_clouds_are_chunked_along_their_longest_axis_and_match_reference(sc
     normals = rng.normal(size=p.shape)
     sal = rng.uniform(0.0, 1.0, len(p))
     sigma = 0.03
-    assert _Engine(p, sigma).cb.size - 1 >= 8  # 17 cells along the longest axis (1 if not permuted)
+    assert Engine(p, sigma).cb.size - 1 >= 8  # 17 cells along the longest axis (1 if not permuted)
     tv = vote(p, sigma)
     ref = _reference.ball_pass(p, sigma)
     np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())

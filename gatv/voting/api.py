@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import get_num_threads
 
-from gatv._validation import _memory_budget, as_points, as_vectors, check_memory, check_positive
+from gatv._validation import memory_budget_limit, as_points, as_vectors, check_memory, check_positive
 from gatv.voting import _fields
 from gatv.voting._grid import Grid, build_grid, grid_layout
 
@@ -222,7 +222,7 @@ def _chunks(grid: Grid) -> np.ndarray:
     return np.ascontiguousarray(grid.start[keys])
 
 
-class _Engine:
+class Engine:
     """Grid over the tokens at one σ; passes return sorted-order arrays.
 
     ``ball(record=True)`` also keeps each token's upper-neighbour list (CSR,
@@ -340,7 +340,7 @@ class _Engine:
         return out
 
 
-def _check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
+def check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
     """Check the O(N) working storage; return how many neighbour-list entries fit.
 
     The upper-neighbour lists of a recording ball pass (int32, ``NL_ROW``
@@ -353,11 +353,11 @@ def _check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
     _, _, dims, hashed, nkeys = grid_layout(points, radius, GRID_SUBDIV)
     nbytes = n * VOTING_BYTES_PER_TOKEN + 8 * (nkeys + 1)
     check_memory(nbytes, f"Voting on {n} tokens", memory_budget)
-    spare = _memory_budget(memory_budget) - nbytes
+    spare = memory_budget_limit(memory_budget) - nbytes
     return max(0, int(spare // NL_BYTES_PER_PAIR))
 
 
-def _votes(engine: _Engine, kind: str, res) -> TensorVotes:
+def _votes(engine: Engine, kind: str, res) -> TensorVotes:
     t6, vals, e1, cnt = engine.unsort(*res)
     for a in (t6, vals, e1, cnt):
         a.setflags(write=False)
@@ -440,7 +440,7 @@ def _prepare(tokens, sigma, memory_budget, k):
             msg = "Cannot derive `sigma` from a single token; pass `sigma` explicitly."
             raise InputError(msg)
         sigma = _default_sigma(pts, k)
-    max_pairs = _check_budget(pts, sigma, memory_budget)
+    max_pairs = check_budget(pts, sigma, memory_budget)
     return pts, sigma, max_pairs
 
 
@@ -530,11 +530,11 @@ def vote(tokens, sigma=None, normals=None, *, saliency=None, k: int = 40,
     if normals is None:
         if saliency is not None:
             _as_saliency(saliency, n)
-        eng = _Engine(pts, sigma)
+        eng = Engine(pts, sigma)
         return _votes(eng, "ball", eng.ball())
     nrm = _as_normals(normals, n)
     w = _as_saliency(saliency, n)
-    eng = _Engine(pts, sigma)
+    eng = Engine(pts, sigma)
     return _votes(eng, "stick", eng.stick(eng.to_sorted(nrm), eng.to_sorted(w)))
 
 
@@ -614,7 +614,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         raise InputError(msg)
     tau1, tau2 = _parse_threshold(threshold)
 
-    eng = _Engine(pts, sigma, max_pairs)
+    eng = Engine(pts, sigma, max_pairs)
     res = eng.ball(record=True)  # neighbour lists for the first stick pass
     ball = _votes(eng, "ball", res)
     _, vals, e1, _ = res  # sorted order
@@ -625,8 +625,8 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     for p in range(n_stick_passes):
         if p > 0:
             s *= growth
-            _check_budget(cur_pts, s, memory_budget)
-            sub = _Engine(cur_pts, s)  # larger σ: the ball pass's lists are too short
+            check_budget(cur_pts, s, memory_budget)
+            sub = Engine(cur_pts, s)  # larger σ: the ball pass's lists are too short
             e1 = sub.to_sorted(e1)
             sal = sub.to_sorted(sal)
             idx = idx[sub.grid.order]

@@ -390,10 +390,9 @@ class Similarity:
         """Work of one source triple's scan, in :func:`gatv.register`'s units (~µs).
 
         The similar-triangle scan walks every target pair, ``O(M²)`` (about
-        16 ns a pair measured on one shared, oversubscribed core; 4 ms a
-        triple at M = 500), against ``O(log M)`` for the rigid model's
-        length lookup; the register loop can add this to its per-triple
-        work so that its round robin sizes the chunks right.
+        16 ns a pair, see docs/design-notes.md), against ``O(log M)`` for the
+        rigid model's length lookup; :func:`gatv.stages.search` adds this to
+        its per-triple work so that its round robin sizes the chunks right.
         """
         return 1.6e-2 * float(n_target) ** 2
 

@@ -1,0 +1,133 @@
+"""The motion-model seam: every model and result through the same interface."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import gatv
+from gatv import stages
+from gatv.errors import InputError
+from gatv.ga import Rotor
+from gatv.models import MODEL_NAMES, Motion, MotionModel, get_model
+
+
+def _random_matrix(name: str, rng: np.random.Generator) -> np.ndarray:
+    """A random motion of model ``name`` as a homogeneous matrix."""
+    if name == "affine2d":
+        A = rng.normal(size=(2, 2)) + 2.0 * np.eye(2)
+        return np.block([[A, rng.normal(size=(2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]])
+    R = Rotor.from_axis_angle(rng.normal(size=3), rng.uniform(0.0, np.pi)).as_matrix()
+    s = rng.uniform(0.1, 10.0) if name == "similarity" else 1.0
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = rng.uniform(-5, 5, 3)
+    return T
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_every_model_satisfies_the_protocol(name):
+    model = get_model(name)
+    assert isinstance(model, MotionModel)
+    assert model.name == name
+    assert get_model(model) is model
+    assert model.sample_size <= model.n_params
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_fit_is_exact_and_the_result_round_trips(name, seed):
+    rng = np.random.default_rng(seed)
+    model = get_model(name)
+    T = _random_matrix(name, rng)
+    x = rng.uniform(-5, 5, (12, model.dim))
+    y = x @ T[:-1, :-1].T + T[:-1, -1]
+    fitted = model.fit(x, y)
+    assert np.allclose(fitted, T, atol=1e-8)
+    assert np.allclose(model.residuals(fitted, x, y), 0.0, atol=1e-8)
+    pairs = np.stack([np.arange(12), np.arange(12)], axis=1)
+    m = model.result(fitted, pairs, score=12.0, rms=0.0, info={})
+    assert isinstance(m, Motion) and m.model == name and bool(m) and m.support == 12
+    assert np.allclose(m.matrix, T, atol=1e-8)
+    assert np.allclose(m.transform(x), y, atol=1e-7)
+    inv = m.inverse()
+    assert np.allclose(inv.transform(y), x, atol=1e-7)
+    assert np.array_equal(inv.correspondences, pairs[:, ::-1])
+    assert np.allclose(type(m).from_matrix(m.matrix).matrix, m.matrix)
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["model"] == name and np.allclose(d["matrix"], m.matrix)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_failure_is_falsy_with_its_reason(name):
+    f = stages.failure(name, "nothing beat chance", {"n_source": 3})
+    assert not f and f.support == 0
+    assert f.info["reason"] == "nothing beat chance"
+    assert f.to_dict()["reason"] == "nothing beat chance"
+    assert np.array_equal(f.matrix, np.eye(get_model(name).dim + 1))
+
+
+def test_unknown_model_lists_the_models():
+    with pytest.raises(ValueError, match="'rigid', 'similarity', 'affine2d'"):
+        gatv.register(np.zeros((5, 3)), np.zeros((5, 3)), model="projective")
+    with pytest.raises(InputError, match="model"):
+        get_model(3)
+
+
+def test_wrong_dimension_names_the_argument_and_the_model():
+    rng = np.random.default_rng(0)
+    p2, p3 = rng.normal(size=(10, 2)), rng.normal(size=(10, 3))
+    with pytest.raises(InputError, match=r"`source`.*'rigid'.*affine2d"):
+        gatv.register(p2, p3)
+    with pytest.raises(InputError, match=r"`target`.*'affine2d'.*'rigid' or 'similarity'"):
+        from gatv.motions import segment
+
+        segment(p2, p3, model="affine2d")
+
+
+def test_results_are_frozen_values():
+    m = gatv.RigidMotion(np.eye(3), np.zeros(3), [[0, 1]])
+    with pytest.raises(AttributeError):
+        m.rotation = np.eye(3)
+    with pytest.raises(ValueError):
+        m.rotation[0, 0] = 2.0
+    with pytest.raises(InputError, match="`rotation`"):
+        gatv.RigidMotion(np.eye(2), np.zeros(3))
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_register_with_a_generator_seed_is_reproducible(seed):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-5, 5, (30, 3))
+    T = _random_matrix("rigid", rng)
+    y = np.vstack([x @ T[:3, :3].T + T[:3, 3], rng.uniform(-5, 5, (20, 3))])
+    a = gatv.register(x, y, seed=np.random.default_rng(7))
+    b = gatv.register(x, y, seed=np.random.default_rng(7))
+    assert np.array_equal(a.correspondences, b.correspondences)
+    assert np.allclose(a.matrix, T, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True, "0"])
+def test_bad_seed_is_an_input_error(seed):
+    with pytest.raises(InputError, match="`seed`"):
+        gatv.register(np.random.default_rng(0).normal(size=(10, 3)),
+                      np.random.default_rng(1).normal(size=(10, 3)), seed=seed)
+
+
+def test_search_reports_progress_and_a_found_motion():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-5, 5, (40, 3))
+    y = x @ Rotor.from_axis_angle([0, 0, 1], 1.0).as_matrix().T + 2.0
+    P = stages.prepare(x, y, "rigid")
+    seen = []
+    found = stages.search(P, [1e-6 * P.spacing], budget=200, rng=rng,
+                          progress=lambda f, msg="": seen.append(f))
+    assert isinstance(found, stages.Found) and found.fit.support == 40
+    assert seen and all(0.0 <= f <= 1.0 for f in seen)
+    assert found.threshold <= found.fit.support

@@ -7,6 +7,12 @@ register
     Rigid registration with no initial guess (Algorithm 1, sections 2–3).
 register_scans
     The same for real, differently sampled range scans (section 4.1).
+gatv.motions.segment
+    Several motions (section 5), of any model.
+gatv.models
+    The motion models behind one seam (rigid, similarity, affine2d).
+gatv.stages
+    The named stages of the pipeline.
 Rotor
     Rotors of G(3,0,0) (section 2).
 gatv.voting
@@ -15,12 +21,15 @@ gatv.voting
 
 from __future__ import annotations
 
+from .errors import InputError
 from .ga import Rotor
+from .models import Motion, get_model
 from .motion import RigidMotion, fit_rigid
 
 __version__ = "0.1.0"
 
-__all__ = ["Rotor", "RigidMotion", "fit_rigid", "register", "register_scans", "__version__"]
+__all__ = ["Rotor", "Motion", "RigidMotion", "InputError", "get_model", "fit_rigid", "register",
+           "register_scans", "__version__"]
 
 
 def __getattr__(name):

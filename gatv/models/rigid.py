@@ -23,14 +23,18 @@ from .base import Motion, homogeneous
 __all__ = ["Rigid", "MODEL", "check_spread", "plane_normal"]
 
 
-def check_spread(points: np.ndarray, name: str, need: str) -> None:
-    """Raise when all ``points`` are identical or collinear (no motion is fixed then)."""
+def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | None = None) -> None:
+    """Raise when all ``points`` are identical or collinear (no motion is fixed then).
+
+    ``need`` completes the message ("All points of `source` are identical;
+    <need>."); ``need_off_line`` the collinear one (default ``need``).
+    """
     c = points - points.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
     if s[0] <= 1e-12 * max(1.0, float(np.abs(points).max())):
         raise InputError(f"All points of `{name}` are identical; {need}.")
     if s[1] <= 1e-9 * s[0]:
-        raise InputError(f"All points of `{name}` are collinear; {need}.")
+        raise InputError(f"All points of `{name}` are collinear; {need_off_line or need}.")
 
 
 def check_dimension(points, name: str, dim: int, model: str) -> None:

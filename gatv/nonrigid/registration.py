@@ -61,6 +61,7 @@ from .._validation import (
     seed_int,
 )
 from ..errors import InputError
+from ..models.rigid import check_spread
 from .motion import Diagnostics, NonRigidMotion
 from .stages import (
     Problem,
@@ -86,12 +87,8 @@ __all__ = ["register"]
 def _check_points(points, name: str) -> np.ndarray:
     """``points`` as (N, 3), at least 4, neither all identical nor collinear (no local rigidity to find)."""
     p = as_points(points, name, min_points=4)
-    c = p - p.mean(axis=0)
-    s = np.linalg.svd(c, compute_uv=False)
-    if s[0] <= 1e-12 * max(1.0, float(np.abs(p).max())):
-        raise InputError(f"All points of `{name}` are identical; a non-rigid motion needs spread points.")
-    if s[1] <= 1e-9 * s[0]:
-        raise InputError(f"All points of `{name}` are collinear; a non-rigid motion needs a surface or a volume.")
+    check_spread(p, name, "a non-rigid motion needs spread points",
+                 "a non-rigid motion needs a surface or a volume")
     return p
 
 

@@ -83,6 +83,15 @@ def _lower_bound(a, x):
 
 
 @njit(cache=True)
+def gather_rows(out, points, i, j, k):
+    """Rows ``i, j, k`` of ``points`` into the (3, 3) array ``out`` (a sample triangle)."""
+    for r in range(3):
+        out[0, r] = points[i, r]
+        out[1, r] = points[j, r]
+        out[2, r] = points[k, r]
+
+
+@njit(cache=True)
 def _dist(p, i, q, j):
     dx = p[i, 0] - q[j, 0]
     dy = p[i, 1] - q[j, 1]
@@ -235,10 +244,7 @@ def triple_hypotheses(
         dbc = _dist(source, b, source, c)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
-        for r in range(3):
-            src[0, r] = source[a, r]
-            src[1, r] = source[b, r]
-            src[2, r] = source[c, r]
+        gather_rows(src, source, a, b, c)
         lo = _lower_bound(plen, dab - eps)
         hi = _lower_bound(plen, dab + eps)
         found = 0
@@ -268,10 +274,7 @@ def triple_hypotheses(
                     ):
                         continue
                     found += 1
-                    for r in range(3):
-                        dst[0, r] = target[k, r]
-                        dst[1, r] = target[l, r]
-                        dst[2, r] = target[m, r]
+                    gather_rows(dst, target, k, l, m)
                     R, t = kabsch3(src, dst)
                     sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius,
                                        scores[q] + 1)
@@ -391,10 +394,7 @@ def similar_triple_hypotheses(
         len_hi = s_max * dab + eps
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
-        for r in range(3):
-            src[0, r] = source[a, r]
-            src[1, r] = source[b, r]
-            src[2, r] = source[c, r]
+        gather_rows(src, source, a, b, c)
         mark = np.full(n2, -1, np.int64)
         found = 0
         for kk in range(n2):
@@ -427,10 +427,7 @@ def similar_triple_hypotheses(
                         continue
                     if abs(_dist(target, l, target, m) - want2) > tol2:
                         continue
-                    for r in range(3):
-                        dst[0, r] = target[k, r]
-                        dst[1, r] = target[l, r]
-                        dst[2, r] = target[m, r]
+                    gather_rows(dst, target, k, l, m)
                     sc, R, t = umeyama3(src, dst)
                     if sc < s_min or sc > s_max:
                         continue

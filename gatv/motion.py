@@ -88,13 +88,7 @@ class RigidMotion(Rotational, Motion):
 
     def to_dict(self) -> dict:
         """JSON-friendly dictionary."""
-        return {
-            **super().to_dict(),
-            "rotation": self.rotation.tolist(),
-            "translation": self.translation.tolist(),
-            "rotor": self.rotor.tolist(),
-            "angle_deg": self.angle_deg,
-        }
+        return {**super().to_dict(), **self.rotation_dict()}
 
     def __repr__(self) -> str:
         t = np.array2string(self.translation, precision=4, separator=", ")

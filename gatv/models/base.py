@@ -231,9 +231,10 @@ class Motion:
 
 
 class Rotational:
-    """What every motion with a ``rotation`` (3×3) field offers: its rotor and angle."""
+    """What every motion with ``rotation`` (3×3) and ``translation`` fields offers."""
 
     rotation: np.ndarray
+    translation: np.ndarray
 
     @property
     def rotor(self) -> np.ndarray:
@@ -244,3 +245,12 @@ class Rotational:
     def angle_deg(self) -> float:
         """Rotation angle in degrees."""
         return rotation_angle_deg(self.rotation)
+
+    def rotation_dict(self) -> dict:
+        """The JSON entries of a motion with a rotation: rotation, translation, rotor, angle."""
+        return {
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "rotor": self.rotor.tolist(),
+            "angle_deg": self.angle_deg,
+        }

@@ -153,14 +153,7 @@ class SimilarityMotion(Rotational, Motion):
 
     def to_dict(self) -> dict:
         """JSON-friendly dictionary."""
-        return {
-            **super().to_dict(),
-            "scale": self.scale,
-            "rotation": self.rotation.tolist(),
-            "translation": self.translation.tolist(),
-            "rotor": self.rotor.tolist(),
-            "angle_deg": self.angle_deg,
-        }
+        return {**super().to_dict(), "scale": self.scale, **self.rotation_dict()}
 
     def __repr__(self) -> str:
         t = np.array2string(self.translation, precision=4, separator=", ")

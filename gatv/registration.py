@@ -213,7 +213,7 @@ def register(
     max_triples = check_int(max_triples, "max_triples", 1, allow_none=True)
     rng = as_rng(seed)
     report = check_progress(progress)
-    levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
+    levels = stages.tolerance_levels(P, noise)
     n, n2 = P.source.shape[0], P.target.shape[0]
     info: dict = {"model": P.model.name, "n_source": int(n), "n_target": int(n2), "spacing": P.spacing}
 

@@ -27,6 +27,7 @@ from .stats import chance_count
 
 __all__ = [
     "NOISE_SCHEDULE",
+    "tolerance_levels",
     "gate",
     "Problem",
     "prepare",
@@ -52,6 +53,13 @@ __all__ = [
 
 #: Tolerances tried when the noise is not given, relative to the point spacing.
 NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
+
+
+def tolerance_levels(problem: Problem, noise: float | None) -> list[float]:
+    """The tolerances a search tries: ``[noise]`` when given, else :data:`NOISE_SCHEDULE` × spacing."""
+    if noise is not None:
+        return [noise]
+    return [r * problem.spacing for r in NOISE_SCHEDULE]
 
 
 def gate(tolerance: float) -> float:

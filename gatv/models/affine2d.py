@@ -45,7 +45,7 @@ from .. import _affine_kernels as _k
 from .._validation import as_points, check_memory
 from ..errors import InputError
 from ..stats import chance_support
-from .base import Motion, freeze_fields, homogeneous
+from .base import Motion, freeze_fields, homogeneous, matrix_residuals
 from .rigid import check_dimension, check_spread
 
 __all__ = ["Affine2D", "Affine2DMotion", "AffineIndex", "MODEL", "fit_affine", "Affine2DTrials"]
@@ -224,7 +224,6 @@ class Affine2D:
     n_params = 6
     #: Points of a trial sample (a triangle and the 4th point that verifies it).
     trial_sample_size = 4
-    result_type = Affine2DMotion
 
     def __init__(self, *, knn: int = 10, sample_knn: int = 6, max_cond: float = 10.0):
         self.knn = int(knn)
@@ -249,7 +248,7 @@ class Affine2D:
         return homogeneous(A, t)
 
     def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(target - (source @ matrix[:2, :2].T + matrix[:2, 2]), axis=1)
+        return matrix_residuals(matrix, source, target)
 
     # ----------------------------------------------------------- trials
     def sample_space(self, n: int) -> int:

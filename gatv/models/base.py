@@ -49,7 +49,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..stages import Tokens
 
 __all__ = ["MotionModel", "Motion", "Rotational", "freeze_fields", "homogeneous", "split_matrix",
-           "apply_matrix"]
+           "apply_matrix", "matrix_residuals"]
 
 
 def homogeneous(linear, translation) -> np.ndarray:
@@ -72,6 +72,11 @@ def apply_matrix(matrix, points: np.ndarray) -> np.ndarray:
     """``points @ A.T + t`` for the homogeneous matrix ``[[A, t], [0, 1]]``."""
     A, t = split_matrix(matrix)
     return points @ A.T + t
+
+
+def matrix_residuals(matrix, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(K,) distances ``|target - T(source)|`` of paired rows under a homogeneous matrix."""
+    return np.linalg.norm(target - apply_matrix(matrix, source), axis=1)
 
 
 def freeze_fields(obj, **shapes: tuple[int, ...]) -> None:

@@ -18,7 +18,7 @@ from ..fitting import kabsch
 from ..ga import eq41_length_residual, eq41_residual
 from ..motion import RigidMotion
 from ..stats import chance_support
-from .base import Motion, homogeneous
+from .base import Motion, homogeneous, matrix_residuals
 
 __all__ = ["Rigid", "MODEL", "check_spread", "plane_normal"]
 
@@ -90,7 +90,6 @@ class Rigid:
     dim = 3
     sample_size = 3
     n_params = 6
-    result_type = RigidMotion
 
     def __repr__(self) -> str:
         return "Rigid()"
@@ -110,7 +109,7 @@ class Rigid:
         return homogeneous(R, t)
 
     def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(target - (source @ matrix[:3, :3].T + matrix[:3, 3]), axis=1)
+        return matrix_residuals(matrix, source, target)
 
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):

@@ -38,7 +38,7 @@ from .._validation import as_points, check_int
 from ..errors import InputError
 from ..fitting import umeyama
 from ..stats import chance_support
-from .base import Motion, Rotational, freeze_fields, homogeneous
+from .base import Motion, Rotational, freeze_fields, homogeneous, matrix_residuals
 from .rigid import check_dimension, check_spread, eq41_consistent
 
 __all__ = ["DEFAULT_SCALE_RANGE", "MODEL", "Similarity", "SimilarityMotion", "order_triples",
@@ -331,7 +331,6 @@ class Similarity:
     dim = 3
     sample_size = 3
     n_params = 7
-    result_type = SimilarityMotion
     #: The motion changes units: residuals, gates and tolerances are in the
     #: target's, so the point spacing they are relative to should be the
     #: target's (not the mean of both sets', which :func:`gatv.stages.prepare`
@@ -362,7 +361,7 @@ class Similarity:
 
     def residuals(self, matrix: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
         """``|target - (s R source + t)|``, target units."""
-        return np.linalg.norm(target - (source @ matrix[:3, :3].T + matrix[:3, 3]), axis=1)
+        return matrix_residuals(matrix, source, target)
 
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from .. import stages
 from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
 from ..errors import InputError
-from ..stages import NOISE_SCHEDULE, Fit, Problem
+from ..stages import Fit, Problem
 from ..stats import samples_needed
 from .segmentation import Segmentation
 
@@ -120,7 +120,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     max_candidates = check_int(max_candidates, "max_candidates", 1)
     report = check_progress(progress)
     rng = as_rng(seed)
-    levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
+    levels = stages.tolerance_levels(P, noise)
     n1, n2 = P.source.shape[0], P.target.shape[0]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     smallest = max(float(min_inlier_share) * n1, float(k_pts))

@@ -62,10 +62,9 @@ from ..congruent import n_triples_needed
 from ..errors import InputError
 from ..fitting import fit_rigid
 from ..ga import Rotor, eq41_length_residual, eq41_residual, joint_space_coordinates, joint_space_planes
-from ..models import get_model
 from ..models.base import homogeneous
 from ..motion import RigidMotion
-from ..stages import NOISE_SCHEDULE, Fit, Problem
+from ..stages import Fit, Problem
 
 __all__ = ["Segmentation", "segment", "joint_space_residuals"]
 
@@ -535,7 +534,7 @@ def segment(
         sigma = check_positive(sigma, "sigma")
     report = check_progress(progress)
     rng = as_rng(seed)
-    levels = [noise] if noise is not None else [r * P.spacing for r in NOISE_SCHEDULE]
+    levels = stages.tolerance_levels(P, noise)
     n1 = P.source.shape[0]
     max_triples = check_int(max_triples, "max_triples", 1, allow_none=True) or 2_000_000
     opts = SearchOptions(sigma=sigma, max_candidates=max_candidates, refine=bool(refine), max_trials=16,

@@ -31,6 +31,8 @@ __all__ = [
     "TrialRecord",
     "run_method",
     "summarise",
+    "add_scheduler_argument",
+    "map_trials",
 ]
 
 #: Default output folder: ``benchmarks/results`` beside this file.
@@ -216,3 +218,27 @@ def summarise(records: Sequence[TrialRecord]) -> dict:
         "time_ms": 1000.0 * median(r.time_s for r in records),
         "errors": sum(bool(r.error) for r in records),
     }
+
+
+def add_scheduler_argument(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add ``--scheduler``: run the trials as Dask tasks (``local`` or a scheduler address)."""
+    parser.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS",
+        help="run the trials as Dask tasks: 'local' for a LocalCluster on this machine, or a "
+             "scheduler address (needs the [distributed] extra); default: serial",
+    )
+    return parser
+
+
+def map_trials(fn: Callable, tasks: Sequence, *, scheduler: str | None = None) -> list:
+    """``[fn(task) for task in tasks]``, serially or as Dask tasks on ``scheduler``.
+
+    ``fn`` and each task must be picklable (a module-level function and plain
+    arguments). The results come back in the order of ``tasks`` either way, so a
+    table is the same whichever way it was run.
+    """
+    if scheduler is None:
+        return [fn(task) for task in tasks]
+    from gatv.batch import map_tasks
+
+    return map_tasks(fn, list(tasks), scheduler=scheduler)

@@ -47,6 +47,7 @@ __all__ = [
     "atomic_path",
     "to_jsonable",
     "one_line",
+    "result_record",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
 ]
@@ -374,3 +375,41 @@ def write_json(path: str | os.PathLike, obj) -> None:
     text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n"
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def result_record(inputs: dict, source, target, *, seed, options: dict, seconds: float, result) -> dict:
+    """The JSON record of a point-set command (``gatv register --out``, one row of a batch).
+
+    Parameters
+    ----------
+    inputs : dict
+        ``{"source": path, "target": path}`` (or what the inputs were).
+    source, target : (N, 3) ndarray
+        The points read.
+    seed : int
+    options : dict
+        The command's options besides the seed.
+    seconds : float
+        Wall time of the command.
+    result : Motion, Segmentation or NonRigidMotion
+        Anything with ``to_dict()`` and a truth value; its ``info`` is kept.
+
+    Returns
+    -------
+    dict
+        ``inputs``, ``n_source``, ``n_target``, ``seed``, ``options``,
+        ``success``, ``time_s``, the result's ``to_dict()`` (a motion's 4×4
+        ``matrix``, row-major, ``correspondences``, ``support``...) and
+        ``info``.
+    """
+    return {
+        **inputs,
+        "n_source": int(len(source)),
+        "n_target": int(len(target)),
+        "seed": seed,
+        "options": options,
+        "success": bool(result),
+        "time_s": seconds,
+        **result.to_dict(),
+        "info": to_jsonable(getattr(result, "info", {})),
+    }

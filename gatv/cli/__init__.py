@@ -1,4 +1,4 @@
-"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric`` and ``demo``.
+"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric``, ``batch`` and ``demo``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -35,6 +35,7 @@ COMMANDS = {
     "segment": "segment",
     "nonrigid": "nonrigid",
     "catadioptric": "catadioptric",
+    "batch": "batch",
     "demo": "demo",
 }
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io import WRITE_EXTENSIONS, atomic_path, one_line, to_jsonable
+from ..io import WRITE_EXTENSIONS, atomic_path, one_line, result_record
 
 __all__ = [
     "EXIT_FAILED",
@@ -39,6 +39,8 @@ __all__ = [
     "MODELS",
     "PROG",
     "ArgumentParser",
+    "ProgressBar",
+    "ProgressLines",
     "UsageError",
     "add_model",
     "add_noise",
@@ -176,24 +178,82 @@ def check_point_counts(named: Iterable[tuple[str, np.ndarray, object]], minimum:
             raise UsageError(f"{where}: expected at least {minimum} points in `{name}`, got {len(pts)}.")
 
 
-def progress_printer(args) -> Callable[..., None] | None:
-    """A ``progress(fraction, message)`` callback printing to stderr, or None.
+class ProgressLines:
+    """``progress(fraction, message)`` printing ``gatv: [ 42.0%] message`` lines to stderr.
 
-    On with ``--progress``, or when stderr is a terminal and not ``--quiet``.
+    Lines closer than 1% apart are dropped unless they carry a message or
+    reach 100%.
     """
-    asked = bool(getattr(args, "progress", False))
-    if not (asked or (not getattr(args, "quiet", False) and sys.stderr.isatty())):
-        return None
-    last = [-1.0]
 
-    def progress(fraction, message=""):
+    def __init__(self, stream=None):
+        self.stream = stream
+        self.last = -1.0
+
+    def __call__(self, fraction, message=""):
         fraction = float(min(max(fraction, 0.0), 1.0))
-        if fraction - last[0] < 0.01 and fraction < 1.0 and not message:
+        if fraction - self.last < 0.01 and fraction < 1.0 and not message:
             return
-        last[0] = fraction
-        print(f"{PROG}: [{100 * fraction:5.1f}%] {message}", file=sys.stderr, flush=True)
+        self.last = fraction
+        print(f"{PROG}: [{100 * fraction:5.1f}%] {message}", file=self.stream or sys.stderr, flush=True)
 
-    return progress
+    def close(self) -> None:
+        """Nothing to close (the counterpart of :meth:`ProgressBar.close`)."""
+
+
+class ProgressBar:
+    """``progress(fraction, message)`` drawing a tqdm bar on stderr; closed at 100%.
+
+    ``total`` counts items (rows of a batch) when given, else percent.
+    """
+
+    def __init__(self, total: int | None = None, unit: str = "%", desc: str = PROG):
+        from tqdm import tqdm
+
+        self.total = int(total) if total else 100
+        self.bar = tqdm(total=self.total, unit=unit if total else "%", desc=desc, file=sys.stderr,
+                        dynamic_ncols=True, leave=False,
+                        bar_format=None if total else "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]{postfix}")
+
+    def __call__(self, fraction, message=""):
+        if self.bar is None:
+            return
+        fraction = float(min(max(fraction, 0.0), 1.0))
+        n = round(fraction * self.total)
+        if n > self.bar.n:
+            self.bar.update(n - self.bar.n)
+        if message:
+            self.bar.set_postfix_str(str(message)[:60], refresh=True)
+        if fraction >= 1.0:
+            self.close()
+
+    def close(self) -> None:
+        """Remove the bar from the terminal."""
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def progress_printer(args, *, total: int | None = None, unit: str = "%") -> Callable[..., None] | None:
+    """A ``progress(fraction, message)`` callback for a long command, or None.
+
+    * stderr is a terminal and no ``--quiet``: a progress bar (tqdm) that
+      closes itself at 100%;
+    * ``--progress`` (stderr not a terminal, or ``--quiet``): plain lines
+      ``gatv: [ 42.0%] message`` on stderr;
+    * otherwise (``--quiet``, or output piped): None, silent.
+
+    ``total`` and ``unit`` make the bar count items (``37/100 rows``)
+    instead of percent.
+    """
+    quiet = bool(getattr(args, "quiet", False))
+    if not quiet and sys.stderr.isatty():
+        try:
+            return ProgressBar(total, unit)
+        except ImportError:  # tqdm is a dependency; plain lines if it was removed
+            return ProgressLines()
+    if getattr(args, "progress", False):
+        return ProgressLines()
+    return None
 
 
 # ------------------------------------------------------------------ outputs
@@ -228,22 +288,6 @@ def write_outputs(outputs: Iterable[tuple[Path | None, Callable[[Path], object]]
         for path in written:
             print(f"wrote {path}")
     return written
-
-
-def result_record(inputs: dict, source, target, *, seed: int, options: dict, seconds: float,
-                  result) -> dict:
-    """The JSON record of a point-set command: inputs, sizes, options, result, info."""
-    return {
-        **inputs,
-        "n_source": int(len(source)),
-        "n_target": int(len(target)),
-        "seed": seed,
-        "options": options,
-        "success": bool(result),
-        "time_s": seconds,
-        **result.to_dict(),
-        "info": to_jsonable(getattr(result, "info", {})),
-    }
 
 
 def fmt(v) -> str:

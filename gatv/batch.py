@@ -1,0 +1,726 @@
+"""Batches of independent registrations, serially or as Dask tasks.
+
+A registration study is thousands of independent pairs.  :func:`run` takes a
+table of pairs (a CSV file with the columns ``source`` and ``target``, or a
+list of mappings), runs one command (``register``, ``segment`` or
+``nonrigid``) on each row and writes one JSON per row, with the schema of
+``gatv register --out`` (the same record: ``source``, ``target``, sizes,
+``seed``, ``options``, ``success``, ``time_s``, the result's ``to_dict()``
+including its 4×4 ``matrix``, ``info``), plus a ``batch`` block naming the
+row, and ``summary.csv`` with one line per row.
+
+Where the work runs (``scheduler``):
+
+* ``"local"`` (default) — a :class:`dask.distributed.LocalCluster` on this
+  machine: ``workers`` processes (default: one per core) with one thread
+  each, numba limited to the cores a worker owns;
+* an address such as ``"tcp://10.0.0.5:8786"`` — an existing Dask
+  scheduler; its workers must have gatv installed and see the input paths;
+* a :class:`dask.distributed.Client` — used as it is and not closed;
+* ``"serial"`` — in this process, one row after the other (no Dask).
+
+Guarantees:
+
+* A row's result does not depend on where it ran: the task is the same pure
+  function of its row (seed included) — results equal the serial ones bit
+  for bit, apart from ``time_s``.
+* A failing row (missing or unreadable file, NaN, too few points, a bad
+  option value, a worker lost more than Dask's ``allowed-failures`` times)
+  records its error in its JSON (``"error"``, ``"error_type"``) and the
+  batch goes on.  A worker killed while running a task is replaced and the
+  task re-run by Dask; ``retries`` re-runs a task that raised.
+* Resumable: a row whose JSON exists, holds a completed result (found or
+  not) and was made from the same row (command, paths, seed, options) is
+  not run again.  Rows that failed are run again.
+* Every file is written atomically (a temporary file moved into place): an
+  interrupted batch leaves finished JSONs and no partial one.  Nothing is
+  written before the table, the command and the scheduler were checked.
+
+:func:`map_tasks` is the generic seam (``[fn(t) for t in tasks]`` on Dask,
+in task order) that the benchmark scripts use for ``--scheduler``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._validation import check_int, check_progress
+from .errors import InputError
+from .io import one_line, result_record, to_jsonable, write_json
+
+__all__ = [
+    "COMMANDS",
+    "ROW_OPTIONS",
+    "SUMMARY_HEADERS",
+    "BatchResult",
+    "RowResult",
+    "Task",
+    "compute",
+    "connect",
+    "map_tasks",
+    "read_pairs",
+    "run",
+]
+
+#: Commands a batch can run.
+COMMANDS = ("register", "segment", "nonrigid")
+
+_MODELS = ("rigid", "similarity")
+_PREALIGN = {"auto": "auto", "always": True, "never": False, "true": True, "false": False}
+
+
+def _bool(text) -> bool:
+    if isinstance(text, bool):
+        return text
+    value = str(text).strip().lower()
+    if value in ("1", "true", "yes", "y"):
+        return True
+    if value in ("0", "false", "no", "n"):
+        return False
+    raise ValueError(f"expected true or false, got {text!r}")
+
+
+def _int(text) -> int:
+    if isinstance(text, (int, np.integer)) and not isinstance(text, bool):
+        return int(text)
+    try:
+        value = float(str(text).strip())
+    except ValueError:
+        raise ValueError(f"expected an integer, got {text!r}") from None
+    if not math.isfinite(value) or not value.is_integer():
+        raise ValueError(f"expected an integer, got {text!r}")
+    return int(value)
+
+
+def _float(text) -> float:
+    try:
+        value = float(str(text).strip()) if not isinstance(text, (int, float)) else float(text)
+    except ValueError:
+        raise ValueError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _choice(choices) -> Callable:
+    def parse(text):
+        value = str(text).strip().lower()
+        if value not in choices:
+            raise ValueError(f"expected one of {', '.join(choices)}, got {text!r}")
+        return value
+
+    return parse
+
+
+#: Per-row options of each command (CSV columns besides ``source``, ``target``
+#: and ``name``): column -> parser.  Empty cells take the batch's default.
+ROW_OPTIONS: dict[str, dict[str, Callable]] = {
+    "register": {"seed": _int, "model": _choice(_MODELS), "max_angle": _float,
+                 "max_translation": _float, "noise": _float, "scans": _bool},
+    "segment": {"seed": _int, "model": _choice(_MODELS), "max_motions": _int, "min_support": _int,
+                "noise": _float},
+    "nonrigid": {"seed": _int, "max_displacement": _float, "noise": _float,
+                 "prealign": _choice(tuple(_PREALIGN))},
+}
+
+#: Columns of ``summary.csv``.
+SUMMARY_HEADERS = ("row", "name", "status", "success", "support", "rms", "time_s", "source", "target",
+                   "seed", "reused", "error", "json")
+
+
+# ------------------------------------------------------------------ the rows
+@dataclass(frozen=True)
+class Task:
+    """One row of a batch: what :func:`compute` needs, picklable and hashable.
+
+    Attributes
+    ----------
+    row : int
+        0-based index of the row in the table (the header is not a row).
+    name : str
+        Stem of the row's JSON (``name`` column, else ``row-00012``).
+    command : str
+        ``register``, ``segment`` or ``nonrigid``.
+    source, target : str
+        Absolute paths of the point files.
+    seed : int
+    options : tuple of (str, value)
+        The command's keyword options, sorted by name.
+    problem : str
+        Why the row cannot run (a bad cell); empty when it can.
+    """
+
+    row: int
+    name: str
+    command: str
+    source: str
+    target: str
+    seed: int = 0
+    options: tuple = ()
+    problem: str = ""
+
+    def key(self) -> dict:
+        """What a finished JSON must have been made from for the row to be skipped."""
+        return to_jsonable({"command": self.command, "source": self.source, "target": self.target,
+                            "seed": self.seed, "options": dict(self.options)})
+
+
+def _normalise(column: str) -> str:
+    return column.strip().lower().replace("-", "_").replace(" ", "_")
+
+
+def _check_command(command) -> str:
+    if command not in COMMANDS:
+        msg = f"Expected `command` to be one of {', '.join(COMMANDS)}, got {command!r}."
+        raise InputError(msg)
+    return command
+
+
+def read_pairs(pairs, *, command: str = "register", seed: int = 0, defaults: Mapping | None = None,
+               base=None) -> list[Task]:
+    """The tasks of a table of pairs.
+
+    Parameters
+    ----------
+    pairs : str, path-like or sequence of mappings
+        A CSV file whose header names the columns, or rows as dictionaries.
+        Columns: ``source`` and ``target`` (point files; relative paths are
+        relative to the CSV's folder, or to ``base``), optionally ``name``
+        (the stem of the row's JSON; default ``row-00012``) and the
+        command's options of :data:`ROW_OPTIONS` (``seed``, ``model``,
+        ``noise``...; dashes and underscores alike).
+    command : {"register", "segment", "nonrigid"}, default: "register"
+    seed : int, default: 0
+        Seed of the rows without a ``seed`` cell.
+    defaults : mapping, optional
+        Option values for empty or missing cells (as strings or values).
+    base : path-like, optional
+        Folder of relative paths; default the CSV's folder, or the working
+        folder for rows given as mappings.
+
+    Returns
+    -------
+    list of Task
+        In table order.  A row with a bad cell gets a task whose
+        ``problem`` says why (it is recorded as failed, the others run).
+
+    Raises
+    ------
+    InputError
+        A missing or unreadable CSV, no ``source`` or ``target`` column, an
+        unknown column, no row, a repeated name, or a bad default.
+    """
+    command = _check_command(command)
+    seed = check_int(seed, "seed", 0)
+    parsers = ROW_OPTIONS[command]
+    rows, columns, where = _rows(pairs)
+    folder = Path(base) if base is not None else (
+        Path(pairs).resolve().parent if isinstance(pairs, (str, os.PathLike)) else Path.cwd())
+    missing = [c for c in ("source", "target") if c not in columns]
+    if missing:
+        msg = (f"{where}: expected the columns `source` and `target`, missing "
+               f"{' and '.join(f'`{c}`' for c in missing)} (got {', '.join(columns) or 'no header'}).")
+        raise InputError(msg)
+    unknown = [c for c in columns if c not in ("source", "target", "name", *parsers)]
+    if unknown:
+        msg = (f"{where}: unknown column{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} for "
+               f"`{command}`; expected source, target, name, {', '.join(parsers)}.")
+        raise InputError(msg)
+    if not rows:
+        raise InputError(f"{where}: no rows; expected one pair per line after the header.")
+    fallback = {}
+    for key, value in (defaults or {}).items():
+        key = _normalise(key)
+        if key not in parsers:
+            raise InputError(f"unknown option {key!r} for `{command}`; expected one of {', '.join(parsers)}.")
+        try:
+            fallback[key] = parsers[key](value)
+        except ValueError as exc:
+            raise InputError(f"bad value for option {key!r}: {exc}.") from None
+    fallback.setdefault("seed", seed)
+
+    tasks, names = [], {}
+    for index, row in enumerate(rows):
+        name = str(row.get("name") or "").strip() or f"row-{index:05d}"
+        if not _safe_name(name):
+            msg = f"{where}: row {index}: name {name!r} is not a plain file name (letters, digits, ._-)."
+            raise InputError(msg)
+        if name in names:
+            raise InputError(f"{where}: rows {names[name]} and {index} have the same name {name!r}.")
+        names[name] = index
+        paths, values, problems = {}, dict(fallback), []
+        for col in ("source", "target"):
+            text = str(row.get(col) or "").strip()
+            if not text:
+                problems.append(f"empty `{col}`")
+            paths[col] = str((folder / text).resolve()) if text else ""
+        for col, parse in parsers.items():
+            cell = row.get(col)
+            if cell is None or (isinstance(cell, str) and not cell.strip()):
+                continue
+            try:
+                values[col] = parse(cell)
+            except ValueError as exc:
+                problems.append(f"`{col}`: {exc}")
+        if values["seed"] < 0:
+            problems.append(f"`seed`: expected a non-negative integer, got {values['seed']}")
+        row_seed = int(values.pop("seed"))
+        tasks.append(Task(row=index, name=name, command=command, source=paths["source"],
+                          target=paths["target"], seed=row_seed, options=tuple(sorted(values.items())),
+                          problem="; ".join(problems)))
+    return tasks
+
+
+def _safe_name(name: str) -> bool:
+    return all(ch.isalnum() or ch in "._-" for ch in name) and not name.startswith(".")
+
+
+def _rows(pairs) -> tuple[list[dict], list[str], str]:
+    if isinstance(pairs, (str, os.PathLike)):
+        path = Path(pairs)
+        if not path.is_file():
+            raise InputError(f"{path}: no such CSV file." if not path.exists() else f"{path}: not a file.")
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as fh:
+                reader = csv.DictReader(fh)
+                columns = [_normalise(c) for c in (reader.fieldnames or []) if c is not None]
+                rows = [{_normalise(k): v for k, v in r.items() if k is not None} for r in reader
+                        if any((v or "").strip() for v in r.values() if isinstance(v, str))]
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise InputError(f"{path}: cannot be read as CSV ({one_line(exc)}).") from exc
+        return rows, columns, str(path)
+    if isinstance(pairs, Mapping) or not isinstance(pairs, Iterable):
+        msg = f"Expected `pairs` to be a CSV path or a sequence of mappings, got {type(pairs).__name__}."
+        raise InputError(msg)
+    rows = []
+    for k, r in enumerate(pairs):
+        if not isinstance(r, Mapping):
+            raise InputError(f"Expected `pairs[{k}]` to be a mapping with source and target, got {r!r}.")
+        rows.append({_normalise(str(c)): v for c, v in r.items()})
+    columns = list(dict.fromkeys(c for r in rows for c in r))
+    return rows, columns, "pairs"
+
+
+# ---------------------------------------------------------------- one task
+def _call(task: Task):
+    """Read the task's files and run its command; return ``(source, target, options, result)``."""
+    from .io import read_points
+
+    source = read_points(task.source)
+    target = read_points(task.target)
+    for what, pts, path in (("source", source, task.source), ("target", target, task.target)):
+        if len(pts) < 3:
+            raise InputError(f"{path}: expected at least 3 points in `{what}`, got {len(pts)}.")
+    opts = dict(task.options)
+    if task.command == "register" and opts.pop("scans", False):
+        if opts:
+            raise InputError(f"`scans` takes no {', '.join(sorted(opts))}.")
+        from .scans import register_scans as fn
+    elif task.command == "register":
+        from .registration import register as fn
+    elif task.command == "segment":
+        from .motions import segment as fn
+    else:
+        from .nonrigid import register as fn
+
+        if "prealign" in opts:
+            opts["prealign"] = _PREALIGN[opts["prealign"]]
+    if opts.get("model") == "rigid":
+        opts.pop("model")
+    return source, target, opts, fn(source, target, seed=task.seed, **opts)
+
+
+def compute(task: Task) -> dict:
+    """The JSON record of one row; never raises.
+
+    Runs the task's command on its files exactly as the command line does
+    (same function, same seed), and returns :func:`gatv.io.result_record`'s
+    record plus ``"batch"``.  An exception becomes ``"success": false``
+    with ``"error"`` (one line) and ``"error_type"``.
+    """
+    inputs = {"source": task.source, "target": task.target}
+    batch = {"row": task.row, "name": task.name, "task": task.key()}
+    start = time.perf_counter()
+    try:
+        if task.problem:
+            raise InputError(f"row {task.row}: {task.problem}.")
+        source, target, options, result = _call(task)
+    except Exception as exc:  # recorded in the row's JSON; the batch goes on
+        return {**inputs, "seed": task.seed, "options": to_jsonable(dict(task.options)),
+                "success": False, "time_s": time.perf_counter() - start,
+                "error": one_line(exc, limit=None), "error_type": type(exc).__name__, "batch": batch}
+    seconds = time.perf_counter() - start
+    record = result_record(inputs, source, target, seed=task.seed, options=options, seconds=seconds,
+                           result=result)
+    record["batch"] = batch
+    return record
+
+
+def _lost(task: Task, exc: BaseException) -> dict:
+    """The record of a task Dask gave up on (worker lost too often, cancelled)."""
+    return {"source": task.source, "target": task.target, "seed": task.seed,
+            "options": to_jsonable(dict(task.options)), "success": False, "time_s": None,
+            "error": f"the task did not complete: {one_line(exc, limit=None)}",
+            "error_type": type(exc).__name__,
+            "batch": {"row": task.row, "name": task.name, "task": task.key()}}
+
+
+# ------------------------------------------------------------------ results
+@dataclass(frozen=True)
+class RowResult:
+    """What happened to one row.
+
+    ``status`` is ``"found"`` (a motion), ``"not found"`` (the command ran
+    and found nothing: a result, not a failure) or ``"failed"`` (an error,
+    in ``error``).  ``reused`` is True when an earlier run's JSON was kept.
+    """
+
+    row: int
+    name: str
+    status: str
+    path: Path
+    reused: bool = False
+    error: str = ""
+    record: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __bool__(self) -> bool:
+        return self.status != "failed"
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """The rows of a batch, in table order, and where they were written.
+
+    Falsy when a row failed.
+    """
+
+    rows: tuple
+    out: Path
+    summary: Path
+    seconds: float
+
+    @property
+    def failed(self) -> list[RowResult]:
+        return [r for r in self.rows if r.status == "failed"]
+
+    def counts(self) -> dict:
+        """``{"found": n, "not found": n, "failed": n, "reused": n}``."""
+        out = {s: sum(r.status == s for r in self.rows) for s in ("found", "not found", "failed")}
+        out["reused"] = sum(r.reused for r in self.rows)
+        return out
+
+    def __bool__(self) -> bool:
+        return not self.failed
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+
+def _status(record: dict) -> str:
+    if "error" in record:
+        return "failed"
+    return "found" if record.get("success") else "not found"
+
+
+def _row_result(task: Task, record: dict, path: Path, reused: bool) -> RowResult:
+    return RowResult(task.row, task.name, _status(record), path, reused, record.get("error", ""), record)
+
+
+def _finished(task: Task, path: Path) -> dict | None:
+    """The earlier record of ``task`` at ``path`` if it is complete and of the same row."""
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or "error" in record or "success" not in record:
+        return None
+    made_from = record.get("batch", {}).get("task") if isinstance(record.get("batch"), dict) else None
+    return record if made_from == json.loads(json.dumps(task.key())) else None
+
+
+def _summary_row(r: RowResult, task: Task) -> list:
+    rec = r.record
+    support = rec.get("support")
+    if support is None and isinstance(rec.get("motions"), list):
+        support = sum(int(m.get("support", 0)) for m in rec["motions"])
+    return [r.row, r.name, r.status, int(bool(rec.get("success"))), "" if support is None else support,
+            "" if rec.get("rms") is None else rec["rms"], "" if rec.get("time_s") is None else rec["time_s"],
+            task.source, task.target, task.seed, int(r.reused), r.error, r.path.name]
+
+
+def _write_summary(path: Path, rows: Sequence[RowResult], tasks: Sequence[Task]) -> None:
+    from .io import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(SUMMARY_HEADERS)
+        for r, t in zip(rows, tasks):
+            writer.writerow(_summary_row(r, t))
+
+
+# ------------------------------------------------------------------ Dask
+def _script_folders(fn: Callable) -> list[str]:
+    """Folders the workers need on ``sys.path`` to run ``fn``: its script's, and ``sys.path[0]``."""
+    folders = []
+    module = sys.modules.get(getattr(fn, "__module__", "") or "")
+    for f in (getattr(module, "__file__", None), getattr(sys.modules.get("__main__"), "__file__", None)):
+        if f:
+            folders.append(str(Path(f).resolve().parent))
+    if sys.path and sys.path[0]:
+        folders.append(str(Path(sys.path[0]).resolve()))
+    return list(dict.fromkeys(folders))
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError as exc:
+        msg = ("running on Dask needs dask.distributed: install the extra with "
+               "`pip install 'gatv[distributed]'` (or use the serial scheduler).")
+        raise InputError(msg) from exc
+    return distributed
+
+
+@contextlib.contextmanager
+def connect(scheduler="local", *, workers: int | None = None, timeout: float = 10.0) -> Iterator:
+    """A :class:`dask.distributed.Client` for ``scheduler``, closed on exit.
+
+    Parameters
+    ----------
+    scheduler : "local", str or Client, default: "local"
+        ``"local"`` starts a :class:`~dask.distributed.LocalCluster` of
+        ``workers`` processes (default: one per core), one thread each,
+        with numba limited to ``cores // workers`` threads; a string is the
+        address of a running scheduler; a ``Client`` is yielded as it is
+        (and not closed).
+    workers : int, optional
+        Worker processes of a local cluster.
+    timeout : float, default: 10
+        Seconds to wait for a remote scheduler.
+
+    Raises
+    ------
+    InputError
+        dask.distributed is not installed, ``workers`` is not a positive
+        integer, or the scheduler cannot be reached (the message names it).
+    """
+    distributed = _import_distributed()
+    if isinstance(scheduler, distributed.Client):
+        yield scheduler
+        return
+    if scheduler in (None, "local"):
+        cores = os.cpu_count() or 1
+        n = check_int(workers, "workers", 1, allow_none=True) or cores
+        threads = str(max(1, cores // n))
+        env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
+               "OPENBLAS_NUM_THREADS": threads}
+        with (
+            distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                     dashboard_address=":0", silence_logs=logging.ERROR,
+                                     env=env) as cluster,
+            distributed.Client(cluster) as client,
+        ):
+            yield client
+        return
+    if not isinstance(scheduler, str):
+        msg = f"Expected `scheduler` to be 'local', 'serial', an address or a Client, got {scheduler!r}."
+        raise InputError(msg)
+    try:
+        client = distributed.Client(scheduler, timeout=f"{timeout}s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        msg = f"cannot reach the Dask scheduler at {scheduler!r} ({one_line(exc)})."
+        raise InputError(msg) from exc
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+def _register_paths(client, fn: Callable) -> None:
+    from ._dask import SysPath
+
+    plugin = SysPath(_script_folders(fn))
+    client.register_plugin(plugin, name=plugin.name)
+
+
+def map_tasks(fn: Callable, tasks: Sequence, *, scheduler="local", workers: int | None = None,
+              retries: int = 1, progress=None) -> list:
+    """``[fn(task) for task in tasks]`` as Dask tasks, results in task order.
+
+    Parameters
+    ----------
+    fn : callable
+        Picklable (a module-level function; functions of a script run as
+        ``__main__`` travel by value, and the script's folder is put on the
+        workers' ``sys.path`` for its own imports).
+    tasks : sequence
+        Picklable arguments, one per call.
+    scheduler : "local", "serial", str or Client, default: "local"
+        See :func:`connect`; ``"serial"`` runs the list comprehension here.
+    workers : int, optional
+        Worker processes of a local cluster.
+    retries : int, default: 1
+        Re-runs of a task that raised (a killed worker's task is re-run by
+        Dask regardless).
+    progress : callable, optional
+        ``progress(fraction, message)`` after each finished task.
+
+    Returns
+    -------
+    list
+        ``fn(task)`` for each task, in the order of ``tasks``.
+
+    Raises
+    ------
+    Exception
+        The first task's exception that persisted through its retries.
+    """
+    tasks = list(tasks)
+    report = check_progress(progress)
+    retries = check_int(retries, "retries", 0)
+    if scheduler == "serial":
+        out = []
+        for k, task in enumerate(tasks):
+            out.append(fn(task))
+            report((k + 1) / max(len(tasks), 1), f"{k + 1}/{len(tasks)} tasks")
+        return out
+    distributed = _import_distributed()
+    with connect(scheduler, workers=workers) as client:
+        _register_paths(client, fn)
+        futures = client.map(fn, tasks, pure=False, retries=retries)
+        done = 0
+        for future in distributed.as_completed(futures):
+            done += 1
+            if future.status == "error":
+                for f in futures:
+                    f.cancel()
+                future.result()  # raises the task's exception
+            report(done / max(len(tasks), 1), f"{done}/{len(tasks)} tasks")
+        return client.gather(futures)
+
+
+# ------------------------------------------------------------------ batch
+def run(pairs, out, *, command: str = "register", scheduler="local", workers: int | None = None,
+        seed: int = 0, defaults: Mapping | None = None, retries: int = 1, progress=None,
+        timeout: float = 10.0) -> BatchResult:
+    """Run ``command`` on every row of ``pairs``; one JSON per row in ``out``, and ``summary.csv``.
+
+    Parameters
+    ----------
+    pairs : str, path-like or sequence of mappings
+        The table of pairs (see :func:`read_pairs`).
+    out : str or path-like
+        Output folder, created when missing (only after every check passed).
+        Row ``k`` is written to ``out/<name>.json`` (``name`` column, else
+        ``row-0000k``).
+    command : {"register", "segment", "nonrigid"}, default: "register"
+    scheduler : "local", "serial", str or Client, default: "local"
+        Where the rows run (see the module docstring and :func:`connect`).
+    workers : int, optional
+        Worker processes of a local cluster; default one per core.
+    seed : int, default: 0
+        Seed of rows without a ``seed`` cell (as ``gatv register --seed``).
+    defaults : mapping, optional
+        Values of per-row options for rows that leave them empty.
+    retries : int, default: 1
+        Re-runs of a task that raised inside Dask.
+    progress : callable, optional
+        ``progress(fraction, message)`` after each row.
+    timeout : float, default: 10
+        Seconds to wait for a remote scheduler.
+
+    Returns
+    -------
+    BatchResult
+        The rows in table order; falsy when a row failed.
+
+    Raises
+    ------
+    InputError
+        A bad table (no ``source``/``target`` column...), an unknown
+        command, an unreachable scheduler, or an output folder that cannot
+        be made.  Nothing is written then.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from gatv import batch
+    >>> from gatv.datasets import table2_trial
+    >>> from gatv.io import write_points
+    >>> folder = tempfile.mkdtemp()
+    >>> trial = table2_trial(0.5, seed=1)
+    >>> write_points(os.path.join(folder, "s.npy"), trial.source)
+    >>> write_points(os.path.join(folder, "t.npy"), trial.target)
+    >>> pairs = [{"source": os.path.join(folder, "s.npy"), "target": os.path.join(folder, "t.npy")}]
+    >>> result = batch.run(pairs, os.path.join(folder, "out"), scheduler="serial")
+    >>> result.counts()
+    {'found': 1, 'not found': 0, 'failed': 0, 'reused': 0}
+    """
+    start = time.perf_counter()
+    tasks = read_pairs(pairs, command=command, seed=seed, defaults=defaults)
+    report = check_progress(progress)
+    retries = check_int(retries, "retries", 0)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: cannot write the batch there: not a folder.")
+    paths = [out / f"{t.name}.json" for t in tasks]
+    results: list[RowResult | None] = [None] * len(tasks)
+    todo = []
+    for k, (task, path) in enumerate(zip(tasks, paths)):
+        earlier = _finished(task, path) if out.is_dir() else None
+        if earlier is not None:
+            results[k] = _row_result(task, earlier, path, reused=True)
+        else:
+            todo.append(k)
+    done = len(tasks) - len(todo)
+
+    def finish(k: int, record: dict) -> None:
+        nonlocal done
+        write_json(paths[k], record)
+        results[k] = _row_result(tasks[k], record, paths[k], reused=False)
+        done += 1
+        report(done / len(tasks), f"{done}/{len(tasks)} rows")
+
+    with contextlib.ExitStack() as stack:
+        # connect before writing anything: an unreachable scheduler leaves DIR untouched
+        client = None
+        if scheduler != "serial" and todo:
+            client = stack.enter_context(connect(scheduler, workers=workers, timeout=timeout))
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"{out}: cannot make the output folder ({exc.strerror or exc}).") from exc
+        if done:
+            report(done / len(tasks), f"{done}/{len(tasks)} rows (already done)")
+        if client is None:
+            for k in todo:
+                finish(k, compute(tasks[k]))
+        elif todo:
+            distributed = _import_distributed()
+            stamp = f"{os.getpid()}-{time.time_ns()}"
+            futures = client.map(compute, [tasks[k] for k in todo], pure=False, retries=retries,
+                                 key=[f"gatv-{tasks[k].command}-{tasks[k].name}-{stamp}" for k in todo])
+            where = {f.key: k for f, k in zip(futures, todo)}
+            for future in distributed.as_completed(futures):
+                k = where[future.key]
+                try:
+                    record = future.result()
+                except Exception as exc:  # KilledWorker past allowed-failures, cancelled...
+                    record = _lost(tasks[k], exc)
+                finish(k, record)
+                future.release()
+    summary = out / "summary.csv"
+    _write_summary(summary, results, tasks)
+    return BatchResult(tuple(results), out, summary, time.perf_counter() - start)

@@ -15,7 +15,20 @@ extension           read     write    notes
                                       ``#`` comments and one header line are
                                       skipped
 ``.npy``            yes      yes      an ``(N, 3)`` (or ``(N, >3)``) array
+``.pcd``            yes      yes      the Point Cloud Library's format: ``DATA``
+                                      ``ascii``, ``binary`` and
+                                      ``binary_compressed`` (LZF) read, any
+                                      field types; written ``binary`` (or
+                                      ``ascii``) with float32 ``x y z`` as PCL
+                                      and Open3D do (``double=True``: float64)
 ==================  =======  =======  ==========================================
+
+Motions travel as 4×4 homogeneous matrices: ``matrix`` in every JSON
+record (row-major), and as text with :func:`write_matrix` /
+:func:`read_matrix` (four lines of four numbers, what ``numpy.loadtxt``
+reads and Open3D's examples keep) and :func:`write_log` / :func:`read_log`
+(the trajectory ``.log`` of Open3D and the 3DMatch/Redwood benchmarks: a
+line ``i j n`` before each matrix).
 
 Every writer is atomic: it writes a temporary file in the destination's
 folder and moves it into place with :func:`os.replace`, so an interrupted or
@@ -48,6 +61,10 @@ __all__ = [
     "to_jsonable",
     "one_line",
     "result_record",
+    "read_matrix",
+    "write_matrix",
+    "read_log",
+    "write_log",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
 ]
@@ -57,9 +74,9 @@ _TEXT = (".xyz", ".txt", ".csv", ".pts")
 _PYVISTA_WRITE = (".ply", ".vtk", ".vtp")
 
 #: Extensions :func:`read_points` understands.
-READ_EXTENSIONS = (*_PYVISTA_READ, *_TEXT, ".npy")
+READ_EXTENSIONS = (*_PYVISTA_READ, *_TEXT, ".npy", ".pcd")
 #: Extensions :func:`write_points` understands.
-WRITE_EXTENSIONS = (*_PYVISTA_WRITE, *_TEXT, ".npy")
+WRITE_EXTENSIONS = (*_PYVISTA_WRITE, *_TEXT, ".npy", ".pcd")
 
 
 class PointFileError(InputError):
@@ -81,7 +98,7 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     ----------
     path : str or path-like
         File to read; the format is chosen by its extension (see the module
-        docstring): ``.ply .vtk .vtp .stl .obj .xyz .txt .csv .pts .npy``.
+        docstring): ``.ply .vtk .vtp .stl .obj .xyz .txt .csv .pts .npy .pcd``.
 
     Returns
     -------
@@ -122,6 +139,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         arr = _read_pyvista(p)
     elif ext == ".npy":
         arr = _read_npy(p)
+    elif ext == ".pcd":
+        arr = _read_pcd(p)
     else:
         arr = _read_text(p)
     return _check_points(arr, path)
@@ -239,6 +258,157 @@ def _read_text(p: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
+# ------------------------------------------------------------------------ PCD
+_PCD_KINDS = {"F": "f", "I": "i", "U": "u"}
+
+
+def _pcd_header(p: Path, raw: bytes) -> tuple[dict, int]:
+    """The header of a PCD file (keys upper-case, values as lists of words) and where its data start."""
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while True:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise _fail(p, "is not a PCD file: no DATA line in its header.")
+        line = raw[pos:end].decode("ascii", errors="replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            return header, pos
+
+
+def _pcd_layout(p: Path, header: dict) -> tuple[list[str], np.dtype, int, str]:
+    """Field names, the record dtype of one point, the point count and the DATA kind."""
+    try:
+        fields = header["FIELDS"]
+        sizes = [int(v) for v in header["SIZE"]]
+        types = [v.upper() for v in header["TYPE"]]
+        counts = [int(v) for v in header.get("COUNT", ["1"] * len(fields))]
+        width = int(header.get("WIDTH", ["0"])[0])
+        height = int(header.get("HEIGHT", ["1"])[0])
+        n = int(header["POINTS"][0]) if "POINTS" in header else width * height
+        data = header["DATA"][0].lower()
+    except (KeyError, IndexError, ValueError) as exc:
+        raise _fail(p, f"has a broken PCD header ({one_line(exc)}).") from None
+    if not (len(fields) == len(sizes) == len(types) == len(counts)):
+        raise _fail(p, "has a broken PCD header: FIELDS, SIZE, TYPE and COUNT differ in length.")
+    names, formats = [], []
+    for k, (name, size, kind, count) in enumerate(zip(fields, sizes, types, counts)):
+        if kind not in _PCD_KINDS or size not in (1, 2, 4, 8) or (kind == "F" and size < 4) or count < 1:
+            raise _fail(p, f"has an unsupported PCD field {name!r} (TYPE {kind}, SIZE {size}).")
+        names.append(name if name not in names else f"{name}_{k}")
+        base = np.dtype(f"<{_PCD_KINDS[kind]}{size}")
+        formats.append(base if count == 1 else np.dtype((base, (count,))))
+    if not {"x", "y", "z"} <= set(names):
+        raise _fail(p, f"has no x, y, z fields (FIELDS {' '.join(fields)}).")
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise _fail(p, f"has an unknown PCD DATA kind {data!r}; expected ascii, binary or binary_compressed.")
+    return names, np.dtype({"names": names, "formats": formats}), n, data
+
+
+def _lzf_decompress(data: bytes, size: int) -> bytes:
+    """LZF decompression (liblzf's format, used by PCD's ``binary_compressed``)."""
+    out = bytearray(size)
+    i = o = 0
+    n = len(data)
+    while i < n:
+        ctrl = data[i]
+        i += 1
+        if ctrl < 32:  # a run of ctrl + 1 literal bytes
+            length = ctrl + 1
+            if i + length > n or o + length > size:
+                raise ValueError("literal run past the end")
+            out[o:o + length] = data[i:i + length]
+            i += length
+            o += length
+            continue
+        length = ctrl >> 5  # a back reference
+        if length == 7:
+            length += data[i]
+            i += 1
+        ref = o - ((ctrl & 0x1F) << 8) - data[i] - 1
+        i += 1
+        length += 2
+        if ref < 0 or o + length > size:
+            raise ValueError("back reference out of range")
+        while length > 0:  # overlapping copies repeat the period o - ref
+            step = min(length, o - ref)
+            out[o:o + step] = out[ref:ref + step]
+            o += step
+            ref += step
+            length -= step
+    if o != size:
+        raise ValueError(f"decompressed {o} bytes, expected {size}")
+    return bytes(out)
+
+
+def _read_pcd(p: Path) -> np.ndarray:
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise _fail(p, f"cannot be read ({exc.strerror or exc}).") from exc
+    header, start = _pcd_header(p, raw)
+    names, dtype, n, data = _pcd_layout(p, header)
+    body = raw[start:]
+    if data == "ascii":
+        text = body.decode("ascii", errors="replace").split()
+        width = sum(int(np.prod(dtype[name].shape or (1,))) for name in names)
+        try:
+            values = np.asarray(text, dtype=np.float64)
+        except ValueError:
+            raise _fail(p, "has PCD ascii data that are not numbers.") from None
+        if values.size != n * width:
+            raise _fail(p, f"expected {n} points of {width} values in its ascii data, got {values.size} values.")
+        table = values.reshape(n, width)
+        columns, col = {}, 0
+        for name in names:
+            w = int(np.prod(dtype[name].shape or (1,)))
+            columns[name] = table[:, col]
+            col += w
+        return np.column_stack([columns["x"], columns["y"], columns["z"]])
+    if data == "binary":
+        if len(body) < n * dtype.itemsize:
+            raise _fail(p, f"is truncated: {n} points need {n * dtype.itemsize} bytes of data, got {len(body)}.")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    if len(body) < 8:
+        raise _fail(p, "is truncated: no compressed PCD data.")
+    packed, unpacked = (int(v) for v in np.frombuffer(body[:8], dtype="<u4"))
+    if unpacked != n * dtype.itemsize or len(body) < 8 + packed:
+        raise _fail(p, f"has inconsistent compressed sizes ({packed} -> {unpacked} bytes for {n} points).")
+    try:
+        plain = _lzf_decompress(body[8:8 + packed], unpacked)
+    except (ValueError, IndexError) as exc:
+        raise _fail(p, f"has corrupt compressed PCD data ({one_line(exc)}).") from None
+    columns, offset = {}, 0  # binary_compressed stores each field's values together
+    for name in names:
+        field_dtype = dtype[name]
+        size = n * field_dtype.itemsize
+        columns[name] = np.frombuffer(plain, dtype=field_dtype.base, count=n * int(np.prod(field_dtype.shape or (1,))),
+                                      offset=offset)
+        offset += size
+    return np.column_stack([columns["x"], columns["y"], columns["z"]]).astype(np.float64)
+
+
+def _write_pcd(tmp: Path, pts: np.ndarray, *, ascii: bool, double: bool) -> None:
+    size, dtype, fmt = (8, "<f8", "%.17g") if double else (4, "<f4", "%.9g")
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
+        f"SIZE {size} {size} {size}\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {len(pts)}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(pts)}\nDATA {'ascii' if ascii else 'binary'}\n"
+    )
+    values = np.ascontiguousarray(pts, dtype=dtype)
+    with open(tmp, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        if ascii:
+            np.savetxt(fh, values, fmt=fmt, delimiter=" ")
+        else:
+            fh.write(values.tobytes())
+
+
 def one_line(exc: BaseException, limit: int | None = 200) -> str:
     """``exc``'s message on one line (whitespace collapsed, cut at ``limit`` characters
     unless ``limit`` is None), or its type name when it has no message."""
@@ -287,7 +457,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def write_points(path: str | os.PathLike, points) -> None:
+def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double: bool = False) -> None:
     """Write points atomically; the format is chosen by the extension.
 
     Parameters
@@ -295,10 +465,15 @@ def write_points(path: str | os.PathLike, points) -> None:
     path : str or path-like
         Destination: ``.ply .vtk .vtp`` (PyVista; PLY stores float32),
         ``.xyz .txt .pts`` (space separated), ``.csv`` (comma separated with
-        an ``x,y,z`` header) or ``.npy``. Text formats keep full float64
-        precision (17 significant digits).
-    points : (N, 3) array_like
-        Finite coordinates.
+        an ``x,y,z`` header), ``.npy`` or ``.pcd``. Text formats keep full
+        float64 precision (17 significant digits).
+    points : (N, 3) array_like or point container
+        Finite coordinates (an array, a PyVista, Open3D or trimesh object).
+    ascii : bool, default: False
+        ``.pcd`` only: ``DATA ascii`` instead of ``DATA binary``.
+    double : bool, default: False
+        ``.pcd`` only: float64 coordinates (``SIZE 8``; exact) instead of
+        float32 (what PCL's ``PointXYZ`` and Open3D read and write).
 
     Raises
     ------
@@ -328,6 +503,8 @@ def write_points(path: str | os.PathLike, points) -> None:
         elif ext == ".npy":
             with open(tmp, "wb") as fh:
                 np.save(fh, pts, allow_pickle=False)
+        elif ext == ".pcd":
+            _write_pcd(tmp, pts, ascii=bool(ascii), double=bool(double))
         else:
             sep = "," if ext == ".csv" else " "
             header = "x,y,z" if ext == ".csv" else ""
@@ -413,3 +590,116 @@ def result_record(inputs: dict, source, target, *, seed, options: dict, seconds:
         **result.to_dict(),
         "info": to_jsonable(getattr(result, "info", {})),
     }
+
+
+# ------------------------------------------------------------------ matrices
+def _as_matrix(matrix, name: str = "matrix") -> np.ndarray:
+    m = getattr(matrix, "matrix", matrix)  # a motion result, or its matrix
+    try:
+        m = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"Expected `{name}` to be a 4x4 matrix or a motion, got {type(matrix).__name__}.") from exc
+    if m.shape != (4, 4):
+        raise InputError(f"Expected `{name}` to have shape (4, 4), got {m.shape}.")
+    if not np.all(np.isfinite(m)):
+        raise InputError(f"`{name}` contains NaN or infinite values.")
+    return m
+
+
+def write_matrix(path: str | os.PathLike, matrix) -> None:
+    """Write a 4×4 homogeneous matrix as text, atomically: four lines of four numbers.
+
+    The layout ``numpy.loadtxt`` reads and Open3D's registration examples
+    keep (``source.transform(numpy.loadtxt(path))``), 17 significant digits.
+
+    Parameters
+    ----------
+    path : str or path-like
+    matrix : (4, 4) array_like or a motion result
+        A motion's ``.matrix`` is taken (rigid, similarity).
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from gatv.io import read_matrix, write_matrix
+    >>> path = os.path.join(tempfile.mkdtemp(), "motion.txt")
+    >>> write_matrix(path, np.eye(4))
+    >>> read_matrix(path)[3]
+    array([0., 0., 0., 1.])
+    """
+    m = _as_matrix(matrix)
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, m, fmt="%.17g", delimiter=" ")
+
+
+def read_matrix(path: str | os.PathLike) -> np.ndarray:
+    """Read a 4×4 matrix written by :func:`write_matrix` (or ``numpy.savetxt``).
+
+    Raises
+    ------
+    PointFileError
+        Missing file, not four rows of four numbers, or not finite.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise _fail(path, "no such file.")
+    try:
+        m = np.loadtxt(p, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise _fail(path, f"is not a table of numbers ({one_line(exc)}).") from None
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise _fail(path, f"expected a finite 4x4 matrix, got shape {m.shape}.")
+    return m
+
+
+def write_log(path: str | os.PathLike, entries) -> None:
+    """Write a trajectory ``.log`` (Open3D, 3DMatch, Redwood), atomically.
+
+    Each entry is written as a line ``i j n`` (source index, target index,
+    number of fragments) followed by its 4×4 matrix, four lines.
+
+    Parameters
+    ----------
+    path : str or path-like
+    entries : iterable of (int, int, int, matrix)
+        ``(i, j, n, matrix)``; a matrix may be a motion result.
+    """
+    lines = []
+    for k, entry in enumerate(entries):
+        try:
+            i, j, n, matrix = entry
+        except (TypeError, ValueError):
+            raise InputError(f"Expected `entries[{k}]` to be (i, j, n, matrix), got {entry!r}.") from None
+        m = _as_matrix(matrix, f"entries[{k}]")
+        lines.append(f"{int(i)} {int(j)} {int(n)}")
+        lines += [" ".join(f"{v:.17g}" for v in row) for row in m]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + ("\n" if lines else ""), encoding="ascii")
+
+
+def read_log(path: str | os.PathLike) -> list[tuple[int, int, int, np.ndarray]]:
+    """Read a trajectory ``.log``: a list of ``(i, j, n, (4, 4) matrix)``.
+
+    Raises
+    ------
+    PointFileError
+        Missing file, or lines that are not blocks of one ``i j n`` line and
+        four lines of four numbers.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise _fail(path, "no such file.")
+    rows = [line.split() for line in p.read_text(encoding="utf-8").splitlines() if line.strip()]
+    if len(rows) % 5:
+        raise _fail(path, f"expected blocks of 5 lines (i j n, then a 4x4 matrix), got {len(rows)} lines.")
+    out = []
+    for b in range(0, len(rows), 5):
+        try:
+            i, j, n = (int(v) for v in rows[b])
+            m = np.array([[float(v) for v in r] for r in rows[b + 1:b + 5]])
+        except ValueError:
+            raise _fail(path, f"block at line {b + 1} is not `i j n` and a 4x4 matrix.") from None
+        if m.shape != (4, 4):
+            raise _fail(path, f"block at line {b + 1}: expected a 4x4 matrix, got shape {m.shape}.")
+        out.append((i, j, n, m))
+    return out

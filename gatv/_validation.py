@@ -16,6 +16,7 @@ __all__ = [
     "frozen_array",
     "as_points",
     "as_vectors",
+    "coordinates",
     "check_positive",
     "check_finite_array",
     "check_memory",
@@ -81,11 +82,41 @@ def check_memory(nbytes: float, what: str, budget: float | None = None) -> None:
         raise InputError(msg)
 
 
+def coordinates(obj):
+    """The coordinates held by a point container, or ``obj`` itself.
+
+    Duck-typed, so that neither Open3D nor trimesh is imported:
+
+    * ``.points`` — PyVista meshes and point clouds, Open3D
+      ``geometry.PointCloud`` (a ``Vector3dVector``);
+    * ``.vertices`` — trimesh ``Trimesh`` and ``PointCloud``, Open3D
+      ``geometry.TriangleMesh``;
+    * ``.point.positions`` — Open3D's tensor ``t.geometry.PointCloud``
+      (its ``.numpy()``).
+
+    Arrays and other objects are returned unchanged.
+    """
+    if isinstance(obj, np.ndarray):
+        return obj
+    for attr in ("points", "vertices"):
+        if hasattr(obj, attr):
+            return getattr(obj, attr)
+    point = getattr(obj, "point", None)
+    if point is not None:
+        try:
+            positions = point.positions
+        except (AttributeError, KeyError, RuntimeError):
+            return obj
+        return positions.numpy() if hasattr(positions, "numpy") else positions
+    return obj
+
+
 def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarray:
     """Return ``obj`` as a C-contiguous float64 ``(N, dim)`` array.
 
-    Accepts array-likes and anything with a ``.points`` attribute (PyVista
-    meshes and point clouds).
+    Accepts array-likes and point containers (see :func:`coordinates`):
+    PyVista meshes and point clouds, Open3D ``PointCloud`` (legacy and
+    tensor) and ``TriangleMesh``, trimesh ``Trimesh`` and ``PointCloud``.
 
     Raises
     ------
@@ -96,8 +127,7 @@ def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarra
     if obj is None:
         msg = f"Expected `{name}` to be an (N, {dim}) array of points, got None."
         raise InputError(msg)
-    if hasattr(obj, "points") and not isinstance(obj, np.ndarray):
-        obj = obj.points
+    obj = coordinates(obj)
     try:
         arr = np.asarray(obj, dtype=np.float64)
     except (TypeError, ValueError) as exc:

@@ -58,7 +58,7 @@ import numpy as np
 
 from ._validation import check_int, check_progress
 from .errors import InputError
-from .io import one_line, result_record, to_jsonable, write_json
+from .io import one_line, result_record, to_jsonable, write_json, write_matrix
 
 __all__ = [
     "COMMANDS",
@@ -604,9 +604,10 @@ def map_tasks(fn: Callable, tasks: Sequence, *, scheduler="local", workers: int 
         for future in distributed.as_completed(futures):
             done += 1
             if future.status == "error":
-                for f in futures:
-                    f.cancel()
-                future.result()  # raises the task's exception
+                try:
+                    future.result()  # raises the task's exception
+                finally:
+                    client.cancel([f for f in futures if f is not future])
             report(done / max(len(tasks), 1), f"{done}/{len(tasks)} tasks")
         return client.gather(futures)
 
@@ -624,7 +625,9 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
     out : str or path-like
         Output folder, created when missing (only after every check passed).
         Row ``k`` is written to ``out/<name>.json`` (``name`` column, else
-        ``row-0000k``).
+        ``row-0000k``); a motion found with a 4×4 matrix also to
+        ``out/<name>.txt`` (:func:`gatv.io.write_matrix`, the text Open3D's
+        examples load with ``numpy.loadtxt``).
     command : {"register", "segment", "nonrigid"}, default: "register"
     scheduler : "local", "serial", str or Client, default: "local"
         Where the rows run (see the module docstring and :func:`connect`).
@@ -688,6 +691,9 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
 
     def finish(k: int, record: dict) -> None:
         nonlocal done
+        matrix = np.asarray(record.get("matrix", ()), dtype=float)
+        if record.get("success") and matrix.shape == (4, 4):  # before the JSON, which marks the row done
+            write_matrix(paths[k].with_suffix(".txt"), matrix)
         write_json(paths[k], record)
         results[k] = _row_result(tasks[k], record, paths[k], reused=False)
         done += 1

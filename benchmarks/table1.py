@@ -16,6 +16,10 @@ Usage::
 
     python benchmarks/table1.py [--trials 20] [--seed 0] [--out benchmarks/results]
                                 [--methods F-ICP,ICP,gatv] [--fractions 0.5,0.75]
+                                [--scheduler local|ADDRESS]
+
+With ``--scheduler`` each (fraction, trial) is a Dask task (all methods on
+that trial); the table is the same as the serial one, apart from times.
 
 Prints a markdown table and writes ``table1.csv`` (one row per fraction and
 method) and ``table1_trials.csv`` (one row per trial) to ``--out``.
@@ -34,7 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
     TrialRecord,
     add_common_arguments,
+    add_scheduler_argument,
     fmt,
+    map_trials,
     markdown_table,
     run_method,
     summarise,
@@ -51,27 +57,46 @@ MAX_ANGLE_DEG = 5.0
 MAX_TRANSLATION = 1.5 * math.sqrt(3.0)
 
 
-def available_methods() -> dict:
-    """Name → ``fn(source, target, trial_index) -> RigidMotion``."""
-    methods = {
-        "F-ICP": lambda s, t, k: fitzgibbon_icp(s, t),
-        "ICP": lambda s, t, k: icp(s, t),
-    }
+def _ficp(s, t, k):
+    return fitzgibbon_icp(s, t)
+
+
+def _icp(s, t, k):
+    return icp(s, t)
+
+
+def _gatv(s, t, k):
+    from gatv.registration import register
+
+    return register(s, t, seed=k, max_angle=MAX_ANGLE_DEG, max_translation=MAX_TRANSLATION)
+
+
+def available_methods(*, quiet: bool = False) -> dict:
+    """Name → ``fn(source, target, trial_index) -> RigidMotion`` (module-level: picklable)."""
+    methods = {"F-ICP": _ficp, "ICP": _icp}
     try:
-        from gatv.registration import register
+        import gatv.registration  # noqa: F401
     except ImportError as exc:
-        print(f"note: gatv.registration cannot be imported ({exc}); running the baselines only.",
-              file=sys.stderr)
+        if not quiet:
+            print(f"note: gatv.registration cannot be imported ({exc}); running the baselines only.",
+                  file=sys.stderr)
     else:
-        methods["gatv"] = lambda s, t, k: register(
-            s, t, seed=k, max_angle=MAX_ANGLE_DEG, max_translation=MAX_TRANSLATION
-        )
+        methods["gatv"] = _gatv
     return methods
+
+
+def run_trial(task: tuple) -> list[TrialRecord]:
+    """Every method on one trial: ``task = (seed, fraction, trial index, method names)``."""
+    seed, f, k, names = task
+    methods = available_methods(quiet=True)
+    trial = table1_trial(f, seed=trial_seed(seed, f, k))
+    return [run_method(name, partial(methods[name], k=k), trial, f, k) for name in names]
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_arguments(parser, trials=20)
+    add_scheduler_argument(parser)
     args = parser.parse_args(argv)
     methods = available_methods()
     names = args.methods or list(methods)
@@ -80,13 +105,9 @@ def main(argv=None) -> int:
         parser.error(f"unknown or unavailable method(s) {unknown}; available: {list(methods)}")
     fractions = args.fractions or list(PAPER_FICP)
 
-    records: list[TrialRecord] = []
-    for f in fractions:
-        for k in range(args.trials):
-            trial = table1_trial(f, seed=trial_seed(args.seed, f, k))
-            for name in names:
-                fn = partial(methods[name], k=k)
-                records.append(run_method(name, fn, trial, f, k))
+    tasks = [(args.seed, f, k, tuple(names)) for f in fractions for k in range(args.trials)]
+    records: list[TrialRecord] = [r for trial in map_trials(run_trial, tasks, scheduler=args.scheduler)
+                                  for r in trial]
 
     headers = ["f", "method", "success %", "paper F-ICP %", "median precision",
                "median rot. error (deg)", "median time (ms)"]
@@ -101,8 +122,9 @@ def main(argv=None) -> int:
             ])
             csv_rows.append([f, name, cell["trials"], cell["success_pct"], paper, cell["precision"],
                              cell["recall"], cell["rotation_error_deg"], cell["time_ms"], cell["errors"]])
+    where = "serial" if args.scheduler is None else f"Dask tasks on {args.scheduler}"
     print(f"Table 1 protocol: {args.trials} trials per row, seed {args.seed}, 50 inliers, "
-          f"angle -5..5 deg, translation [-1.5, 1.5]^3\n")
+          f"angle -5..5 deg, translation [-1.5, 1.5]^3; {where}\n")
     print(markdown_table(headers, rows, align="llrrrrr"))
     out1 = write_csv(args.out / "table1.csv",
                      ["f", "method", "trials", "success_pct", "paper_ficp_pct", "median_precision",

@@ -20,6 +20,13 @@ from .._validation import frozen_array as _frozen
 
 __all__ = ["NonRigidMotion", "Diagnostics", "ThinPlateWarp"]
 
+#: Beyond this many correspondences the warp is the moving-least-squares local affine fit
+#: of the matches (:class:`gatv.nonrigid.multiscale.LocalAffineWarp`, O(K) memory) instead of
+#: the thin-plate interpolation (a dense K × K system).
+TPS_MAX_CONTROL = 3000
+#: Kernel entries per evaluation block of :class:`ThinPlateWarp` (bounds its temporaries).
+_EVAL_ENTRIES = 4_000_000
+
 
 class ThinPlateWarp:
     """Thin-plate-spline interpolation of displacements at control points.
@@ -30,12 +37,13 @@ class ThinPlateWarp:
     offset of a query point out of that subspace is carried unchanged.
     """
 
-    def __init__(self, points: np.ndarray, displacements: np.ndarray, smoothing: float = 0.0):
+    def __init__(self, points: np.ndarray, displacements: np.ndarray, smoothing=0.0):
         from scipy.interpolate import RBFInterpolator
 
         self.points = points
         self.displacements = displacements
-        self.smoothing = float(smoothing)
+        # a scalar, or one value per control point (a weighted fit: smoothing / weight)
+        self.smoothing = float(smoothing) if np.ndim(smoothing) == 0 else np.asarray(smoothing, float)
         n = points.shape[0]
         self.center = points.mean(axis=0) if n else np.zeros(3)
         if n == 0:
@@ -60,7 +68,13 @@ class ThinPlateWarp:
             return p + self.shift
         if p.shape[0] == 0:
             return p.copy()
-        return p + self.rbf((p - self.center) @ self.basis.T)
+        # in blocks: the kernel matrix of a block is (rows, control points)
+        rows = max(1, _EVAL_ENTRIES // max(1, self.points.shape[0]))
+        out = np.empty_like(p)
+        for s in range(0, p.shape[0], rows):
+            q = p[s:s + rows]
+            out[s:s + rows] = q + self.rbf((q - self.center) @ self.basis.T)
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,6 +149,9 @@ class NonRigidMotion:
     translations : (K, 3) ndarray of float
     smoothing : float
         Thin-plate smoothing of :meth:`warp` (0: exact at the matches).
+        Beyond ``TPS_MAX_CONTROL`` correspondences the warp is instead the
+        moving-least-squares affine fit of the nearest matches (smooth, not
+        exact at them).
     diagnostics : Diagnostics or None
     info : dict
         Timings, options, and ``reason`` for a failure. Not compared.
@@ -161,7 +178,13 @@ class NonRigidMotion:
             a = np.asarray(getattr(self, name), dtype=np.float64).reshape(shape)
             object.__setattr__(self, name, _frozen(a))
         d = self.target_points - self.source_points
-        object.__setattr__(self, "_warp", ThinPlateWarp(self.source_points, d, self.smoothing))
+        if k > TPS_MAX_CONTROL:
+            from .multiscale import LocalAffineWarp
+
+            warp = LocalAffineWarp(self.source_points, d)
+        else:
+            warp = ThinPlateWarp(self.source_points, d, self.smoothing)
+        object.__setattr__(self, "_warp", warp)
 
     # ------------------------------------------------------------- derived
     @property

@@ -51,6 +51,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .._validation import (
     as_points,
@@ -123,6 +124,10 @@ def register(
     neighbours: int = 8,
     grow: bool = True,
     prealign: bool | str = "auto",
+    model: str = "rigid",
+    multiscale: bool | str = "auto",
+    coarse_points: int = 700,
+    window_points: int = 400,
 ) -> NonRigidMotion:
     """Register ``source`` onto ``target`` under a locally rigid, non-rigid motion.
 
@@ -179,6 +184,25 @@ def register(
         rigid one.  ``"auto"``: only when no other hypothesis beats chance
         or the annealed one wins, with a bounded search; ``True``: always,
         unbounded (slow on large, cluttered sets); ``False``: never.
+    model : {"rigid", "similarity"}, default: "rigid"
+        Model of that dominant motion (:func:`gatv.register`'s ``model``):
+        ``"similarity"`` for a deformation on top of a rotation and a scale
+        change.  In the multi-resolution path with ``prealign=True`` the
+        source is first moved by it (the pre-alignment).
+    multiscale : {"auto", True, False}, default: "auto"
+        Multi-resolution solve (:mod:`gatv.nonrigid.multiscale`) for sets of
+        10⁴–10⁵ points: a coarse solve on about ``coarse_points`` points per
+        set, the direct solve of a window of about ``window_points`` source
+        points at full resolution (the paper's local mode, seeds), growth of
+        those seeds over the whole set, and final local matching within the
+        sampling gate checked by local eq. 41.  O(N + M) memory.
+        ``"auto"``: when the direct solve would vote on more than
+        ``max_pairs`` pairs and no ``max_displacement``/``max_candidates``
+        bound is given.
+    coarse_points : int, default: 700
+        Points per set of the coarse solve (voxel-grid subsample).
+    window_points : int, default: 400
+        Source points of each full-resolution window.
 
     Returns
     -------
@@ -192,7 +216,9 @@ def register(
     ------
     gatv.errors.InputError
         Fewer than 4 points, NaN/inf, wrong shapes, identical or collinear
-        points, bad options, or more candidate pairs than the memory budget.
+        points, bad options, or more candidate pairs than the memory budget
+        (the multi-resolution path: more than its linear memory estimate,
+        :func:`gatv.nonrigid.multiscale.memory_estimate`).
 
     References
     ----------
@@ -214,6 +240,8 @@ def register(
     Y = _check_points(target, "target")
     if structure not in ("auto", "surface", "curve"):
         raise InputError(f"Expected `structure` to be 'auto', 'surface' or 'curve', got {structure!r}.")
+    if model not in ("rigid", "similarity"):
+        raise InputError(f"Expected `model` to be 'rigid' or 'similarity', got {model!r}.")
     if prealign not in (True, False, "auto"):
         raise InputError(f"Expected `prealign` to be True, False or 'auto', got {prealign!r}.")
     settings = Settings(
@@ -232,9 +260,26 @@ def register(
         grow=bool(grow),
         prealign=prealign,
         memory_budget=memory_budget,
+        model=model,
     )
     report = check_progress(progress)
+    options = dict(coarse_points=check_int(coarse_points, "coarse_points", 50),
+                   window_points=check_int(window_points, "window_points", 20))
+    if multiscale not in (True, False, "auto"):
+        raise InputError(f"Expected `multiscale` to be True, False or 'auto', got {multiscale!r}.")
+    if multiscale is True or (multiscale == "auto" and wants_multiscale(X, Y, settings)):
+        return _register_multiscale(X, Y, settings, report, t_start, **options)
+    return _register_direct(X, Y, settings, report, t_start)
 
+
+def wants_multiscale(X, Y, settings: Settings) -> bool:
+    """The direct solve would vote on more than ``max_pairs`` candidate pairs with no bound given."""
+    return (settings.max_displacement is None and settings.max_candidates is None
+            and X.shape[0] * Y.shape[0] > settings.max_pairs)
+
+
+def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotion:
+    """The direct mode of section 5.1 on all candidate pairs (stages 1–7)."""
     problem = Problem.build(X, Y, settings)
     info: dict = {"n_source": int(X.shape[0]), "n_target": int(Y.shape[0]),
                   "spacing": problem.spacing, "gate": problem.gate}
@@ -300,3 +345,144 @@ def register(
     report(1.0, "done")
     return NonRigidMotion(fit.pairs, fit.source_points, fit.target_points, fit.rotations,
                           fit.translations, fit.smoothing, diagnostics, info)
+
+
+def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_points: int,
+                         window_points: int) -> NonRigidMotion:
+    """The multi-resolution path (:mod:`gatv.nonrigid.multiscale`), O(N + M) memory.
+
+    1. optional pre-alignment (``prealign=True``): the dominant motion of
+       ``settings.model`` found on the coarse sets moves the source;
+    2. coarse solve: the direct mode on voxel-grid subsamples of both sets
+       (differently sampled: the gates widen by half a coarse spacing);
+    3. windows: the direct mode at full resolution on a source window of
+       about ``window_points`` points and the target window that must hold
+       their partners under the coarse warp (plus three coarse spacings);
+       the first window whose result beats chance gives the seeds;
+    4. growth of the seeds over the whole set (:func:`multiscale.grow`),
+       polish, and final local matching within the sampling gate
+       (half a target spacing plus the noise floor), each match checked by
+       local eq. 41 (:func:`multiscale.local_eq41_pairs`).
+    """
+    from dataclasses import replace
+
+    from ..candidates import median_spacing
+    from .._validation import check_memory
+    from . import multiscale as ms
+
+    n1, n2 = X.shape[0], Y.shape[0]
+    need = ms.memory_estimate(n1, n2, coarse_points)
+    try:
+        check_memory(need, f"the multi-resolution solve of {n1} x {n2} points", settings.memory_budget)
+    except InputError as exc:
+        msg = (f"{exc} The multi-resolution solve's memory grows with N + M: subsample the inputs, "
+               f"or lower `coarse_points` (now {coarse_points}).")
+        raise InputError(msg) from None
+    info: dict = {"n_source": int(n1), "n_target": int(n2), "multiscale": True,
+                  "memory_estimate_bytes": need}
+    floor = settings.noise_floor
+    spacing = median_spacing(Y)
+    tree_y = cKDTree(Y)
+    X0 = X
+
+    # 1. pre-alignment by the dominant rigid/similarity motion
+    prior = None
+    si, ti = ms.grid_subsample(X, coarse_points), ms.grid_subsample(Y, coarse_points)
+    coarse_spacing = median_spacing(Y[ti])
+    if settings.prealign is True:
+        report(0.02, f"pre-alignment ({settings.model})")
+        from ..registration import register as rigid_register
+
+        prior = rigid_register(X[si], Y[ti], model=settings.model, seed=settings.seed,
+                               noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5))
+        info["prealign"] = None if not prior else {"model": settings.model, "support": prior.support}
+        if prior:
+            X = prior.transform(X)
+        else:
+            prior = None
+
+    # 2. coarse solve
+    report(0.05, f"coarse solve on {si.size} x {ti.size} points")
+    t0 = time.perf_counter()
+    sampling = 0.5 * coarse_spacing / 3.5
+    coarse_settings = replace(settings, noise=float(np.hypot(settings.noise or 0.0, sampling)),
+                              gate=None, smoothing=None,
+                              prealign=False if prior is not None else settings.prealign)
+    coarse = _register_direct(X[si], Y[ti], coarse_settings, lambda *a: None, time.perf_counter())
+    info.update(coarse_points=(int(si.size), int(ti.size)), coarse_spacing=coarse_spacing,
+                coarse_hypothesis=coarse.info.get("hypothesis"), coarse_support=coarse.support,
+                time_coarse_s=time.perf_counter() - t0)
+    warp = coarse.warp if coarse else (lambda p: np.array(p, dtype=float))
+    margin = 3.0 * coarse_spacing + floor
+
+    # 3. windows at full resolution: the direct mode's seeds
+    tree_x = cKDTree(X)
+    k = min(n1, window_points)
+    order = _window_order(X, coarse, si, window_points)
+    seeds, tried = None, []
+    for c in order[:MAX_WINDOWS]:
+        radius = float(tree_x.query(X[c], k=k)[0][-1])
+        src, tgt = ms.window(X, Y, tree_x, tree_y, X[c], warp, radius, margin)
+        report(0.2 + 0.1 * len(tried), f"window {len(tried) + 1}: {src.size} x {tgt.size} points")
+        if src.size < 4 or tgt.size < 4:
+            tried.append({"source": int(src.size), "target": int(tgt.size), "support": 0})
+            continue
+        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
+                                 lambda *a: None, time.perf_counter())
+        tried.append({"source": int(src.size), "target": int(tgt.size), "support": local.support,
+                      "hypothesis": local.info.get("hypothesis"),
+                      "hypotheses": local.info.get("hypotheses")})
+        if local and local.support >= MIN_WINDOW_SHARE * min(src.size, tgt.size):
+            seeds = np.column_stack([src[local.correspondences[:, 0]], tgt[local.correspondences[:, 1]]])
+            info["hypothesis"] = local.info.get("hypothesis")
+            break
+    info["windows"] = tried
+    if seeds is None:
+        info["time_s"] = time.perf_counter() - t_start
+        report(1.0, "done: no window beats chance")
+        return _failure("no full-resolution window has more locally consistent matches than chance",
+                        info)
+
+    # 4. growth, polish, final local matching within the sampling gate, local eq. 41
+    gate = 0.5 * spacing + floor
+    report(0.5, f"growth from {seeds.shape[0]} seeds")
+    t0 = time.perf_counter()
+    pairs = ms.grow(X, Y, tree_y, seeds, gate,
+                    report=lambda f, m: report(0.5 + 0.3 * f, m))
+    info.update(n_seeds=int(seeds.shape[0]), n_grown=int(pairs.shape[0]),
+                time_growth_s=time.perf_counter() - t0)
+    report(0.85, "final local matching")
+    refined = ms.refine(X, Y, tree_y, ms.LocalAffineWarp(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]]),
+                        spacing, spacing, floor, max_iter=2)
+    if refined.pairs.shape[0] >= 4:
+        pairs = refined.pairs
+    passed, R, t = ms.local_eq41_pairs(X, Y, pairs, settings.strain, gate)
+    info.update(n_eq41_rejected=int((~passed).sum()), gate=gate, spacing=spacing)
+    pairs, R, t = pairs[passed], R[passed], t[passed]
+    if prior is not None:  # local motions of the original source: compose with the pre-alignment
+        A = prior.matrix[:3, :3]
+        R, t = R @ A, t + np.einsum("kij,j->ki", R, prior.matrix[:3, 3])
+    info["time_s"] = time.perf_counter() - t_start
+    report(1.0, "done")
+    return NonRigidMotion(pairs, X0[pairs[:, 0]], Y[pairs[:, 1]], R, t, 0.0, coarse.diagnostics, info)
+
+
+#: Full-resolution windows tried before the multi-resolution path gives up.
+MAX_WINDOWS = 4
+#: A window's direct solve gives the seeds when it matches this share of its smaller set.
+MIN_WINDOW_SHARE = 0.25
+
+
+def _window_order(X, coarse, si, window_points: int) -> np.ndarray:
+    """Window centres: source points at the coarse matches' centroid first, then spread out
+    (farthest points of the coarse subsample), so a failed window is followed by a distant one."""
+    from .hypotheses import farthest_points
+
+    base = X[si[coarse.correspondences[:, 0]]] if coarse.support >= 4 else X[si]
+    centre = base.mean(axis=0)
+    first = int(np.argmin(np.sum((X[si] - centre) ** 2, axis=1)))
+    sub = X[si]
+    sub = np.vstack([sub[first:first + 1], np.delete(sub, first, axis=0)])
+    idx = np.r_[first, np.delete(np.arange(si.size), first)]
+    spread = idx[farthest_points(sub, MAX_WINDOWS)]
+    return si[spread]

@@ -113,6 +113,7 @@ class Settings:
     grow: bool
     prealign: bool | str
     memory_budget: float | None
+    model: str = "rigid"
 
     @property
     def noise_floor(self) -> float:
@@ -534,8 +535,8 @@ def rigid_hypothesis(problem: Problem, settings: Settings) -> RigidStart | None:
     from ..registration import register as rigid_register
 
     bound = None if settings.prealign is True else AUTO_RIGID_TRIPLES
-    rigid = rigid_register(problem.source, problem.target, seed=settings.seed, noise=settings.noise,
-                           max_triples=bound)
+    rigid = rigid_register(problem.source, problem.target, model=settings.model, seed=settings.seed,
+                           noise=settings.noise, max_triples=bound)
     if not rigid:
         return None
     pairs = coarse_to_fine(problem.source, problem.target, problem.tree, rigid.transform,

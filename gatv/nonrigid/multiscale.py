@@ -1,0 +1,398 @@
+"""Multi-resolution non-rigid registration for 10⁴–10⁵ points per set (O(N) memory).
+
+:func:`gatv.nonrigid.register` switches to this path when the candidate
+pairs of the direct solve would exceed ``max_pairs``:
+
+1. **Subsample** (:func:`grid_subsample`): each set is reduced to about
+   ``coarse_points`` points, one per occupied cell of a voxel grid (the
+   point nearest the cell centre), independently for the two sets — so the
+   coarse sets are *differently sampled* even when the inputs share rows.
+2. **Coarse solve:** the direct mode of section 5.1 (candidate tokens,
+   tensor voting, local eq. 41, hypotheses, verification against chance) on
+   the coarse sets, its gates widened by the sampling gap of the coarse
+   grid (a true partner is up to half a cell away).
+3. **Propagate** (:func:`refine`): every source point is moved with the
+   coarse warp and matched at full resolution, level by level with a
+   shrinking gate: nearest target (one-to-one), matches off the local affine
+   trend of their neighbours dropped (leave-one-out, :func:`loo_affine_residuals`),
+   and a moving-least-squares local affine warp (:class:`LocalAffineWarp`)
+   refitted on the rest.  Memory is O(N·k): only k-nearest-neighbour tables.
+4. **Final local matching:** a correspondence is reported only within the
+   local sampling gate (half a target spacing plus the noise floor) of the
+   final warp, and only when eq. 41 holds locally between its token and its
+   nearest matched neighbour's, about the axis of their local rigid motion
+   (:func:`local_eq41_pairs`, Fig. 14).
+
+No array here grows as N × M: :func:`memory_estimate` gives the bytes of
+the largest allocations, linear in N + M, checked against ``memory_budget``
+before any work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..candidates import median_spacing, one_to_one
+from ..fitting import kabsch
+
+__all__ = [
+    "REFINE_LEVELS",
+    "MLS_NEIGHBOURS",
+    "grid_subsample",
+    "LocalAffineWarp",
+    "loo_affine_residuals",
+    "memory_estimate",
+    "Refined",
+    "refine",
+    "local_eq41_pairs",
+]
+
+#: Gates of the full-resolution levels, in coarse spacings (then down to the sampling gate).
+REFINE_LEVELS = (1.0, 0.5, 0.25)
+#: Matches in each moving-least-squares affine fit (the local patch).
+MLS_NEIGHBOURS = 12
+#: Rows per block when evaluating k-nearest-neighbour fits (bounds temporaries).
+_BLOCK = 20_000
+
+
+# ------------------------------------------------------------------ subsampling
+def grid_subsample(points, n: int) -> np.ndarray:
+    """Indices of about ``n`` points, one per occupied voxel (the point nearest its centre).
+
+    The voxel edge is found by bisection so that the number of occupied
+    cells is within 10% of ``n`` (or the closest reached in 30 steps);
+    deterministic, O(N log N).  Returns all rows when ``n >= len(points)``.
+
+    Parameters
+    ----------
+    points : (N, 3) ndarray of float
+    n : int
+
+    Returns
+    -------
+    (K,) ndarray of int
+        Sorted row indices.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> p = np.random.default_rng(0).uniform(size=(5000, 3)) * [1, 1, 0]
+    >>> idx = grid_subsample(p, 500)
+    >>> bool(450 <= idx.size <= 550) and bool(np.all(np.diff(idx) > 0))
+    True
+    """
+    p = np.asarray(points, dtype=np.float64)
+    N = p.shape[0]
+    if n >= N:
+        return np.arange(N)
+    lo_corner = p.min(axis=0)
+    ext = float(np.max(np.ptp(p, axis=0))) or 1.0
+    lo, hi = ext * 1e-6, ext  # cell edges: too many cells, too few
+    best = None
+    for _ in range(30):
+        edge = np.sqrt(lo * hi)
+        keys, inverse = _cells(p, lo_corner, edge)
+        k = keys.shape[0]
+        if best is None or abs(k - n) < abs(best[0] - n):
+            best = (k, edge, inverse)
+        if abs(k - n) <= 0.1 * n:
+            break
+        if k > n:
+            lo = edge
+        else:
+            hi = edge
+    _, edge, inverse = best
+    centre = lo_corner + (np.floor((p - lo_corner) / edge) + 0.5) * edge
+    d = np.sum((p - centre) ** 2, axis=1)
+    order = np.lexsort((np.arange(N), d, inverse))  # by cell, then nearest the centre
+    first = np.ones(N, bool)
+    first[1:] = inverse[order][1:] != inverse[order][:-1]
+    return np.sort(order[first])
+
+
+def _cells(p, corner, edge):
+    ijk = np.floor((p - corner) / edge).astype(np.int64)
+    keys, inverse = np.unique(ijk, axis=0, return_inverse=True)
+    return keys, inverse.reshape(-1)
+
+
+# ------------------------------------------------------------------ local affine fits
+def _affine_fit(centres, points, values, ridge: float):
+    """Least-squares affine map ``v ≈ c + L (p − centre)`` per row (constant ``c`` returned).
+
+    ``points`` (Q, k, 3) around ``centres`` (Q, 3), ``values`` (Q, k, 3).
+    A small ridge on the linear part keeps flat (planar) neighbourhoods
+    solvable: the out-of-plane column gets the minimum-norm answer.
+    """
+    P = points - centres[:, None, :]
+    A = np.concatenate([np.ones(P.shape[:2] + (1,)), P], axis=2)
+    M = np.einsum("qki,qkj->qij", A, A)
+    M[:, 1:, 1:] += ridge * np.eye(3)
+    rhs = np.einsum("qki,qkj->qij", A, values)
+    return np.linalg.solve(M, rhs)  # (Q, 4, 3)
+
+
+class LocalAffineWarp:
+    """Moving-least-squares warp: at each query, the affine map of its nearest matches.
+
+    ``warp(q) = q + c(q)`` where ``c(q)`` is the constant of the
+    least-squares affine fit of the displacements of the ``k`` matched
+    source points nearest ``q`` (a locally rigid motion is locally affine).
+    O(Q k) time and memory, evaluated in blocks; the k-d tree is of the
+    control points only.
+
+    Parameters
+    ----------
+    points : (K, 3) ndarray
+        Matched source points (control points).
+    displacements : (K, 3) ndarray
+        Their displacements ``target − source``.
+    k : int, default: :data:`MLS_NEIGHBOURS`
+    """
+
+    def __init__(self, points, displacements, k: int = MLS_NEIGHBOURS):
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self.displacements = np.ascontiguousarray(displacements, dtype=np.float64)
+        self.k = int(min(k, self.points.shape[0]))
+        self.tree = cKDTree(self.points) if self.points.shape[0] else None
+        h = median_spacing(self.points) if self.points.shape[0] >= 2 else 1.0
+        self.ridge = 1e-6 * (h * h) * max(self.k, 1)
+
+    def __call__(self, query) -> np.ndarray:
+        q = np.asarray(query, dtype=np.float64).reshape(-1, 3)
+        if self.tree is None:
+            return q.copy()
+        if self.k < 4:
+            return q + self.displacements.mean(axis=0)
+        out = np.empty_like(q)
+        for s in range(0, q.shape[0], _BLOCK):
+            qq = q[s:s + _BLOCK]
+            _, nb = self.tree.query(qq, k=self.k)
+            coef = _affine_fit(qq, self.points[nb], self.displacements[nb], self.ridge)
+            out[s:s + _BLOCK] = qq + coef[:, 0, :]
+        return out
+
+
+def loo_affine_residuals(points, displacements, k: int = MLS_NEIGHBOURS) -> np.ndarray:
+    """Distance of each displacement from the affine trend of its ``k`` nearest other matches.
+
+    The vectorised, leave-one-out form of
+    :func:`gatv.nonrigid.hypotheses.affine_residuals` (O(N k) memory, in
+    blocks).  With 4 points or fewer every residual is 0.
+    """
+    x = np.asarray(points, dtype=np.float64)
+    D = np.asarray(displacements, dtype=np.float64)
+    n = x.shape[0]
+    if n <= 4:
+        return np.zeros(n)
+    kk = min(k + 1, n)
+    tree = cKDTree(x)
+    ridge = 1e-6 * median_spacing(x) ** 2 * kk
+    res = np.empty(n)
+    for s in range(0, n, _BLOCK):
+        _, nb = tree.query(x[s:s + _BLOCK], k=kk)
+        nb = nb[:, 1:]
+        coef = _affine_fit(x[s:s + _BLOCK], x[nb], D[nb], ridge)
+        res[s:s + _BLOCK] = np.linalg.norm(coef[:, 0, :] - D[s:s + _BLOCK], axis=1)
+    return res
+
+
+# ------------------------------------------------------------------ memory
+def memory_estimate(n_source: int, n_target: int, coarse_points: int,
+                    k: int = MLS_NEIGHBOURS) -> float:
+    """Bytes of the largest allocations of the multi-resolution path, linear in N + M.
+
+    Counted: the inputs and their k-d trees, per-row k-nearest-neighbour
+    tables and affine systems (in blocks of at most ``_BLOCK`` rows), the
+    matches, the per-correspondence local rotations, and the coarse solve
+    (``coarse_points²`` candidate pairs at most, times the bytes a pair
+    costs downstream).  No N × M term: a larger set costs proportionally
+    more.
+
+    Examples
+    --------
+    >>> a = memory_estimate(10_000, 10_000, 1000)
+    >>> b = memory_estimate(20_000, 20_000, 1000)
+    >>> bool(b < 2 * a)
+    True
+    """
+    from ..candidates import BYTES_PER_CANDIDATE_PAIR
+
+    n = int(n_source) + int(n_target)
+    per_row = 8 * (3 + 3 + 3 + 3 + 2 + 9 + 3 + 4)  # points, tree, warped, displacement, pair, R, t, misc
+    block = min(_BLOCK, max(n_source, n_target)) * 8 * (k * (3 + 3 + 4 + 1) + 16 + 12)
+    coarse = float(coarse_points) ** 2 * BYTES_PER_CANDIDATE_PAIR
+    return float(n * per_row + block + coarse)
+
+
+# ------------------------------------------------------------------ propagation
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """The full-resolution matches and the warp they define.
+
+    ``pairs`` (K, 2): one-to-one ``(source row, target row)`` within the
+    sampling gate; ``warp`` a :class:`LocalAffineWarp` of them;
+    ``levels`` the number of matches kept at each level; ``gate`` the final
+    sampling gate.
+    """
+
+    pairs: np.ndarray
+    warp: LocalAffineWarp
+    levels: tuple
+    gate: float
+
+
+def _match(moved, tree, gate: float):
+    dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
+    ok = np.flatnonzero(np.isfinite(dist))
+    cand = np.stack([ok, j[ok]], axis=1).astype(np.int64)
+    if ok.size == 0:
+        return cand
+    new = cand[one_to_one(cand, dist[ok])]
+    return new[np.argsort(new[:, 0], kind="stable")]
+
+
+def refine(X, Y, tree_y, warp, coarse_spacing: float, spacing: float, floor: float,
+           *, report=None, max_iter: int = 4) -> Refined:
+    """Propagate a coarse warp to full resolution and match within the sampling gate.
+
+    Levels: ``REFINE_LEVELS`` times ``coarse_spacing`` (plus the noise
+    ``floor``), then the sampling gate ``0.5 spacing + floor`` repeated
+    until the matches repeat (at most ``max_iter`` times).  At each level
+    the moved source points are matched one-to-one to their nearest targets
+    within the gate; matches whose displacement is off the leave-one-out
+    affine trend of their neighbours by more than the gate are dropped; a
+    :class:`LocalAffineWarp` is fitted on the rest and moves the source for
+    the next level.
+    """
+    gate_final = 0.5 * spacing + floor
+    gates = [g * coarse_spacing + floor for g in REFINE_LEVELS]
+    gates = [g for g in gates if g > gate_final] + [gate_final] * max_iter
+    levels = []
+    pairs = np.empty((0, 2), np.int64)
+    current = warp
+    for n, gate in enumerate(gates):
+        new = _match(current(X), tree_y, gate)
+        if new.shape[0] >= 5:
+            D = Y[new[:, 1]] - X[new[:, 0]]
+            res = loo_affine_residuals(X[new[:, 0]], D)
+            new = new[res <= gate]
+        if new.shape[0] < 5:
+            break
+        repeat = gate == gate_final and new.shape == pairs.shape and np.array_equal(new, pairs)
+        pairs = new
+        levels.append(int(pairs.shape[0]))
+        current = LocalAffineWarp(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])
+        if report is not None:
+            report(n / len(gates), f"full resolution: gate {gate:.3g}, {pairs.shape[0]} matches")
+        if repeat:
+            break
+    if not levels:
+        return Refined(pairs, current if isinstance(current, LocalAffineWarp)
+                       else LocalAffineWarp(np.empty((0, 3)), np.empty((0, 3))), (), gate_final)
+    return Refined(pairs, current, tuple(levels), gate_final)
+
+
+# ------------------------------------------------------------------ local eq. 41 at full resolution
+def local_eq41_pairs(X, Y, pairs, strain: float, gate: float, k: int = MLS_NEIGHBOURS):
+    """Eq. 41 between each match's token and its nearest matched neighbour's (Fig. 14).
+
+    The local rotation axis ``A`` of each match is that of the rigid motion
+    (Kabsch/Horn) of its ``k`` nearest matches; with ``V = d_a − d_b`` and
+    ``Vs = s_a − s_b`` the residual is ``|V × (A × Vs)| / |Vs|`` (as
+    :func:`gatv.ga.eq41_residual`), and a match passes when it is at most
+    ``strain · |x_a − x_b| + gate`` (local strain, sampling and noise).  For
+    a rotation of a few degrees the axis is ill-conditioned; then
+    ``A × Vs`` is nearly ``Vs`` scaled and the test reduces to the length
+    half (``V · Vs``), which is well defined.
+
+    Returns
+    -------
+    passed : (K,) ndarray of bool
+    rotations : (K, 3, 3) ndarray
+    translations : (K, 3) ndarray
+        The local rigid motions, ``target ≈ source @ R.T + t``.
+    """
+    K = pairs.shape[0]
+    if K < 4:
+        return np.ones(K, bool), np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3))
+    xs, ys = X[pairs[:, 0]], Y[pairs[:, 1]]
+    tree = cKDTree(xs)
+    m = min(k, K)
+    passed = np.empty(K, bool)
+    R = np.empty((K, 3, 3))
+    t = np.empty((K, 3))
+    for s in range(0, K, _BLOCK):
+        rows = np.arange(s, min(K, s + _BLOCK))
+        _, nb = tree.query(xs[rows], k=m)
+        R[rows], t[rows] = kabsch(xs[nb], ys[nb])
+        b = nb[:, 1]  # nearest other match
+        w = R[rows] - np.transpose(R[rows], (0, 2, 1))
+        axis = np.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]], axis=1)
+        na = np.linalg.norm(axis, axis=1, keepdims=True)
+        axis = np.where(na > 1e-12, axis / np.where(na > 0, na, 1.0), 0.0)
+        V = (ys[rows] - xs[rows]) - (ys[b] - xs[b])
+        Vs = (ys[rows] + xs[rows]) - (ys[b] + xs[b])
+        nvs = np.linalg.norm(Vs, axis=1)
+        r = np.linalg.norm(np.cross(V, np.cross(axis, Vs)), axis=1) / np.where(nvs > 0, nvs, 1.0)
+        length = np.abs(np.sum(V * Vs, axis=1)) / np.where(nvs > 0, nvs, 1.0)
+        r = np.where(na[:, 0] > 1e-12, r, length)
+        passed[rows] = r <= strain * np.linalg.norm(xs[rows] - xs[b], axis=1) + gate
+    return passed, R, t
+
+
+
+# ------------------------------------------------------------------ growth at full resolution
+def grow(X, Y, tree_y, seeds, gate: float, *, max_rounds: int = 10_000, report=None) -> np.ndarray:
+    """Grow matches ring by ring at full resolution with the local affine warp of the matched region.
+
+    The vectorised form of :func:`gatv.nonrigid.hypotheses.grow_rings`: the
+    unmatched source points within 3 matched spacings of a matched one (the
+    next ring) are moved by the :class:`LocalAffineWarp` of the matches and
+    matched to the nearest unused target within ``gate``, one-to-one
+    (closest first).  Stops when a ring adds nothing.  O(N k) memory.
+    """
+    pairs = np.asarray(seeds, np.int64).reshape(-1, 2)
+    used_s = np.zeros(X.shape[0], bool)
+    used_t = np.zeros(Y.shape[0], bool)
+    used_s[pairs[:, 0]] = True
+    used_t[pairs[:, 1]] = True
+    for r in range(max_rounds):
+        if pairs.shape[0] < 4:
+            break
+        xs = X[pairs[:, 0]]
+        warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs)
+        step = 3.0 * float(np.median(warp.tree.query(xs, k=2)[0][:, 1]))
+        free = np.flatnonzero(~used_s)
+        if free.size == 0:
+            break
+        dist, _ = warp.tree.query(X[free], k=1, distance_upper_bound=step)
+        free = free[np.isfinite(dist)]
+        if free.size == 0:
+            break
+        d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        ok[ok] = ~used_t[j[ok]]
+        rows, cols = np.nonzero(ok)
+        if rows.size == 0:
+            break
+        cand = np.stack([free[rows], j[rows, cols]], axis=1)
+        new = cand[one_to_one(cand, d[rows, cols])]
+        pairs = np.vstack([pairs, new])
+        used_s[new[:, 0]] = True
+        used_t[new[:, 1]] = True
+        if report is not None and r % 10 == 0:
+            report(min(1.0, pairs.shape[0] / X.shape[0]), f"growth: {pairs.shape[0]} matches")
+    return pairs[np.argsort(pairs[:, 0], kind="stable")]
+
+
+def window(X, Y, tree_x, tree_y, centre, warp, radius: float, margin: float):
+    """Rows of a source window (within ``radius`` of ``centre``) and of the target window
+    that must hold their partners (within ``radius + margin`` of ``warp(centre)``)."""
+    src = np.sort(np.asarray(tree_x.query_ball_point(centre, radius), np.int64))
+    moved = warp(centre[None])[0]
+    tgt = np.sort(np.asarray(tree_y.query_ball_point(moved, radius + margin), np.int64))
+    return src, tgt

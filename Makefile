@@ -4,9 +4,10 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 TSTAMP := $(VENV)/.installed-test
+DSTAMP := $(VENV)/.installed-docs
 export PYVISTA_OFF_SCREEN := true
 
-.PHONY: demo test test-slow bench gallery clean
+.PHONY: demo test test-slow bench gallery docs docs-fast wheel clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -18,6 +19,10 @@ $(STAMP): pyproject.toml | $(PY)
 
 $(TSTAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP) $@
+
+$(DSTAMP): pyproject.toml | $(PY)
+	$(PY) -m pip install -q -e '.[docs]'
 	touch $(STAMP) $@
 
 demo: $(STAMP)
@@ -38,5 +43,19 @@ bench: $(STAMP)
 gallery: $(STAMP)
 	$(PY) gallery/make_all.py --out gallery_out
 
+# the Sphinx site (API reference + gallery, rendered off screen) in docs/_build/html
+docs: $(DSTAMP)
+	$(PY) -m sphinx -b html -q docs docs/_build/html
+	@echo "docs: docs/_build/html/index.html"
+
+# the same pages without running the gallery scripts
+docs-fast: $(DSTAMP)
+	$(PY) -m sphinx -b html -q -D plot_gallery=0 docs docs/_build/html
+
+# a wheel and an sdist in dist/
+wheel: | $(PY)
+	$(PY) -m pip install -q build
+	$(PY) -m build --outdir dist .
+
 clean:
-	rm -rf $(VENV) demo_out gallery_out .pytest_cache
+	rm -rf $(VENV) demo_out gallery_out .pytest_cache docs/_build docs/auto_examples dist

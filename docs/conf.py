@@ -1,0 +1,113 @@
+"""Sphinx configuration of the gatv documentation (``make docs``).
+
+The API reference comes from the numpydoc docstrings (autodoc + numpydoc);
+the gallery from ``gallery/fig*.py`` through sphinx-gallery, rendered off
+screen (switched on here, in one place).  Each figure script runs as
+``python figNN.py --out <build>/gallery_pngs/figNN`` and the pictures it
+writes there are shown under its last section (:class:`FigurePngs`).
+
+``-D plot_gallery=0`` builds the pages without running the scripts.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+
+# off-screen rendering for every gallery script, before PyVista is imported
+os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+import pyvista  # noqa: E402
+
+pyvista.OFF_SCREEN = True
+from gatv import render  # noqa: E402
+
+render.configure_offscreen()
+
+import gatv  # noqa: E402
+
+project = "gatv"
+author = "the gatv developers"
+copyright = "2026, the gatv developers"
+release = gatv.__version__
+version = ".".join(release.split(".")[:2])
+
+extensions = [
+    "sphinx.ext.autodoc",
+    "sphinx.ext.mathjax",
+    "sphinx.ext.viewcode",
+    "numpydoc",
+    "sphinx_gallery.gen_gallery",
+    "myst_parser",
+]
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+root_doc = "index"
+exclude_patterns = ["_build", "auto_examples/*.ipynb", "auto_examples/*.py", "auto_examples/*.zip",
+                    "auto_examples/*.json", "auto_examples/*.md5", "sg_execution_times.rst"]
+suppress_warnings = ["myst.header", "myst.xref_missing", "config.cache"]
+
+autodoc_default_options = {"member-order": "bysource"}
+autodoc_typehints = "none"  # numpydoc's shaped types say more
+numpydoc_show_class_members = False
+numpydoc_validation_checks: set = set()
+numpydoc_xref_param_type = False
+
+
+html_theme = "pydata_sphinx_theme"
+html_title = f"gatv {release}"
+html_theme_options = {"show_toc_level": 2, "navigation_with_keys": False}
+
+GALLERY_OUT = HERE / "_build" / "gallery_pngs"
+
+
+def figure_argv(gallery_conf, script_vars) -> list[str]:
+    """``sys.argv[1:]`` of a figure script under sphinx-gallery: its own output folder."""
+    return ["--out", str(GALLERY_OUT / Path(script_vars["src_file"]).stem)]
+
+
+class FigurePngs:
+    """sphinx-gallery scraper: the PNG files a figure script wrote into its ``--out`` folder.
+
+    The scripts save and close their plotters themselves (``render.save``),
+    so PyVista's own scraper finds no open plotter; the pictures are picked
+    up from the folder instead, each once, after the block that wrote it.
+    """
+
+    def __init__(self):
+        self.seen: set[str] = set()
+
+    def __call__(self, block, block_vars, gallery_conf):
+        from sphinx_gallery.scrapers import figure_rst
+
+        folder = GALLERY_OUT / Path(block_vars["src_file"]).stem
+        new = [p for p in sorted(folder.glob("*.png")) if str(p) not in self.seen] if folder.is_dir() else []
+        written = []
+        for png, dest in zip(new, block_vars["image_path_iterator"]):
+            shutil.copyfile(png, dest)
+            self.seen.add(str(png))
+            written.append(dest)
+        return figure_rst(written, gallery_conf["src_dir"])
+
+    def __repr__(self) -> str:  # a stable config value for Sphinx's environment pickle
+        return "FigurePngs()"
+
+
+sphinx_gallery_conf = {
+    "examples_dirs": [str(ROOT / "gallery")],
+    "gallery_dirs": ["auto_examples"],
+    "filename_pattern": r"/fig\d+",
+    "ignore_pattern": r"make_all\.py|__init__\.py",
+    "image_scrapers": (FigurePngs(),),
+    "reset_argv": figure_argv,
+    "within_subsection_order": "FileNameSortKey",
+    "download_all_examples": False,
+    "remove_config_comments": True,
+    "capture_repr": (),
+    "abort_on_example_error": False,
+    "only_warn_on_example_error": True,
+}

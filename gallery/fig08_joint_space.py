@@ -186,7 +186,7 @@ def main(out_dir, size=SIZE) -> dict:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("gallery_out"), help="output folder")
     parser.add_argument("--size", type=int, nargs=2, default=SIZE, metavar=("W", "H"), help="picture size")
     args = parser.parse_args()

@@ -26,7 +26,8 @@ import numpy as np
 from gatv import render
 from gatv.nonrigid import register
 
-HERE = Path(__file__).resolve().parent
+# sphinx-gallery runs a script in its own folder, without ``__file__`` or ``__doc__``
+HERE = Path(globals().get("__file__", "fig14_local_eq41.py")).resolve().parent
 #: Radius of the close-up, as a share of the kept tokens' extent.
 CLOSE_RADIUS = 0.2
 SIZE = (900, 720)
@@ -133,7 +134,7 @@ def main(out_dir, size=SIZE) -> dict:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("gallery_out"), help="output folder")
     parser.add_argument("--size", type=int, nargs=2, default=SIZE, metavar=("W", "H"), help="picture size")
     args = parser.parse_args()

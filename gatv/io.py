@@ -364,7 +364,7 @@ def _read_pcd(p: Path) -> np.ndarray:
             raise _fail(p, f"expected {n} points of {width} values in its ascii data, got {values.size} values.")
         table = values.reshape(n, width)
         columns, col = {}, 0
-        for name in names:
+        for name in names:  # the text's full precision, as Open3D reads it (PCL would round to SIZE)
             w = int(np.prod(dtype[name].shape or (1,)))
             columns[name] = table[:, col]
             col += w

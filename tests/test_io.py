@@ -145,3 +145,107 @@ def test_write_json_numpy_and_nan(tmp_path):
     data = json.loads(dest.read_text())
     assert data == {"m": [[1.0, 0.0], [0.0, 1.0]], "x": 1.5, "n": 3, "nan": None, "p": str(tmp_path)}
     assert "NaN" not in dest.read_text()
+
+
+# ------------------------------------------------------------------------ PCD
+from gatv.io import read_log, read_matrix, write_log, write_matrix  # noqa: E402
+
+
+@pytest.mark.parametrize("ascii_", [False, True])
+def test_pcd_round_trip(tmp_path, points, ascii_):
+    path = tmp_path / "cloud.pcd"
+    write_points(path, points, ascii=ascii_, double=True)  # float64: exact
+    np.testing.assert_array_equal(read_points(path), points)
+    write_points(path, points, ascii=ascii_)  # float32, as PCL and Open3D
+    np.testing.assert_array_equal(read_points(path).astype(np.float32), points.astype(np.float32))
+    head = path.read_bytes()[:400].decode("ascii", "replace")
+    assert "FIELDS x y z" in head and "SIZE 4 4 4" in head and f"DATA {'ascii' if ascii_ else 'binary'}" in head
+
+
+def _pcd_header(fields, sizes, types, n, data, counts=None):
+    counts = counts or [1] * len(fields)
+    return ("# .PCD v0.7\nVERSION 0.7\n"
+            f"FIELDS {' '.join(fields)}\nSIZE {' '.join(map(str, sizes))}\nTYPE {' '.join(types)}\n"
+            f"COUNT {' '.join(map(str, counts))}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {n}\nDATA {data}\n").encode()
+
+
+def test_pcd_binary_with_other_fields(tmp_path, points):
+    """PCL's PointXYZRGBNormal-like records: x, y, z found among padding, colour and counts."""
+    dtype = np.dtype([("rgb", "<u4"), ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "u1", (4,)),
+                      ("normal", "<f8", (3,)), ("label", "<i2")])
+    rec = np.zeros(len(points), dtype)
+    rec["x"], rec["y"], rec["z"] = points.T
+    rec["label"] = 7
+    path = tmp_path / "rich.pcd"
+    path.write_bytes(_pcd_header(["rgb", "x", "y", "z", "_", "normal", "label"], [4, 4, 4, 4, 1, 8, 2],
+                                 ["U", "F", "F", "F", "U", "F", "I"], len(points), "binary",
+                                 [1, 1, 1, 1, 4, 3, 1]) + rec.tobytes())
+    np.testing.assert_array_equal(read_points(path), points.astype(np.float32).astype(np.float64))
+    text = "\n".join(" ".join(["9", *(f"{v:.17g}" for v in p), "1 2 3 4", "0 0 1", "7"]) for p in points)
+    path.write_bytes(_pcd_header(["rgb", "x", "y", "z", "_", "normal", "label"], [4, 8, 8, 8, 1, 8, 2],
+                                 ["U", "F", "F", "F", "U", "F", "I"], len(points), "ascii",
+                                 [1, 1, 1, 1, 4, 3, 1]) + text.encode())
+    np.testing.assert_array_equal(read_points(path), points)
+
+
+#: Open3D 0.20's binary_compressed (LZF) PCD of 6 copies of (0.5, -1.25, 2) then (k, 2k, -k), k < 6.
+_O3D_COMPRESSED = ("TwAAAJAAAAAEAAAAPwDgDQMgAACAQBsAQCACIAMAgCADAKBAAwC/IAfgCgNgACAfQCcAwCAHBABBAAAgIANAE+AM"
+                   "AyAAAIAgRwEAwCAeIAMAgCADAaDA")
+
+
+def test_pcd_binary_compressed(tmp_path):
+    import base64
+
+    expected = np.array([[0.5, -1.25, 2.0]] * 6 + [[k, 2 * k, -k] for k in range(6)], dtype=np.float64)
+    path = tmp_path / "o3d.pcd"
+    header = _pcd_header(["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], 12, "binary_compressed")
+    path.write_bytes(header + base64.b64decode(_O3D_COMPRESSED))
+    np.testing.assert_array_equal(read_points(path), expected)
+    corrupt = bytearray(base64.b64decode(_O3D_COMPRESSED))
+    corrupt[14] = 0xFF  # the first back reference now points before the start
+    path.write_bytes(header + bytes(corrupt))
+    with pytest.raises(PointFileError, match="corrupt compressed"):
+        read_points(path)
+
+
+@pytest.mark.parametrize("body, match", [
+    (_pcd_header(["a", "b", "c"], [4, 4, 4], ["F", "F", "F"], 1, "ascii") + b"1 2 3\n", "no x, y, z"),
+    (_pcd_header(["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], 3, "binary") + b"\0" * 20, "truncated"),
+    (_pcd_header(["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], 1, "lzma") + b"", "DATA kind"),
+    (_pcd_header(["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], 2, "ascii") + b"1 2 3\n", "expected 2 points"),
+    (_pcd_header(["x", "y", "z"], [4, 4, 4], ["F", "F", "F"], 1, "ascii") + b"nan 2 3\n", "NaN"),
+    (_pcd_header(["x", "y", "z"], [2, 4, 4], ["F", "F", "F"], 1, "ascii") + b"1 2 3\n", "unsupported"),
+    (b"VERSION 0.7\nFIELDS x y z\n", "no DATA line"),
+])
+def test_pcd_bad_files(tmp_path, body, match):
+    path = tmp_path / "bad.pcd"
+    path.write_bytes(body)
+    with pytest.raises(PointFileError, match=match) as info:
+        read_points(path)
+    assert str(info.value).startswith(str(path))
+
+
+# ------------------------------------------------------------------- matrices
+def test_matrix_and_log_round_trip(tmp_path):
+    from gatv.motion import RigidMotion
+
+    rng = np.random.default_rng(4)
+    m = np.eye(4)
+    m[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * [1, 1, 1]
+    m[:3, 3] = rng.normal(size=3)
+    write_matrix(tmp_path / "m.txt", m)
+    np.testing.assert_array_equal(read_matrix(tmp_path / "m.txt"), m)
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "m.txt"), m)  # what Open3D's examples load
+    motion = RigidMotion.from_matrix(m) if np.linalg.det(m[:3, :3]) > 0 else RigidMotion.from_matrix(np.eye(4))
+    write_log(tmp_path / "t.log", [(0, 1, 2, m), (1, 2, 2, motion)])
+    back = read_log(tmp_path / "t.log")
+    assert [(i, j, n) for i, j, n, _ in back] == [(0, 1, 2), (1, 2, 2)]
+    np.testing.assert_array_equal(back[0][3], m)
+    np.testing.assert_array_equal(back[1][3], motion.matrix)
+    with pytest.raises(ValueError, match=r"shape \(4, 4\)"):
+        write_matrix(tmp_path / "bad.txt", np.eye(3))
+    assert not (tmp_path / "bad.txt").exists()
+    (tmp_path / "short.log").write_text("0 1 2\n1 0 0 0\n")
+    with pytest.raises(PointFileError, match="blocks of 5 lines"):
+        read_log(tmp_path / "short.log")

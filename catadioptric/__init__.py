@@ -12,10 +12,12 @@ from __future__ import annotations
 from catadioptric.camera import UnifiedCamera
 from catadioptric.corners import detect_corners, read_image, refine_corners
 from catadioptric.matching import SphereMatch, match, sphere_noise
+from catadioptric.peeling import SphereMotion
 from catadioptric.synthetic import SyntheticViews, synthetic_views
 
 __all__ = [
     "SphereMatch",
+    "SphereMotion",
     "SyntheticViews",
     "UnifiedCamera",
     "detect_corners",

@@ -29,6 +29,15 @@ __all__ = [
     "GATE_SIGMAS",
     "MIN_ESSENTIAL_PAIRS",
     "MIN_POSTERIOR",
+    "PATTERN_ALPHA",
+    "PEEL_OVERLAP",
+    "PLANE_GROWTH",
+    "PLANE_LOCAL",
+    "PLANE_MATCHES",
+    "PLANE_NEIGHBOURS",
+    "PLANE_SIGNATURE_TOL",
+    "PLANE_TRIALS",
+    "PLANE_TRIALS_GROWN",
     "QUATERNION_SAMPLE",
     "REACH_SPACINGS",
     "RIVAL_ANCHORS",
@@ -131,3 +140,35 @@ EPI_MATCHES = 32
 #: at least this share of them agree with (both sides of a crease of the
 #: scene; see :func:`catadioptric.epipolar.grow_epipolar`).
 EPI_SHARE = 2.0 / 3.0
+
+# ------------------------------------------------------------------ plane stage (further motions)
+#: Neighbours per ray for the local quadruples of the plane stage: a ray and
+#: three of its 5 nearest. A tilted plane foreshortens one direction, which
+#: reorders the nearest neighbours; 5 keep the four grid neighbours of a
+#: pattern corner under a 2:1 foreshortening.
+PLANE_NEIGHBOURS = 5
+#: Tolerance on a quadruple's affine signature (coordinates of its fourth
+#: ray in the frame of the first three): a homography is affine only to
+#: first order over a quadruple, and the corners carry noise.
+PLANE_SIGNATURE_TOL = 0.15
+#: View-2 quadruples retrieved per view-1 quadruple (nearest signatures).
+PLANE_MATCHES = 8
+#: Trial homographies at most (a seeded random subset beyond): scoring
+#: them locally is cheap, growing them is not.
+PLANE_TRIALS = 40000
+#: Rays around a trial's quadruple on which it is scored before growth.
+PLANE_LOCAL = 16
+#: Trials grown (best local scores first, at most two per anchor ray).
+PLANE_TRIALS_GROWN = 24
+#: Neighbourhood sizes (nearest rays of the anchor) of the growth.
+PLANE_GROWTH = (12, 24, 48, 96)
+#: Level of the sign test between rival mappings of a repeated pattern: a
+#: rival that explains more rays replaces the winner only when the rays
+#: one explains and the other does not are this unlikely to split so
+#: unevenly by chance (a shift by one period of an 8 x 6 pattern leaves
+#: 6 or 8 corners unexplained: p = 0.016 or 0.004).
+PATTERN_ALPHA = 0.05
+#: A further motion is a new motion only when at most this share of its
+#: pairs already fits an earlier motion (else it is more of that motion,
+#: e.g. a wall of the scene seen by a moving camera, and the peeling stops).
+PEEL_OVERLAP = 0.5

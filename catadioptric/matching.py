@@ -84,6 +84,7 @@ from catadioptric.constants import (
     WIDE_CLUSTER_FACTOR,
 )
 from catadioptric.epipolar import epipolar_stage, essential_from_motion
+from catadioptric.peeling import SphereMotion, peel
 from catadioptric.rotation import (
     dominant_rotation,
     grow_local,
@@ -99,7 +100,7 @@ from gatv.stats import chance_support
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["SphereMatch", "match", "sphere_noise"]
+__all__ = ["SphereMatch", "SphereMotion", "match", "sphere_noise"]
 
 
 
@@ -140,6 +141,12 @@ class SphereMatch:
         epipole of view 1's centre in view 2) for the ``"epipolar"``
         strategy; None otherwise (also for a pure rotation, where ``t``
         is not defined).
+    motions : tuple of SphereMotion
+        Every motion found, the dominant one first, each with its own
+        correspondences, rotation and translation direction (a plane moved
+        rigidly also has its homography); :attr:`correspondences` is their
+        union. ``rotation``, ``translation`` and ``strategy`` above are the
+        first motion's.
     """
 
     correspondences: NDArray[np.int64]
@@ -153,8 +160,10 @@ class SphereMatch:
     noise: float
     info: dict = field(default_factory=dict)
     translation: NDArray[np.float64] | None = None
+    motions: tuple = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "motions", tuple(self.motions))
         object.__setattr__(self, "correspondences",
                            _frozen(np.asarray(self.correspondences).reshape(-1, 2), np.int64))
         for name in ("rays1", "rays2"):
@@ -210,6 +219,7 @@ class SphereMatch:
             "noise": self.noise,
             "n_rays1": int(self.rays1.shape[0]),
             "n_rays2": int(self.rays2.shape[0]),
+            "motions": [m.to_dict() for m in self.motions],
         }
 
 
@@ -313,6 +323,7 @@ def match(
     rigid_share: float = 0.9,
     shape_tolerance: float = 0.15,
     cluster_deg: float = 4.0,
+    max_motions: int = 3,
     seed: int | np.random.Generator = 0,
     progress=None,
     memory_budget: float | None = None,
@@ -358,6 +369,12 @@ def match(
         relative change of a triangle's sides that parallax may cause).
     cluster_deg : float, default: 4.0
         Radius of the cluster of trial rotations, degrees.
+    max_motions : int, default: 3
+        Most motions reported. After the dominant motion, the rays it
+        leaves unexplained are searched for a plane moved rigidly (a
+        homography of the sphere, :mod:`catadioptric.plane`), again and
+        again (:func:`catadioptric.peeling.peel`); 1 reports the dominant
+        motion only.
     seed : int or numpy.random.Generator, default: 0
         Seed of the random stages (the epipolar RANSAC samples and the
         non-rigid stage): an integer ``>= 0`` (same seed, same result) or
@@ -420,6 +437,10 @@ def match(
     progress = check_progress(progress)
     if memory_budget is not None:
         memory_budget = _check_real(memory_budget, "memory_budget")
+    if isinstance(max_motions, bool) or not isinstance(max_motions, numbers.Integral) or max_motions < 1:
+        msg = f"Expected `max_motions` to be an integer >= 1, got {max_motions!r}."
+        raise InputError(msg)
+    max_motions = int(max_motions)
 
     progress(0.0, "lifting the pixels to the sphere")
     r1, index1 = _lift(camera1, p1)
@@ -444,16 +465,39 @@ def match(
                 used, reason = "none", (
                     f"ambiguous (repeated structure): the {used} match of {pairs.shape[0]} pairs has a "
                     f"rival with other partners for {rival_support} rays")
-                # the motion is as ambiguous as the pairs
+                # the motion is as ambiguous as the pairs; the plane stage
+                # below compares whole-pattern supports instead
                 pairs, rotation, rot_support, motion = np.empty((0, 2), np.int64), None, 0, None
-        out = np.column_stack([index1[pairs[:, 0]], index2[pairs[:, 1]]]) if pairs.size else pairs
-        out = out[np.argsort(out[:, 0], kind="stable")]
+        motions = []
+        if pairs.shape[0]:
+            first = np.column_stack([index1[pairs[:, 0]], index2[pairs[:, 1]]])
+            motions.append((SphereMotion(first, used, rotation, motion), pairs))
+        if max_motions > len(motions) and r1.shape[0] >= 5 and r2.shape[0] >= 5:
+            t_p = time.perf_counter()
+            peel(motions, r1, r2, s1, s2, index1, index2, noise, np.random.default_rng(seed),
+                 max_motions=max_motions, progress=progress, info=info)
+            info["time_peel_s"] = time.perf_counter() - t_p
+        if motions and reason is not None:
+            # the first motion is the plane stage's: say what the dominant stages found
+            if reason.startswith("ambiguous"):
+                info["resolved"] = reason + "; resolved by whole-pattern support (plane stage)"
+            else:
+                info["dominant_reason"] = reason
+            reason = None
+        if motions and used == "none":
+            used = motions[0][0].strategy
+            rotation, motion = motions[0][0].rotation, motions[0][0].translation
+        found = tuple(m for m, _ in motions)
+        allp = np.vstack([m.correspondences for m in found]) if found else np.empty((0, 2), np.int64)
+        allp = allp[np.argsort(allp[:, 0], kind="stable")]
         if reason is not None:
             info["reason"] = reason
+        elif not found:
+            info["reason"] = "nothing matched"
         info["time_s"] = time.perf_counter() - t_start
         progress(1.0, "done")
-        return SphereMatch(out, r1, r2, index1, index2, rotation, rot_support, used, noise, info,
-                           translation=motion)
+        return SphereMatch(allp, r1, r2, index1, index2, rotation, rot_support, used, noise, info,
+                           translation=motion, motions=found)
 
     if r1.shape[0] < 3 or r2.shape[0] < 3:
         return result([], None, 0, "none", "fewer than 3 liftable pixels in a view")

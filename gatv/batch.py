@@ -483,6 +483,14 @@ def _script_folders(fn: Callable) -> list[str]:
     return list(dict.fromkeys(folders))
 
 
+def _cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells, else the count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def _import_distributed():
     try:
         import distributed
@@ -521,7 +529,7 @@ def connect(scheduler="local", *, workers: int | None = None, timeout: float = 1
         yield scheduler
         return
     if scheduler in (None, "local"):
-        cores = os.cpu_count() or 1
+        cores = _cores()
         n = check_int(workers, "workers", 1, allow_none=True) or cores
         threads = str(max(1, cores // n))
         env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,

@@ -42,6 +42,7 @@ __all__ = [
     "REFINE_LEVELS",
     "MLS_NEIGHBOURS",
     "grid_subsample",
+    "dense_rows",
     "LocalAffineWarp",
     "loo_affine_residuals",
     "memory_estimate",
@@ -59,7 +60,7 @@ _BLOCK = 20_000
 
 
 # ------------------------------------------------------------------ subsampling
-def grid_subsample(points, n: int) -> np.ndarray:
+def grid_subsample(points, n: int, *, min_share: float = 0.0) -> np.ndarray:
     """Indices of about ``n`` points, one per occupied voxel (the point nearest its centre).
 
     The voxel edge is found by bisection so that the number of occupied
@@ -70,6 +71,10 @@ def grid_subsample(points, n: int) -> np.ndarray:
     ----------
     points : (N, 3) ndarray of float
     n : int
+    min_share : float, default: 0
+        Skip voxels holding fewer than this share of the median count that a
+        point sees in its voxel: a few points scattered through the volume
+        (outliers) then take no share of the subsample.
 
     Returns
     -------
@@ -94,29 +99,51 @@ def grid_subsample(points, n: int) -> np.ndarray:
     best = None
     for _ in range(30):
         edge = np.sqrt(lo * hi)
-        keys, inverse = _cells(p, lo_corner, edge)
-        k = keys.shape[0]
+        inverse = _cells(p, lo_corner, edge)
+        counts = np.bincount(inverse)
+        full = np.ones(counts.size, bool)
+        if min_share > 0:  # the median count seen by a point, not by a cell
+            full = counts >= min_share * float(np.median(counts[inverse]))
+        k = int(full.sum())
         if best is None or abs(k - n) < abs(best[0] - n):
-            best = (k, edge, inverse)
+            best = (k, edge, inverse, full)
         if abs(k - n) <= 0.1 * n:
             break
         if k > n:
             lo = edge
         else:
             hi = edge
-    _, edge, inverse = best
+    _, edge, inverse, full = best
     centre = lo_corner + (np.floor((p - lo_corner) / edge) + 0.5) * edge
     d = np.sum((p - centre) ** 2, axis=1)
     order = np.lexsort((np.arange(N), d, inverse))  # by cell, then nearest the centre
     first = np.ones(N, bool)
     first[1:] = inverse[order][1:] != inverse[order][:-1]
-    return np.sort(order[first])
+    chosen = order[first]
+    return np.sort(chosen[full[inverse[chosen]]])
 
 
 def _cells(p, corner, edge):
     ijk = np.floor((p - corner) / edge).astype(np.int64)
-    keys, inverse = np.unique(ijk, axis=0, return_inverse=True)
-    return keys, inverse.reshape(-1)
+    _, inverse = np.unique(ijk, axis=0, return_inverse=True)
+    return inverse.reshape(-1)
+
+
+def dense_rows(points, k: int = 8, ratio: float = 2.5) -> np.ndarray:
+    """Rows whose ``k``-th neighbour is within ``ratio`` times the 25th percentile of that distance.
+
+    A surface sampled at spacing ``h`` has its ``k``-th neighbour at about
+    ``h sqrt(k / π)``; outliers scattered through the volume are much
+    farther apart.  Used to keep the coarse subsample and the window
+    centres on the structure (the full-resolution matching sees every row).
+    Returns all rows when fewer than ``2 k`` points.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[0] < 2 * k:
+        return np.arange(p.shape[0])
+    d = cKDTree(p).query(p, k=k + 1)[0][:, -1]
+    keep = np.flatnonzero(d <= ratio * float(np.percentile(d, 25)))
+    return keep if keep.size >= 2 * k else np.arange(p.shape[0])
 
 
 # ------------------------------------------------------------------ local affine fits

@@ -381,13 +381,15 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     info: dict = {"n_source": int(n1), "n_target": int(n2), "multiscale": True,
                   "memory_estimate_bytes": need}
     floor = settings.noise_floor
-    spacing = median_spacing(Y)
     tree_y = cKDTree(Y)
     X0 = X
 
     # 1. pre-alignment by the dominant rigid/similarity motion
     prior = None
-    si, ti = ms.grid_subsample(X, coarse_points), ms.grid_subsample(Y, coarse_points)
+    dx, dy = ms.dense_rows(X), ms.dense_rows(Y)  # on the structure, not among scattered outliers
+    spacing = median_spacing(Y[dy])
+    si = dx[ms.grid_subsample(X[dx], coarse_points, min_share=0.25)]
+    ti = dy[ms.grid_subsample(Y[dy], coarse_points, min_share=0.25)]
     coarse_spacing = median_spacing(Y[ti])
     if settings.prealign is True:
         report(0.02, f"pre-alignment ({settings.model})")
@@ -456,6 +458,14 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
                         spacing, spacing, floor, max_iter=2)
     if refined.pairs.shape[0] >= 4:
         pairs = refined.pairs
+    # matches no farther from the local affine trend than 8 median residuals (as the seeds on
+    # exact data): a match shifted by one sample stands out by about a spacing
+    res = ms.loo_affine_residuals(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])
+    if res.size:
+        keep = res <= min(gate, 8.0 * float(np.median(res)) + floor + 1e-9 * spacing)
+        if keep.sum() >= 4:
+            info["n_trend_rejected"] = int((~keep).sum())
+            pairs = pairs[keep]
     passed, R, t = ms.local_eq41_pairs(X, Y, pairs, settings.strain, gate)
     info.update(n_eq41_rejected=int((~passed).sum()), gate=gate, spacing=spacing)
     pairs, R, t = pairs[passed], R[passed], t[passed]
@@ -470,7 +480,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
 #: Full-resolution windows tried before the multi-resolution path gives up.
 MAX_WINDOWS = 4
 #: A window's direct solve gives the seeds when it matches this share of its smaller set.
-MIN_WINDOW_SHARE = 0.25
+MIN_WINDOW_SHARE = 0.15
 
 
 def _window_order(X, coarse, si, window_points: int) -> np.ndarray:

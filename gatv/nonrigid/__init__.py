@@ -1,9 +1,11 @@
 """Non-rigid registration: the local-constraint mode of section 5.1.
 
->>> from gatv.nonrigid import register, NonRigidMotion
+>>> from gatv.nonrigid import register, segment, NonRigidMotion
 >>> from gatv.nonrigid import deformations
 
-See :mod:`gatv.nonrigid.registration` for the algorithm and
+See :mod:`gatv.nonrigid.registration` for the algorithm,
+:mod:`gatv.nonrigid.multiscale` for the multi-resolution path (10⁴–10⁵
+points), :mod:`gatv.nonrigid.segment` for several non-rigid motions, and
 :mod:`gatv.nonrigid.deformations` for the generators used by the tests,
 benchmarks and gallery.
 """
@@ -13,5 +15,7 @@ from __future__ import annotations
 from . import deformations
 from .motion import Diagnostics, NonRigidMotion
 from .registration import register
+from .segment import NonRigidSegmentation, segment
 
-__all__ = ["register", "NonRigidMotion", "Diagnostics", "deformations"]
+__all__ = ["register", "segment", "NonRigidMotion", "NonRigidSegmentation", "Diagnostics",
+           "deformations"]

@@ -1,0 +1,250 @@
+"""Several non-rigid motions between two point sets (the paper's conclusion's next step).
+
+:func:`segment` peels non-rigid motions one after another, as
+:func:`gatv.motions.segment` peels rigid ones: :func:`gatv.nonrigid.register`
+on the points no motion explains yet; its matches split into the parts that
+are connected in the source *and* move continuously — two matches are
+neighbours when their source points are within three matched spacings and
+their displacements agree up to the local strain (the tolerance of the
+local eq. 41, ``strain · |Δx| + gate``) — so two bodies that move
+independently become two motions even when one smooth warp was fitted
+through both; each part with enough support is a motion; its matched points
+and the unmatched points lying among them (within one spacing) leave the
+pool, and the search repeats until nothing beats chance.  The number of
+motions is not given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .._validation import as_points, check_fraction, check_int, check_progress, seed_int
+from .._validation import frozen_array as _frozen
+from ..candidates import median_spacing
+from .motion import NonRigidMotion
+from .registration import register
+
+__all__ = ["NonRigidSegmentation", "segment", "motion_parts"]
+
+
+@dataclass(frozen=True, eq=False)
+class NonRigidSegmentation:
+    """Non-rigid motions found between two point sets, and who belongs to which.
+
+    Attributes
+    ----------
+    motions : tuple of NonRigidMotion
+        Largest support first; correspondences in rows of the inputs; no
+        source or target row is in two motions.
+    source_labels, target_labels : (N,), (M,) ndarray of int
+        Index into ``motions`` of each row's motion, ``-1`` when none
+        explains it.  Unmatched rows lying among a motion's matched points
+        (within one spacing) carry its label.
+    info : dict
+        Per round: the registration's hypothesis and support, the parts
+        found; the reason the peeling stopped.  Not compared.
+    """
+
+    motions: tuple
+    source_labels: np.ndarray
+    target_labels: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "motions", tuple(self.motions))
+        object.__setattr__(self, "source_labels", _frozen(self.source_labels, np.int64))
+        object.__setattr__(self, "target_labels", _frozen(self.target_labels, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.motions)
+
+    def __bool__(self) -> bool:
+        return len(self.motions) > 0
+
+    def __iter__(self):
+        return iter(self.motions)
+
+    def __getitem__(self, k) -> NonRigidMotion:
+        return self.motions[k]
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dictionary."""
+        return {
+            "model": "nonrigid",
+            "n_motions": len(self.motions),
+            "motions": [m.to_dict() for m in self.motions],
+            "source_labels": self.source_labels.tolist(),
+            "target_labels": self.target_labels.tolist(),
+        }
+
+    def __repr__(self) -> str:
+        return f"NonRigidSegmentation({len(self.motions)} motions: {[m.support for m in self.motions]})"
+
+
+def motion_parts(source_points, target_points, strain: float, gate: float) -> np.ndarray:
+    """Label the matches by connected part: near in the source and moving continuously.
+
+    Matches ``a`` and ``b`` are joined when ``|x_a − x_b|`` is at most three
+    median matched spacings and ``|d_a − d_b| <= strain |x_a − x_b| + gate``
+    (the length half of the local eq.-41 tolerance: a locally rigid motion
+    changes the displacement between neighbours by at most the local strain).
+
+    Returns
+    -------
+    (K,) ndarray of int
+        Part label of each match, 0 for the largest part.
+    """
+    xs = np.asarray(source_points, dtype=np.float64)
+    d = np.asarray(target_points, dtype=np.float64) - xs
+    k = xs.shape[0]
+    if k < 2:
+        return np.zeros(k, np.int64)
+    radius = 3.0 * median_spacing(xs)
+    a, b = cKDTree(xs).query_pairs(radius, output_type="ndarray").T
+    ok = np.linalg.norm(d[a] - d[b], axis=1) <= strain * np.linalg.norm(xs[a] - xs[b], axis=1) + gate
+    graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    rank = np.empty_like(sizes)
+    rank[np.argsort(-sizes, kind="stable")] = np.arange(sizes.size)
+    return rank[labels]
+
+
+def segment(
+    source,
+    target,
+    *,
+    max_motions: int = 8,
+    min_share: float = 0.05,
+    strain: float = 0.35,
+    seed=0,
+    progress=None,
+    **options,
+) -> NonRigidSegmentation:
+    """Find several non-rigid motions, their number unknown, with per-point labels.
+
+    Parameters
+    ----------
+    source, target : (N, 3), (M, 3) array_like or object with ``.points``
+    max_motions : int, default: 8
+        Stop after this many motions.
+    min_share : float, default: 0.05
+        A part counts as a motion when it holds at least this share of the
+        smaller set (and 10 matches).
+    strain : float, default: 0.35
+        Local strain of the continuity test (:func:`motion_parts`) and of
+        :func:`gatv.nonrigid.register`.
+    seed : int or numpy.random.Generator, default: 0
+    progress : callable, optional
+        ``progress(fraction, message)`` at each round.
+    **options
+        Passed to :func:`gatv.nonrigid.register` (``noise``,
+        ``memory_budget``, ``multiscale``...).
+
+    Returns
+    -------
+    NonRigidSegmentation
+        Falsy when no motion beats chance (``info["reason"]``).
+
+    Raises
+    ------
+    gatv.errors.InputError
+        As :func:`gatv.nonrigid.register`, and for bad ``max_motions`` or
+        ``min_share``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gatv.nonrigid import segment, deformations as D
+    >>> a = D.sample_plane(100, 10.0, seed=0)
+    >>> b = a + [14.0, 0, 0]
+    >>> seg = segment(np.vstack([a, b]), np.vstack([D.twist(a, 45.0), D.bend(b, 60.0) + [0, 0, 3]]))
+    >>> first, second = seg.source_labels[:100], seg.source_labels[100:]
+    >>> len(seg), bool(np.mean(first == first[0]) > 0.95 and np.mean(second == 1 - first[0]) > 0.95)
+    (2, True)
+    """
+    X = as_points(source, "source", min_points=4)
+    Y = as_points(target, "target", min_points=4)
+    max_motions = check_int(max_motions, "max_motions", 1)
+    min_share = check_fraction(min_share, "min_share")
+    strain = check_fraction(strain, "strain", high=np.inf, open_low=False)
+    report = check_progress(progress)
+    base_seed = seed_int(seed)
+    least = max(10, int(np.ceil(min_share * min(X.shape[0], Y.shape[0]))))
+    src_lab = np.full(X.shape[0], -1, np.int64)
+    tgt_lab = np.full(Y.shape[0], -1, np.int64)
+    motions: list[NonRigidMotion] = []
+    rounds: list[dict] = []
+    reason = f"reached max_motions={max_motions}"
+    while len(motions) < max_motions:
+        rs, rt = np.flatnonzero(src_lab < 0), np.flatnonzero(tgt_lab < 0)
+        if min(rs.size, rt.size) < least:
+            reason = "fewer unexplained points than a motion needs"
+            break
+        report(len(motions) / max_motions, f"round {len(rounds) + 1}: {rs.size} x {rt.size} points")
+        try:
+            m = register(X[rs], Y[rt], seed=base_seed + len(rounds), strain=strain, **options)
+        except ValueError as exc:  # e.g. the remaining points are collinear
+            if "collinear" in str(exc) or "identical" in str(exc):
+                reason = f"the remaining points have no structure ({exc})"
+                break
+            raise
+        record = {"support": m.support, "hypothesis": m.info.get("hypothesis")}
+        rounds.append(record)
+        if m.support < least:
+            reason = m.info.get("reason", "no motion beats chance among the remaining points")
+            break
+        pairs = np.column_stack([rs[m.correspondences[:, 0]], rt[m.correspondences[:, 1]]])
+        gate = float(m.info.get("gate", 0.5 * median_spacing(Y[rt])))
+        parts = motion_parts(X[pairs[:, 0]], Y[pairs[:, 1]], strain, gate)
+        sizes = np.bincount(parts)
+        record["parts"] = sizes.tolist()
+        added = 0
+        for p in np.flatnonzero(sizes >= least):
+            if len(motions) >= max_motions:
+                break
+            sel = pairs[parts == p]
+            motions.append(_sub_motion(m, parts == p, sel))
+            label = len(motions) - 1
+            src_lab[sel[:, 0]] = label
+            tgt_lab[sel[:, 1]] = label
+            added += 1
+        if added == 0:
+            reason = "the registration's matches split into parts too small to count"
+            break
+    # unmatched rows among a motion's matched points carry its label
+    for k, mo in enumerate(motions):
+        _absorb(X, src_lab, mo.correspondences[:, 0], k)
+        _absorb(Y, tgt_lab, mo.correspondences[:, 1], k)
+    order = np.argsort([-mo.support for mo in motions], kind="stable")
+    remap = np.full(len(motions) + 1, -1, np.int64)
+    remap[order] = np.arange(len(motions))
+    info = {"rounds": rounds, "min_support": least}
+    if not motions:
+        info["reason"] = reason
+    else:
+        info["stopped"] = reason
+    report(1.0, f"done: {len(motions)} motions")
+    return NonRigidSegmentation([motions[i] for i in order], remap[src_lab], remap[tgt_lab], info)
+
+
+def _sub_motion(m: NonRigidMotion, rows, pairs) -> NonRigidMotion:
+    """The part ``rows`` of ``m``'s matches as a motion, with input-row correspondences."""
+    smoothing = m.smoothing if int(rows.sum()) == m.support else 0.0
+    return NonRigidMotion(pairs, m.source_points[rows], m.target_points[rows], m.rotations[rows],
+                          m.translations[rows], smoothing, None, dict(m.info))
+
+
+def _absorb(P, labels, matched, k: int) -> None:
+    """Give label ``k`` to unlabelled rows within one matched spacing of ``k``'s matched rows."""
+    free = np.flatnonzero(labels < 0)
+    if free.size == 0 or matched.size < 2:
+        return
+    pts = P[matched]
+    d, _ = cKDTree(pts).query(P[free], k=1, distance_upper_bound=median_spacing(pts))
+    labels[free[np.isfinite(d)]] = k

@@ -158,8 +158,8 @@ PLANE_MATCHES = 8
 PLANE_TRIALS = 40000
 #: Rays around a trial's quadruple on which it is scored before growth.
 PLANE_LOCAL = 16
-#: Trials grown (best local scores first, at most two per anchor ray).
-PLANE_TRIALS_GROWN = 24
+#: Trials grown (best local scores first, one per anchor ray).
+PLANE_TRIALS_GROWN = 40
 #: Neighbourhood sizes (nearest rays of the anchor) of the growth.
 PLANE_GROWTH = (12, 24, 48, 96)
 #: Level of the sign test between rival mappings of a repeated pattern: a

@@ -85,6 +85,7 @@ from catadioptric.constants import (
 )
 from catadioptric.epipolar import epipolar_stage, essential_from_motion
 from catadioptric.peeling import SphereMotion, peel
+from catadioptric.voting import voting_stage
 from catadioptric.rotation import (
     dominant_rotation,
     grow_local,
@@ -100,7 +101,10 @@ from gatv.stats import chance_support
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["SphereMatch", "SphereMotion", "match", "sphere_noise"]
+__all__ = ["STRATEGIES", "SphereMatch", "SphereMotion", "match", "sphere_noise"]
+
+#: The values of ``match``'s ``strategy``.
+STRATEGIES = ("auto", "rigid", "local", "epipolar", "nonrigid", "voting")
 
 
 
@@ -130,7 +134,7 @@ class SphereMatch:
     rotation_support : int
         Pairs within the noise gate of the pure rotation ``y ≈ R x``
         (one-to-one; 0 when no rotation beat the chance level).
-    strategy : {"rigid", "local", "epipolar", "nonrigid", "none"}
+    strategy : {"rigid", "local", "epipolar", "nonrigid", "voting", "plane", "none"}
         Which stage gave ``correspondences``.
     noise : float
         Median sphere noise of the rays (unit-sphere units, per axis).
@@ -348,8 +352,11 @@ def match(
         and the noise on the sphere differs from ray to ray (the lifting's
         Jacobian); :attr:`SphereMatch.noise` reports its median on the
         sphere.
-    strategy : {"auto", "rigid", "local", "epipolar", "nonrigid"}, default: "auto"
-        ``"rigid"``: pure camera rotation only; ``"local"``: locally rigid
+    strategy : {"auto", "rigid", "local", "epipolar", "nonrigid", "voting"}, default: "auto"
+        ``"voting"``: the paper's method (end of section 5.1): the
+        candidate pairs after the dominant rotation form a curved surface
+        in the joint space, found by tensor voting and checked with the
+        local eq. 41 (:mod:`catadioptric.voting`); ``"rigid"``: pure camera rotation only; ``"local"``: locally rigid
         growth after the rotation; ``"epipolar"``: matching along the
         epipolar arcs of a recovered motion (R, t); ``"nonrigid"``: the
         local-constraint mode of :func:`gatv.nonrigid.register` after the
@@ -427,9 +434,9 @@ def match(
     shape_tolerance = _check_real(shape_tolerance, "shape_tolerance")
     cluster_deg = _check_real(cluster_deg, "cluster_deg")
     rigid_share = _check_real(rigid_share, "rigid_share")
-    if strategy not in ("auto", "rigid", "local", "epipolar", "nonrigid"):
-        msg = (f"Expected `strategy` to be 'auto', 'rigid', 'local', 'epipolar' or 'nonrigid', "
-               f"got {strategy!r}.")
+    if strategy not in STRATEGIES:
+        msg = (f"Expected `strategy` to be 'auto', 'rigid', 'local', 'epipolar', 'nonrigid' or "
+               f"'voting', got {strategy!r}.")
         raise InputError(msg)
     as_rng(seed)  # validates: an integer >= 0 or a Generator
     # one integer for the random stages (an int seed is used as it is)
@@ -525,6 +532,15 @@ def match(
 
     # Stage 3: locally rigid matching (translation: parallax).
     rot_support = int(rigid.shape[0])
+    if strategy == "voting":
+        # the paper's method: tensor voting on the candidate pairs, local eq. 41
+        progress(0.3, "tensor voting on the candidate pairs")
+        t0 = time.perf_counter()
+        voted = voting_stage(r1, r2, tree2, s1, s2, R, noise, max_parallax, chance, info, memory_budget)
+        info["time_voting_s"] = time.perf_counter() - t0
+        if voted.shape[0] == 0:
+            return result([], R, rot_support, "none", info.get("voting_reason", "nothing matched"))
+        return result(voted, R, rot_support, "voting")
     if strategy == "auto" and R is not None and rigid.shape[0] >= rigid_share * min(r1.shape[0], r2.shape[0]):
         return result(rigid, R, rot_support, "rigid")
     progress(0.3, "growing locally rigid matches")

@@ -125,14 +125,17 @@ def plane_motion(r1, r2, s1, s2, rows1, rows2, gate, rng, info):
 
     Kept when its support reaches the chance level of those rays
     (:func:`gatv.stats.chance_support` over the area they cover, with the
-    4 pairs that fix a homography), recorded in ``info["chance_support"]``.
+    4 pairs that fix a homography, at the family-wise level over all the
+    trial mappings), recorded in ``info["chance_support"]``.
     """
     sub1, sub2 = r1[rows1], r2[rows2]
     res = plane_stage(sub1, sub2, s1[rows1], s2[rows2], rng, info)
     if res is None:
         return None
     H, pairs = res
-    chance = chance_support(rows1.size, rows2.size, cap_area(sub2), gate, alpha=CHANCE_ALPHA, dim=2,
+    # every trial mapping is a test (Bonferroni): the search picks the best of them
+    chance = chance_support(rows1.size, rows2.size, cap_area(sub2), gate,
+                            n_tests=max(1, info.get("plane_trials", 1)), alpha=CHANCE_ALPHA, dim=2,
                             sample_size=4)
     info["chance_support"] = int(chance)
     info["plane_support"] = int(pairs.shape[0])

@@ -378,7 +378,14 @@ def resolve_pattern(candidates, r1, r2, tree2, s1, s2, *, alpha=PATTERN_ALPHA, m
         """The rivals that explain significantly more of view 1's rays than ``w`` (sign test)."""
         return [c for c in pool if c[1].shape[0] > w[1].shape[0] and _compare(c[1], w[1], n1) < alpha]
 
-    win = max(pool, key=rank)
+    def choose():
+        # whole-pattern support first: a mapping that leaves significantly
+        # more rays unexplained than another loses, however tight its fit;
+        # among the rest the best fit wins
+        standing = [c for c in pool if not beaten(c)]
+        return max(standing or pool, key=rank)
+
+    win = choose()
     tested = set()
     for _ in range(max_rounds):
         key = win[1].tobytes()
@@ -388,14 +395,7 @@ def resolve_pattern(candidates, r1, r2, tree2, s1, s2, *, alpha=PATTERN_ALPHA, m
         for H, p in _shift_rivals(win[0], win[1], r1, r2, tree2, s1, s2):
             if p.shape[0] >= 5:
                 pool.append((H, p))
-        win = max(pool, key=rank)
-        # whole-pattern support first: a mapping that leaves significantly
-        # more rays unexplained loses, however tight its fit
-        for _ in range(len(pool)):
-            better = beaten(win)
-            if not better:
-                break
-            win = max(better, key=rank)
+        win = choose()
     # rivals with other partners: the strongest, and whether the sign test tells it apart
     info = {"rivals_tested": len(pool)}
     own = set(map(tuple, win[1].tolist()))
@@ -505,15 +505,19 @@ def plane_stage(r1, r2, s1, s2, rng, info, *, tree2=None):
     jj = np.where(hit, j, 0)
     hit &= d <= 2.0 * GATE_SIGMAS * np.sqrt(s1[ii] ** 2 + s2[jj] ** 2)
     score = hit.reshape(rows.shape).sum(axis=1)
-    order = np.argsort(-score, kind="stable")
+    # equal local scores in random order: the grown trials then spread over
+    # the rays (on a regular pattern every lattice-consistent trial scores
+    # the same locally, and growth tells them apart)
+    shuffle = rng.permutation(score.size)
+    order = shuffle[np.argsort(-score[shuffle], kind="stable")]
     grown = []
     used_anchor = {}
     for t in order:
         if len(grown) >= PLANE_TRIALS_GROWN or score[t] < 5:
             break
         a = int(anchors[t])
-        # a few trials per anchor: the others are mostly the same mapping
-        if used_anchor.get(a, 0) >= 2:
+        # one trial per anchor: the others are mostly the same mapping
+        if used_anchor.get(a, 0) >= 1:
             continue
         used_anchor[a] = used_anchor.get(a, 0) + 1
         grown.append(grow_homography(Hs[t], r1, r2, tree2, s1, s2, a))

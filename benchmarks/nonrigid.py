@@ -1,42 +1,57 @@
-"""Non-rigid registration: gatv.nonrigid vs the rigid mode vs Coherent Point Drift.
+"""Non-rigid registration at real scale: gatv.nonrigid vs Coherent Point Drift, BCPD and FilterReg.
 
-Cases (each with 0% and 50% outliers added to both sets, uniform in each
-set's bounding box, shuffled):
+Rows (``--cases`` picks groups by name; ``--fractions`` the outlier shares,
+default 0 and 0.5; outliers uniform in each set's bounding box):
 
-* a 10 × 10 plane sampled with 400 points (jittered grid), twisted by 30°,
-  60° and 90° over its length (the paper's Fig. 13);
-* the plane bent by 90° around a cylinder (a 3D *curve* in the joint space);
-* the plane with smooth random elastic warps (6 Gaussian bumps) of growing
-  amplitude;
-* the plane folded about a hinge (piecewise rigid);
-* the real face expressions of ``shared/data/nonrigid_bcpd_face`` (x → y and
-  x → g.y), the same ``--face-points`` rows drawn from both (exact row
-  correspondence); skipped when the data is absent.
+* ``face``: the real face expressions of ``shared/data/nonrigid_bcpd_face``,
+  all 23,728 rows, x → y and x → g.y, the same rows in both (exact truth);
+  and x → y *differently sampled* (each set an independent 80% of the rows).
+* ``twist``: a 10 × 10 plane (jittered grid) twisted by 90° (Fig. 13) at
+  2k, 10k, 25k and 100k points per set with the same rows, and at 10k and
+  25k differently sampled (independent 80% subsets of 12.5k / 31k points).
+* ``elastic``: the plane under a smooth random warp (6 Gaussian bumps,
+  amplitude 1), 10k and 100k points, the same rows.
+* ``bunny``: ``shared/data/nonrigid_bcpd_bunny`` x → y (rotated about 93°,
+  scaled about 0.83, deformed; 8,171 rows) and bunny-x-co → y (the 1,600-point
+  outlier blob in the source), with the similarity model as pre-alignment
+  (``prealign=True, model="similarity"``); outliers are not added to these.
+* ``two-motion``: a twisted plate and a bent bar, side by side, moving
+  independently (``gatv.nonrigid.segment``; peers register the whole scene).
+* ``small``: the 400-point planes and the 600-row faces of the first
+  non-rigid benchmark (twist 30/60/90°, bend, elastic, hinge).
 
-Methods on the same inputs: ``gatv.nonrigid.register`` (defaults),
-``gatv.register`` (the rigid mode, ``max_triples=5000`` to bound its time;
-its warp is its rigid motion), and non-rigid CPD (``pycpd``
-``DeformableRegistration``, w = the true outlier fraction, 150 iterations;
-its correspondences are the pairs whose posterior exceeds 0.5, made
-one-to-one).  Reported: correspondence precision and recall, mean warp error
-of the source inliers against their true positions, median time.
+Methods: ``gatv`` (``gatv.nonrigid.register`` defaults; ``segment`` on the
+two-motion rows), ``cpd`` (pycpd ``DeformableRegistration``, w = the outlier
+share, 150 iterations), ``bcpd`` (probreg ``registration_bcpd``, 50
+iterations), ``filterreg`` (probreg ``registration_filterreg``, rigid, for
+reference).  Each method runs in its own child process: its **peak RSS** is
+that process's ``ru_maxrss`` (interpreter and imports included, about
+0.2 GB), and a run past ``--timeout`` seconds is reported as such.  A peer
+whose dense M×N / M×M matrices would exceed ``--peer-memory-gb`` is not run
+and is reported "would need X GB"; a peer that is not installed is reported
+"not installed" — no row is skipped silently.
 
-Precision and recall (:func:`gatv.datasets.correspondence_stats`) count a
-found pair as correct only when it is *exactly* a true ``(source index,
-target index)`` pair — no distance tolerance, for every method and every row.
-On the face rows the truth is the row correspondence of the data set (row
-``i`` of ``face-x`` ↔ row ``i`` of ``face-y``), so a pair with a neighbouring
-target row counts as wrong even when it is within a millimetre; at 600 rows
-the point spacing (~4.5 mm) is about the median non-rigid displacement
-(~3.8 mm), so nearest-neighbour matching alone is ~65% correct.  A method
-that reports nothing has precision 0.  ``--trials`` draws new planes,
-warps, outliers and face rows per trial; the table gives medians.
+Scores (every method, every row):
+
+* **exact P / R**: correspondence precision and recall counting only exact
+  ``(source row, target row)`` truth pairs (:func:`gatv.datasets.correspondence_stats`);
+  for differently sampled rows the truth is the rows both subsets share.
+* **≤1 sp**: share of reported pairs whose target is within one target
+  spacing of the source point's true position (pairs with an outlier source
+  count as wrong); **R ≤1 sp**: those pairs over the source inliers that
+  have a target inlier within half a spacing of their true position (the
+  sampling gate: only such a point can be matched).
+* **warp err / sp**: mean distance from the moved source inliers to their
+  true positions, in target spacings.
+* Peers report no correspondences of their own; theirs are the nearest
+  target of each moved source point within the sampling gate (half a
+  spacing), one-to-one — the rule gatv applies to its own final matches.
 
 Usage::
 
-    python benchmarks/nonrigid.py [--trials 1] [--seed 0] [--out benchmarks/results]
-                                  [--methods gatv-nonrigid,gatv-rigid,cpd] [--fractions 0,0.5]
-                                  [--cases twist,face] [--face-points 600]
+    python benchmarks/nonrigid.py [--cases face,twist,elastic,bunny,two-motion] [--sizes 2000,10000,25000]
+                                  [--methods gatv,cpd,bcpd,filterreg] [--fractions 0,0.5] [--trials 1]
+                                  [--timeout 600] [--peer-memory-gb 4] [--scheduler ADDRESS]
 
 writes ``nonrigid.csv`` (every trial) and ``nonrigid.md`` (the table) to ``--out``.
 """
@@ -44,179 +59,453 @@ writes ``nonrigid.csv`` (every trial) and ``nonrigid.md`` (the table) to ``--out
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import shlex
+import subprocess
 import sys
+import tempfile
+import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import Timer, add_common_arguments, fmt, markdown_table, median, trial_seed, write_csv  # noqa: E402
+from _common import (  # noqa: E402
+    add_common_arguments,
+    add_scheduler_argument,
+    fmt,
+    map_trials,
+    markdown_table,
+    median,
+    parse_list,
+    trial_seed,
+    write_csv,
+)
 
-from gatv.datasets import correspondence_stats  # noqa: E402
-from gatv.nonrigid import deformations as deform  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "nonrigid_bcpd_face"
-METHODS = ("gatv-nonrigid", "gatv-rigid", "cpd")
-
-
-def _plane(seed):
-    return deform.sample_plane(400, 10.0, seed=seed)
-
-
-def synthetic_cases():
-    yield "twist 30°", lambda x, rng: deform.twist(x, 30.0)
-    yield "twist 60°", lambda x, rng: deform.twist(x, 60.0)
-    yield "twist 90°", lambda x, rng: deform.twist(x, 90.0)
-    yield "bend 90° (curve)", lambda x, rng: deform.bend(x, 90.0)
-    for amp in (0.5, 1.0, 2.0):
-        yield f"elastic {amp:g}", lambda x, rng, amp=amp: deform.elastic(x, amp, seed=rng)
-    yield "hinge 30° (piecewise)", lambda x, rng: deform.piecewise_rigid(x, 30.0)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+METHODS = ("gatv", "cpd", "bcpd", "filterreg")
+GROUPS = ("face", "twist", "elastic", "bunny", "two-motion", "small")
+DEFAULT_GROUPS = ("face", "twist", "elastic", "bunny", "two-motion")
+DEFAULT_SIZES = (2000, 10000, 25000)
+PEER_MODULE = {"cpd": "pycpd", "bcpd": "probreg", "filterreg": "probreg"}
 
 
-def face_pairs(n_points):
-    """The face expressions as (name, x, y, rows drawn per trial)."""
-    if not (DATA / "face-x.txt").is_file():
-        return []
-    x = np.loadtxt(DATA / "face-x.txt")
-    out = []
-    for name in ("face-y.txt", "face-g.y.txt"):
-        y = np.loadtxt(DATA / name)
-        n = min(n_points, len(x))
-        out.append((f"face x→{name[5:-4]} ({n} pts)", x, y, n))
-    return out
+# ------------------------------------------------------------------ trials
+@dataclass(frozen=True)
+class Case:
+    """One row: how to build its trial (picklable: names and numbers only)."""
+
+    name: str
+    kind: str  # "plane", "face", "bunny", "two", "small-plane", "small-face"
+    n: int = 0  # points per set (planes) or rows drawn (small faces)
+    warp: str = ""  # twist90, elastic, face-y, face-g.y, ...
+    sampled: bool = False  # independent 80% subsets
+    outliers_ok: bool = True  # outliers are added at f > 0
 
 
-# ------------------------------------------------------------------ methods
-def run_nonrigid(src, tgt, f):
+@dataclass(frozen=True)
+class Trial:
+    """Inputs with their truth: exact pairs and each source inlier's true position."""
+
+    source: np.ndarray
+    target: np.ndarray
+    true_pairs: np.ndarray  # exact (source row, target row)
+    inliers: np.ndarray  # source rows with a known true position
+    true_positions: np.ndarray  # (len(inliers), 3)
+    target_inliers: np.ndarray  # target rows that are not outliers
+    spacing: float  # target inliers' median spacing
+    labels: np.ndarray | None = None  # two-motion rows: motion of each source inlier (0/1)
+
+
+def _plane_pair(case: Case, rng):
+    from gatv.nonrigid import deformations as D
+
+    total = int(round(case.n / 0.8)) if case.sampled else case.n
+    x = D.sample_plane(total, 10.0, seed=rng)
+    if case.warp == "twist90":
+        y = D.twist(x, 90.0)
+    elif case.warp == "elastic":
+        y = D.elastic(x, 1.0, seed=rng)
+    else:
+        raise ValueError(case.warp)
+    return x, y
+
+
+def _load(name):
+    return np.loadtxt(DATA / name)
+
+
+def _subsets(x, y, rng, sampled: bool, share: float = 0.8):
+    """Same rows in both, or two independent ``share`` subsets; returns x_rows, y_rows."""
+    n = x.shape[0]
+    if not sampled:
+        rows = np.arange(n)
+        return rows, rows
+    k = int(round(share * n))
+    return np.sort(rng.choice(n, k, replace=False)), np.sort(rng.choice(n, k, replace=False))
+
+
+def make_trial(case: Case, f: float, rng) -> Trial:
+    """Build the trial of ``case`` at outlier share ``f`` (shuffled, outliers in each box)."""
+    from gatv.candidates import median_spacing
+    from gatv.datasets import outlier_count
+    from gatv.nonrigid import deformations as D
+
+    labels = None
+    if case.kind == "plane":
+        x, y = _plane_pair(case, rng)
+    elif case.kind == "face":
+        x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
+    elif case.kind == "small-face":
+        x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
+        drawn = rng.choice(len(x), size=case.n, replace=False)
+        x, y = x[drawn], y[drawn]
+    elif case.kind == "small-plane":
+        x = D.sample_plane(400, 10.0, seed=rng)
+        y = {"twist30": lambda p: D.twist(p, 30.0), "twist60": lambda p: D.twist(p, 60.0),
+             "twist90": lambda p: D.twist(p, 90.0), "bend90": lambda p: D.bend(p, 90.0),
+             "elastic1": lambda p: D.elastic(p, 1.0, seed=rng),
+             "hinge30": lambda p: D.piecewise_rigid(p, 30.0)}[case.warp](x)
+    elif case.kind == "bunny":
+        x, y = _load(f"nonrigid_bcpd_bunny/{case.warp}.txt"), _load("nonrigid_bcpd_bunny/bunny-y.txt")
+        # bunny-x-co: rows 8171.. are the outlier blob (no true position)
+        n_true = y.shape[0]
+        ps, pt = rng.permutation(x.shape[0]), rng.permutation(n_true)
+        inv_s, inv_t = np.argsort(ps), np.argsort(pt)
+        pairs = np.column_stack([inv_s[:n_true], inv_t])
+        order = np.argsort(pairs[:, 0])  # row m of the truth is original row order[m]
+        return Trial(x[ps], y[pt], pairs[order], pairs[order, 0], y[order], np.arange(n_true),
+                     median_spacing(y))
+    elif case.kind == "two":
+        n = case.n
+        plate = D.sample_plane(n, 10.0, seed=rng)
+        bar = D.sample_plane(n, 10.0, seed=rng) * [1.0, 0.3, 1.0] + [13.0, 0.0, 0.0]
+        x = np.vstack([plate, bar])
+        y = np.vstack([D.twist(plate, 60.0), D.rigid(D.bend(bar, 60.0, axis=(0, 1, 0)), 20.0,
+                                                       axis=(0, 0, 1), translation=(1.0, 2.0, 1.0))])
+        labels = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
+    else:
+        raise ValueError(case.kind)
+    xr, yr = _subsets(x, y, rng, case.sampled)
+    X, Yt, Y = x[xr], y[xr], y[yr]  # source, its true positions, target
+    n_out = outlier_count(f, X.shape[0]) if case.outliers_ok else 0
+    src = np.vstack([X, rng.uniform(X.min(0), X.max(0), (n_out, 3))])
+    tgt = np.vstack([Y, rng.uniform(Y.min(0), Y.max(0), (n_out, 3))])
+    ps, pt = rng.permutation(src.shape[0]), rng.permutation(tgt.shape[0])
+    inv_s, inv_t = np.argsort(ps), np.argsort(pt)
+    common, ix, iy = np.intersect1d(xr, yr, return_indices=True)
+    pairs = np.column_stack([inv_s[ix], inv_t[iy]])
+    pairs = pairs[np.argsort(pairs[:, 0])]
+    inl = inv_s[: X.shape[0]]
+    order = np.argsort(inl)
+    lab = labels[xr][order] if labels is not None else None
+    return Trial(src[ps], tgt[pt], pairs, inl[order], Yt[order], np.sort(inv_t[: Y.shape[0]]),
+                 median_spacing(Y), lab)
+
+
+# ------------------------------------------------------------------ methods (run in a child)
+def nearest_pairs(moved, target, gate):
+    """Nearest target of each moved source point within ``gate``, one-to-one (closest first)."""
+    from scipy.spatial import cKDTree
+
+    from gatv.candidates import one_to_one
+
+    d, j = cKDTree(target).query(moved, k=1, distance_upper_bound=gate)
+    ok = np.flatnonzero(np.isfinite(d))
+    cand = np.column_stack([ok, j[ok]]).astype(np.int64)
+    return cand[one_to_one(cand, d[ok])] if ok.size else cand
+
+
+def run_gatv(src, tgt, f, spacing, kind):
+    if kind == "two":
+        from gatv.nonrigid import segment
+
+        seg = segment(src, tgt)
+        moved = src.copy()
+        pairs = [m.correspondences for m in seg.motions]
+        for k, m in enumerate(seg.motions):
+            rows = np.flatnonzero(seg.source_labels == k)
+            moved[rows] = m.warp(src[rows])
+        return (np.vstack(pairs) if pairs else np.empty((0, 2), np.int64)), moved, {
+            "motions": [p.tolist() for p in pairs]}
     from gatv.nonrigid import register
 
-    m = register(src, tgt)
-    return m.correspondences, m.warp
+    options = {"prealign": True, "model": "similarity"} if kind == "bunny" else {}
+    m = register(src, tgt, **options)
+    info = {k: m.info.get(k) for k in ("hypothesis", "coarse_hypothesis", "n_eq41_rejected", "reason")
+            if k in m.info}
+    return m.correspondences, m.warp(src), info
 
 
-def run_rigid(src, tgt, f):
-    from gatv import register
-
-    m = register(src, tgt, max_triples=5000)
-    return m.correspondences, m.transform
-
-
-def run_cpd(src, tgt, f):
+def run_cpd(src, tgt, f, spacing, kind):
     from pycpd import DeformableRegistration
 
     reg = DeformableRegistration(X=np.asarray(tgt), Y=np.asarray(src), w=min(f, 0.99), max_iterations=150)
     TY, _ = reg.register()
-    P = reg.P  # (M source, N target) posteriors
-    j = np.argmax(P, axis=1)
-    p = P[np.arange(len(j)), j]
-    cand = np.flatnonzero(p > 0.5)
-    pairs = np.stack([cand, j[cand]], axis=1)
-    from gatv.candidates import one_to_one
-
-    pairs = pairs[one_to_one(pairs, -p[cand])] if len(pairs) else np.empty((0, 2), np.int64)
-    def warp(pts):  # CPD's motion field v(z) = G(z, Y) W at any point
-        pts = np.asarray(pts, dtype=float)
-        d2 = ((pts[:, None, :] - reg.Y[None]) ** 2).sum(axis=2)
-        return pts + np.exp(-d2 / (2.0 * reg.beta**2)) @ reg.W
-
-    return pairs, warp
+    return nearest_pairs(TY, tgt, 0.5 * spacing), TY, {}
 
 
-RUNNERS = {"gatv-nonrigid": run_nonrigid, "gatv-rigid": run_rigid, "cpd": run_cpd}
+def run_bcpd(src, tgt, f, spacing, kind):
+    from probreg import bcpd
+
+    tf = bcpd.registration_bcpd(np.asarray(src), np.asarray(tgt), w=min(max(f, 1e-3), 0.99), maxiter=50)
+    moved = np.asarray(tf.transform(np.asarray(src)))
+    return nearest_pairs(moved, tgt, 0.5 * spacing), moved, {}
 
 
-def evaluate(method, trial, f):
-    with Timer() as timer:
+def run_filterreg(src, tgt, f, spacing, kind):
+    from probreg import filterreg
+
+    res = filterreg.registration_filterreg(np.asarray(src), np.asarray(tgt), w=min(f, 0.99), maxiter=50)
+    moved = np.asarray(res.transformation.transform(np.asarray(src)))
+    return nearest_pairs(moved, tgt, 0.5 * spacing), moved, {}
+
+
+RUNNERS = {"gatv": run_gatv, "cpd": run_cpd, "bcpd": run_bcpd, "filterreg": run_filterreg}
+
+
+def peer_bytes(method, n_source, n_target) -> float:
+    """Dense-matrix bytes of a peer: pycpd and probreg's BCPD hold M×N posteriors (and
+    temporaries of that size) and the M×M kernel of the source; FilterReg is O(N)."""
+    if method in ("cpd", "bcpd"):
+        return 8.0 * (3.0 * n_source * n_target + 2.0 * n_source * n_source)
+    return 0.0
+
+
+def child_main(path_in: str, path_out: str) -> int:
+    """Child process: run one method on one trial, write pairs, moved points, time and peak RSS."""
+    import resource
+
+    data = np.load(path_in, allow_pickle=False)
+    meta = json.loads(str(data["meta"]))
+    out = {"error": "", "info": {}}
+    t0 = time.perf_counter()
+    try:
+        pairs, moved, info = RUNNERS[meta["method"]](data["source"], data["target"], meta["f"],
+                                                      meta["spacing"], meta["kind"])
+        out["info"] = info
+    except Exception as exc:  # scored as a failure, reported in the table
+        pairs, moved = np.empty((0, 2), np.int64), np.asarray(data["source"]).copy()
+        out["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())[:160]}"
+    out["time_s"] = time.perf_counter() - t0
+    out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 ** 2
+    np.savez(path_out, pairs=np.asarray(pairs, np.int64).reshape(-1, 2), moved=np.asarray(moved, float),
+             meta=json.dumps(out))
+    return 0
+
+
+def run_isolated(method, trial: Trial, f, kind, timeout):
+    """Run ``method`` in a child process; returns (pairs, moved, time, peak RSS GB, error, info)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        pin, pout = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
+        meta = json.dumps({"method": method, "f": f, "spacing": trial.spacing, "kind": kind})
+        np.savez(pin, source=trial.source, target=trial.target, meta=meta)
+        t0 = time.perf_counter()
         try:
-            pairs, warp = RUNNERS[method](trial.source, trial.target, f)
-            error = ""
-        except Exception as exc:  # a failed run is scored, not fatal
-            pairs, warp, error = np.empty((0, 2), np.int64), None, f"{type(exc).__name__}: {exc}"[:160]
-    precision, recall = correspondence_stats(pairs, trial.true_pairs)
-    werr = trial.warp_error(warp) if warp is not None else float("nan")
-    return precision, recall, werr, timer.seconds, error
+            proc = subprocess.run([sys.executable, __file__, "--child", pin, pout], timeout=timeout,
+                                  capture_output=True, text=True)
+        except subprocess.TimeoutExpired:
+            return None, None, time.perf_counter() - t0, float("nan"), f"did not finish in {timeout:.0f} s", {}
+        if proc.returncode != 0 or not os.path.exists(pout):
+            tail = " ".join((proc.stderr or "").split()[-20:])
+            killed = proc.returncode in (-9, 137)
+            why = "killed (out of memory?)" if killed else f"child failed (rc {proc.returncode}): {tail}"
+            return None, None, time.perf_counter() - t0, float("nan"), why[:200], {}
+        res = np.load(pout, allow_pickle=False)
+        meta = json.loads(str(res["meta"]))
+        return (res["pairs"], res["moved"], meta["time_s"], meta["peak_rss_gb"], meta["error"],
+                meta["info"])
 
 
-def _write(args, argv, headers, rows, csv_rows):
-    table = markdown_table(headers, rows, "lllrrrrr")
+# ------------------------------------------------------------------ scores
+def score(trial: Trial, pairs, moved):
+    """exact P, exact R, share within one spacing, its recall, warp error in spacings."""
+    from scipy.spatial import cKDTree
+
+    from gatv.datasets import correspondence_stats
+
+    nan = float("nan")
+    if pairs is None:
+        return nan, nan, nan, nan, nan
+    prec, rec = correspondence_stats(pairs, trial.true_pairs) if len(trial.true_pairs) else (nan, nan)
+    h = trial.spacing
+    pos = np.full((trial.source.shape[0], 3), np.nan)
+    pos[trial.inliers] = trial.true_positions
+    if len(pairs):
+        d = np.linalg.norm(trial.target[pairs[:, 1]] - pos[pairs[:, 0]], axis=1)
+        good = np.nan_to_num(d, nan=np.inf) <= h
+        within = float(good.mean())
+    else:
+        good, within = np.zeros(0, bool), 0.0
+    tin = trial.target[trial.target_inliers]
+    dm, _ = cKDTree(tin).query(trial.true_positions, k=1)
+    matchable = int(np.sum(dm <= 0.5 * h))
+    rec_within = float(good.sum()) / max(1, matchable)
+    werr = float(np.mean(np.linalg.norm(moved[trial.inliers] - trial.true_positions, axis=1))) / h
+    return prec, rec, within, rec_within, werr
+
+
+def two_motion_scores(trial: Trial, info):
+    """Per true motion: the found motion holding most of its exact pairs, its precision and recall."""
+    if trial.labels is None or "motions" not in info:
+        return ""
+    lab = np.full(trial.source.shape[0], -1)
+    lab[trial.inliers] = trial.labels
+    true_of = {tuple(p) for p in trial.true_pairs.tolist()}
+    out = []
+    for k in (0, 1):
+        n_true = int(np.sum(lab[trial.true_pairs[:, 0]] == k))
+        best = (0.0, 0.0)
+        for p in info["motions"]:
+            p = np.asarray(p, np.int64).reshape(-1, 2)
+            ok = np.array([tuple(q) in true_of for q in p.tolist()], bool) & (lab[p[:, 0]] == k)
+            if len(p) and ok.sum() / max(1, n_true) > best[1]:
+                best = (ok.sum() / len(p), ok.sum() / max(1, n_true))
+        out.append(f"motion {k}: P {best[0]:.3f} R {best[1]:.3f}")
+    return f"{len(info['motions'])} found; " + "; ".join(out)
+
+
+# ------------------------------------------------------------------ one task
+def run_task(task) -> list:
+    """One (case, f, trial) through every method: CSV rows. Module-level and picklable for map_trials."""
+    case, f, k, seed, methods, timeout, peer_gb = task
+    rng = np.random.default_rng(trial_seed(seed, f, k))
+    trial = make_trial(case, f, rng)
+    rows = []
+    for method in methods:
+        base = [case.name, f, method, k, trial.source.shape[0], trial.target.shape[0]]
+        if method in PEER_MODULE:
+            try:
+                __import__(PEER_MODULE[method])
+            except ImportError:
+                rows.append(base + [np.nan] * 7 + [f"not installed ({PEER_MODULE[method]})", ""])
+                continue
+            need = peer_bytes(method, trial.source.shape[0], trial.target.shape[0])
+            if need > peer_gb * 1024 ** 3:
+                rows.append(base + [np.nan] * 7 + [f"would need {need / 1024 ** 3:.1f} GB (over {peer_gb:g} GB)", ""])
+                continue
+        pairs, moved, seconds, rss, error, info = run_isolated(method, trial, f, case.kind, timeout)
+        p, r, w, rw, we = score(trial, pairs, moved)
+        note = two_motion_scores(trial, info) if case.kind == "two" and method == "gatv" else ""
+        if info:
+            extra = {kk: v for kk, v in info.items() if kk != "motions"}
+            note = (note + " " + json.dumps(extra)).strip() if extra else note
+        rows.append(base + [p, r, w, rw, we, seconds, rss, error, note])
+    return rows
+
+
+def cases(groups, sizes):
+    out = []
+    if "face" in groups:
+        out += [Case("face x→y (23,728)", "face", warp="face-y"),
+                Case("face x→g.y (23,728)", "face", warp="face-g.y"),
+                Case("face x→y, sampled 80%/80%", "face", warp="face-y", sampled=True)]
+    if "twist" in groups:
+        out += [Case(f"twist 90°, {n // 1000}k", "plane", n, "twist90") for n in sizes]
+        out += [Case(f"twist 90°, {n // 1000}k sampled 80%/80%", "plane", n, "twist90", sampled=True)
+                for n in sizes if 10_000 <= n <= 25_000]
+    if "elastic" in groups:
+        out += [Case(f"elastic 1, {n // 1000}k", "plane", n, "elastic") for n in sizes if n >= 10_000]
+    if "bunny" in groups:
+        out += [Case("bunny x→y (sim. + deform)", "bunny", warp="bunny-x", outliers_ok=False),
+                Case("bunny x-co→y (+1,600 blob)", "bunny", warp="bunny-x-co", outliers_ok=False)]
+    if "two-motion" in groups:
+        out += [Case("two motions: twisted plate + bent bar (2×400)", "two", 400)]
+    if "small" in groups:
+        out += [Case(f"small plane {w} (400)", "small-plane", 400, w)
+                for w in ("twist30", "twist60", "twist90", "bend90", "elastic1", "hinge30")]
+        out += [Case(f"small face x→{w[5:]} (600)", "small-face", 600, w) for w in ("face-y", "face-g.y")]
+    return out
+
+
+HEADERS = ["case", "outliers", "method", "N", "exact P", "exact R", "≤1 sp", "R ≤1 sp",
+           "warp err / sp", "time (s)", "peak RSS (GB)", "status / notes"]
+CSV_HEADERS = ["case", "f", "method", "trial", "n_source", "n_target", "precision", "recall",
+               "within_one_spacing", "recall_within", "warp_error_spacings", "time_s", "peak_rss_gb",
+               "error", "notes"]
+
+
+def summary_rows(csv_rows):
+    groups: dict = {}
+    for r in csv_rows:
+        groups.setdefault((r[0], r[1], r[2]), []).append(r)
+    rows = []
+    for (name, f, method), rs in groups.items():
+        errs = sorted({r[13] for r in rs if r[13]})
+        notes = sorted({r[14] for r in rs if r[14]})
+        status = "; ".join(errs + notes)[:300]
+        rows.append([name, f"{100 * f:.0f}%", method, rs[0][4],
+                     *(fmt(median(r[c] for r in rs), 3) for c in (6, 7, 8, 9)),
+                     fmt(median(r[10] for r in rs), 3), fmt(median(r[11] for r in rs), 1),
+                     fmt(median(r[12] for r in rs), 2), status])
+    return rows
+
+
+def _write(args, argv, csv_rows):
+    table = markdown_table(HEADERS, summary_rows(csv_rows), "lllrrrrrrrrl")
     args.out.mkdir(parents=True, exist_ok=True)
     command = shlex.join(argv if argv is not None else sys.argv[1:])
     (args.out / "nonrigid.md").write_text(
         f"`python benchmarks/nonrigid.py {command}` ({args.trials} trial(s) per row, medians)\n\n{table}\n")
-    path = write_csv(args.out / "nonrigid.csv",
-                     ["case", "f", "method", "trial", "precision", "recall", "warp_error", "time_s", "error"],
-                     csv_rows)
-    return table, path
+    write_csv(args.out / "nonrigid.csv", CSV_HEADERS, csv_rows)
+    return table
 
 
 def main(argv=None) -> int:
+    argv_list = sys.argv[1:] if argv is None else list(argv)
+    if argv_list[:1] == ["--child"]:
+        return child_main(argv_list[1], argv_list[2])
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_common_arguments(parser, trials=1)
-    parser.add_argument("--face-points", type=int, default=600, help="rows drawn from each face (default: 600)")
-    parser.add_argument("--cases", default=None, metavar="TEXT,TEXT,...",
-                        help="only the cases whose name contains one of these texts (default: all)")
-    args = parser.parse_args(argv)
+    add_scheduler_argument(parser)
+    parser.add_argument("--cases", type=parse_list(str), default=None, metavar="GROUP,...",
+                        help=f"groups of rows: {', '.join(GROUPS)} (default: {','.join(DEFAULT_GROUPS)})")
+    parser.add_argument("--sizes", type=parse_list(int), default=None, metavar="N,...",
+                        help="points per set of the synthetic size rows (default: 2000,10000,25000; "
+                             "add 100000 for the 100k rows)")
+    parser.add_argument("--timeout", type=float, default=600.0, help="seconds per method and trial (default: 600)")
+    parser.add_argument("--peer-memory-gb", type=float, default=4.0,
+                        help="do not run a peer whose dense matrices would need more (default: 4)")
+    args = parser.parse_args(argv_list)
     fractions = args.fractions if args.fractions is not None else [0.0, 0.5]
     methods = args.methods if args.methods is not None else list(METHODS)
     unknown = set(methods) - set(METHODS)
     if unknown:
         parser.error(f"unknown methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
-    if "cpd" in methods:
-        try:
-            import pycpd  # noqa: F401
-        except ImportError:
-            print("pycpd is not installed (.venv/bin/pip install pycpd): CPD skipped")
-            methods = [m for m in methods if m != "cpd"]
-
-    # warm up numba (not timed)
-    from gatv.nonrigid import register
-
-    x = deform.sample_plane(60, seed=0)
-    register(x, deform.twist(x, 30.0))
-
-    cases = []
-    for name, make in synthetic_cases():
-        cases.append((name, make))
-    faces = face_pairs(args.face_points)
-    if not faces:
-        print(f"face data not found in {DATA}: face rows skipped")
-
-    headers = ["case", "outliers", "method", "precision", "recall", "warp error", "time (s)", "errors"]
-    rows, csv_rows = [], []
-    for f in fractions:
-        jobs = [(name, make) for name, make in cases] + [(name, face) for name, *face in faces]
-        if args.cases:
-            jobs = [(name, make) for name, make in jobs if any(t in name for t in args.cases.split(","))]
-        for name, make in jobs:
-            results = {m: [] for m in methods}
+    groups = args.cases if args.cases is not None else list(DEFAULT_GROUPS)
+    bad = set(groups) - set(GROUPS)
+    if bad:
+        parser.error(f"unknown case groups {sorted(bad)}; choose from {', '.join(GROUPS)}")
+    sizes = args.sizes if args.sizes is not None else list(DEFAULT_SIZES)
+    chosen = cases(groups, sizes)
+    if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
+        print(f"data not found in {DATA}: face and bunny rows left out")
+        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny")]
+    tasks = []
+    for c in chosen:
+        for f in fractions:
+            if f > 0 and not c.outliers_ok:
+                continue
             for k in range(args.trials):
-                rng = np.random.default_rng(trial_seed(args.seed, f, k))
-                if isinstance(make, list):  # face rows: the same rows of both sets, drawn per trial
-                    x, y, n = make
-                    drawn = rng.choice(len(x), size=n, replace=False)
-                    points, moved = x[drawn], y[drawn]
-                else:
-                    points = _plane(rng)
-                    moved = make(points, rng)
-                trial = deform.nonrigid_trial(points, moved, f, seed=rng)
-                for m in methods:
-                    r = evaluate(m, trial, f)
-                    results[m].append(r)
-                    csv_rows.append([name, f, m, k, *r])
-            for m in methods:
-                res = results[m]
-                row = [name, f"{100 * f:.0f}%", m, fmt(median(r[0] for r in res)), fmt(median(r[1] for r in res)),
-                       fmt(median(r[2] for r in res), 3), fmt(median(r[3] for r in res), 2),
-                       sum(bool(r[4]) for r in res)]
-                rows.append(row)
-                print(" | ".join(map(str, row)), flush=True)
-            _write(args, argv, headers, rows, csv_rows)  # after every row: a cut-short run keeps what it did
-    table, path = _write(args, argv, headers, rows, csv_rows)
+                tasks.append((c, f, k, args.seed, tuple(methods), args.timeout, args.peer_memory_gb))
+    csv_rows = []
+    if args.scheduler is None:  # serial: print and save after every task
+        for task in tasks:
+            rows = run_task(task)
+            csv_rows += rows
+            for r in summary_rows(rows):
+                print(" | ".join(map(str, r)), flush=True)
+            _write(args, argv, csv_rows)
+    else:
+        for rows in map_trials(run_task, tasks, scheduler=args.scheduler):
+            csv_rows += rows
+    table = _write(args, argv, csv_rows)
     print()
     print(table)
-    print(f"\nwrote {path}")
+    print(f"\nwrote {args.out / 'nonrigid.csv'}")
     return 0
 
 

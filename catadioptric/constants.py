@@ -43,6 +43,7 @@ __all__ = [
     "RIVAL_ANCHORS",
     "RIVAL_RATIO",
     "RIVAL_SEEDS",
+    "SHIFTED_MAPPINGS",
     "TRIANGLE_NEIGHBOURS",
     "WIDE_CLUSTER_FACTOR",
 ]
@@ -172,3 +173,7 @@ PATTERN_ALPHA = 0.05
 #: pairs already fits an earlier motion (else it is more of that motion,
 #: e.g. a wall of the scene seen by a moving camera, and the peeling stops).
 PEEL_OVERLAP = 0.5
+#: Mappings whose shifts by one period are grown in each round of the
+#: repeated-structure check (the winner and the best supported): a
+#: mapping shifted by several periods is walked back one period a round.
+SHIFTED_MAPPINGS = 3

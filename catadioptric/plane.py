@@ -49,6 +49,7 @@ from catadioptric.constants import (
     PLANE_SIGNATURE_TOL,
     PLANE_TRIALS,
     PLANE_TRIALS_GROWN,
+    SHIFTED_MAPPINGS,
 )
 from catadioptric.rotation import gated_pairs
 
@@ -388,13 +389,17 @@ def resolve_pattern(candidates, r1, r2, tree2, s1, s2, *, alpha=PATTERN_ALPHA, m
     win = choose()
     tested = set()
     for _ in range(max_rounds):
-        key = win[1].tobytes()
-        if key in tested:
+        # shift the winner and the best supported mappings: a regular pattern
+        # is reached from a shifted match one period at a time
+        top = sorted(pool, key=lambda c: -c[1].shape[0])[:SHIFTED_MAPPINGS]
+        fresh = [c for c in [win, *top] if c[1].tobytes() not in tested]
+        if not fresh:
             break
-        tested.add(key)
-        for H, p in _shift_rivals(win[0], win[1], r1, r2, tree2, s1, s2):
-            if p.shape[0] >= 5:
-                pool.append((H, p))
+        for c in fresh:
+            tested.add(c[1].tobytes())
+            for H, p in _shift_rivals(c[0], c[1], r1, r2, tree2, s1, s2):
+                if p.shape[0] >= 5:
+                    pool.append((H, p))
         win = choose()
     # rivals with other partners: the strongest, and whether the sign test tells it apart
     info = {"rivals_tested": len(pool)}

@@ -7,11 +7,18 @@ screen (switched on here, in one place).  Each figure script runs as
 writes there are shown under its last section (:class:`FigurePngs`).
 
 ``-D plot_gallery=0`` builds the pages without running the scripts.
+
+Modules get their API page from ``docs/api/*.rst`` (grouped by hand); a
+public module no page names yet is listed on ``api/more.rst``, written at
+every build (:func:`write_more_page`), so none is left out.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
+import pkgutil
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -111,3 +118,51 @@ sphinx_gallery_conf = {
     "abort_on_example_error": False,
     "only_warn_on_example_error": True,
 }
+
+
+# ------------------------------------------------------------ API coverage
+PACKAGES = ("gatv", "catadioptric")
+MORE = HERE / "api" / "more.rst"
+
+
+def public_modules() -> list[str]:
+    """Every module of gatv and catadioptric whose dotted name has no ``_`` part."""
+    names = []
+    for package in PACKAGES:
+        pkg = importlib.import_module(package)
+        names.append(package)
+        names += [info.name for info in pkgutil.walk_packages(pkg.__path__, f"{package}.")
+                  if not any(part.startswith("_") for part in info.name.split("."))]
+    return names
+
+
+def documented_modules() -> set[str]:
+    """Modules named by an ``automodule`` directive of the hand-written API pages."""
+    found = set()
+    for page in (HERE / "api").glob("*.rst"):
+        if page != MORE:
+            found |= set(re.findall(r"^\.\. automodule:: (\S+)", page.read_text(), flags=re.M))
+    return found
+
+
+def more_page() -> str:
+    """The text of ``api/more.rst``: the public modules no hand-written page documents."""
+    rest = [m for m in public_modules() if m not in documented_modules()]
+    lines = ["More modules", "============", ""]
+    if not rest:
+        lines.append("Every public module is on one of the pages above.")
+    for name in rest:
+        lines += [f"``{name}``", "-" * (len(name) + 4), "", f".. automodule:: {name}", "   :members:",
+                  "   :show-inheritance:", ""]
+    return "\n".join(lines) + "\n"
+
+
+def write_more_page(app=None) -> None:
+    text = more_page()
+    if not MORE.exists() or MORE.read_text() != text:
+        MORE.write_text(text)
+
+
+def setup(app):
+    app.connect("builder-inited", write_more_page)
+    return {"parallel_read_safe": True}

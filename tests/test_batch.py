@@ -293,3 +293,19 @@ def test_progress_bar_on_a_terminal(monkeypatch, capsys):
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
     assert progress_printer(Namespace(quiet=False, progress=False)) is None
     assert isinstance(progress_printer(Namespace(quiet=False, progress=True)), ProgressLines)
+
+
+def test_segment_rows_take_their_options(tmp_path, pair_files):
+    """`--command segment`: per-row options reach gatv.motions.segment; the summary counts support."""
+    folder, trials, rows = pair_files
+    table = [{"source": str(folder / rows[0]["source"]), "target": str(folder / rows[0]["target"]),
+              "max_motions": "1"}]
+    result = batch.run(table, tmp_path / "seg", command="segment", scheduler="serial")
+    record = result.rows[0].record
+    assert result and record["options"] == {"max_motions": 1} and record["n_motions"] == 1
+    m = np.asarray(record["motions"][0]["matrix"])
+    np.testing.assert_allclose(m[:3, :3], trials[0].rotation, atol=1e-6)
+    with open(result.summary, newline="") as fh:
+        (line,) = list(csv.DictReader(fh))
+    assert int(line["support"]) == record["motions"][0]["support"] >= 20
+    assert not (tmp_path / "seg" / "row-00000.txt").exists()  # a segmentation has no single matrix

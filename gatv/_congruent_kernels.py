@@ -129,15 +129,22 @@ def build_grid(points, origin, cell, dims):
 
 @njit(cache=True)
 def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
-    """Index of the nearest target point within ``radius`` of ``p`` (or -1)."""
-    cx = int(np.floor((p[0] - origin[0]) / cell))
-    cy = int(np.floor((p[1] - origin[1]) / cell))
-    cz = int(np.floor((p[2] - origin[2]) / cell))
+    """Index of the nearest target point within ``radius`` of ``p`` (or -1).
+
+    Visits only the cells the ball of ``radius`` overlaps (at most two a side
+    when ``cell >= 2 radius``); ``cell`` must be at least ``radius``.
+    """
+    x0 = max(int(np.floor((p[0] - radius - origin[0]) / cell)), 0)
+    y0 = max(int(np.floor((p[1] - radius - origin[1]) / cell)), 0)
+    z0 = max(int(np.floor((p[2] - radius - origin[2]) / cell)), 0)
+    x1 = min(int(np.floor((p[0] + radius - origin[0]) / cell)), dims[0] - 1)
+    y1 = min(int(np.floor((p[1] + radius - origin[1]) / cell)), dims[1] - 1)
+    z1 = min(int(np.floor((p[2] + radius - origin[2]) / cell)), dims[2] - 1)
     best = -1
     bd = radius * radius
-    for ix in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-        for iy in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-            for iz in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+    for ix in range(x0, x1 + 1):
+        for iy in range(y0, y1 + 1):
+            for iz in range(z0, z1 + 1):
                 c = (ix * dims[1] + iy) * dims[2] + iz
                 for s in range(start[c], start[c + 1]):
                     j = order[s]
@@ -171,6 +178,31 @@ def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius
     return n
 
 
+@njit(cache=True)
+def count_visited(R, t, source, visit, target, start, order, origin, cell, dims, radius, need, n_pre,
+                  pre_need):
+    """:func:`count_inliers` visiting the source in the order ``visit``, with a pre-test.
+
+    Stops after the first ``n_pre`` points when fewer than ``pre_need`` of
+    them matched, and as soon as ``need`` can no longer be reached; the
+    count so far is returned either way (a full count otherwise).
+    """
+    n = 0
+    p = np.empty(3)
+    m = visit.shape[0]
+    for v in range(m):
+        if v == n_pre and n < pre_need:
+            return n
+        if n + (m - v) < need:
+            return n
+        i = visit[v]
+        for r in range(3):
+            p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
+        if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
+            n += 1
+    return n
+
+
 # ------------------------------------------------------------ hypotheses
 @njit(cache=True)
 def _pair_features(p, i, j, normals):
@@ -197,11 +229,76 @@ def _features_agree(src, i, j, sn, tgt, k, l, tn, tol):
     return abs(a1 - b1) <= tol and abs(a2 - b2) <= tol and abs(a3 - b3) <= tol
 
 
+@njit(cache=True)
+def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated,
+                       src_normals, tgt_normals, feature_tol, use_normals):
+    """Target triples congruent to the source triple ``(a, b, c)`` within ``eps``.
+
+    Returns ``(k, l, m, discrepancy)`` arrays of at most ``max_enumerated``
+    matches, ``discrepancy`` the sum of the three squared side-length
+    differences.  The scan of the target pairs of length ``|ab| ± eps``
+    starts at ``offset`` (modulo the window) and wraps around, so that a
+    capped scan is an unbiased sample of the window rather than its shortest
+    pairs.
+    """
+    dab = _dist(source, a, source, b)
+    dac = _dist(source, a, source, c)
+    dbc = _dist(source, b, source, c)
+    ks = np.empty(max_enumerated, np.int64)
+    ls = np.empty(max_enumerated, np.int64)
+    ms = np.empty(max_enumerated, np.int64)
+    disc = np.empty(max_enumerated)
+    lo = _lower_bound(plen, dab - eps)
+    hi = _lower_bound(plen, dab + eps)
+    found = 0
+    width = hi - lo
+    for w in range(width):
+        if found >= max_enumerated:
+            break
+        s = lo + (offset + w) % width
+        for orient in range(2):
+            if orient == 0:
+                k, l = pi[s], pj[s]
+            else:
+                k, l = pj[s], pi[s]
+            if use_normals and not _features_agree(source, a, b, src_normals, target, k, l,
+                                                   tgt_normals, feature_tol):
+                continue
+            row = ndist[k]
+            m0 = _lower_bound(row, dac - eps)
+            m1 = _lower_bound(row, dac + eps)
+            for u in range(m0, m1):
+                m = nidx[k, u]
+                if m == l:
+                    continue
+                e3 = _dist(target, l, target, m) - dbc
+                if abs(e3) > eps:
+                    continue
+                if use_normals and not (
+                    _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
+                    and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
+                ):
+                    continue
+                e1 = plen[s] - dab
+                e2 = row[u] - dac
+                ks[found] = k
+                ls[found] = l
+                ms[found] = m
+                disc[found] = e1 * e1 + e2 * e2 + e3 * e3
+                found += 1
+                if found >= max_enumerated:
+                    break
+            if found >= max_enumerated:
+                break
+    return ks[:found], ls[:found], ms[:found], disc[:found]
+
+
 @njit(cache=True, parallel=True)
 def triple_hypotheses(
     source,
     target,
     triples,
+    offsets,
     plen,
     pi,
     pj,
@@ -218,76 +315,72 @@ def triple_hypotheses(
     src_normals,
     tgt_normals,
     feature_tol,
+    max_enumerated=0,
+    visit=np.zeros(0, np.int64),
+    n_pre=0,
+    pre_need=0,
 ):
     """Best congruent match of each source triple, scored by inlier count.
 
     For source triple ``(a, b, c)`` every target triple ``(k, l, m)`` with
     ``| |ab| - |kl| |, | |ac| - |km| |, | |bc| - |lm| | <= eps`` (and, when
     normals are given, the invariants of :func:`_pair_features` of all
-    three sides within ``feature_tol``) gives a motion (Kabsch on the three pairs) whose support is the number of
-    source points landing within ``radius`` of a target point.  At most
-    ``max_matches`` congruent triples are scored per source triple.
+    three sides within ``feature_tol``) gives a motion (Kabsch on the three
+    pairs) whose support is the number of source points landing within
+    ``radius`` of a target point.  Up to ``max_enumerated`` congruent
+    triples are listed (:func:`_congruent_matches`; default
+    ``max_matches``) and the ``max_matches`` tightest of them (smallest
+    side-length discrepancy) are scored: under noise a triple matches many
+    target triples, and the true one is among the tightest far more often
+    than among an arbitrary share.
 
-    Returns ``(score, R, t, n_matches)`` per triple; ``score = -1`` when no
-    congruent triple exists.
+    With ``n_pre > 0`` the source points are visited in the order ``visit``
+    (a permutation) and a motion bringing fewer than ``pre_need`` of the
+    first ``n_pre`` onto the target is dropped there, its count so far
+    returned (:func:`count_visited`): a cheap pre-test of the many wrong
+    motions a noisy triple yields.
+
+    Returns ``(score, R, t, n_matches, n_listed)`` per triple (``n_matches``
+    counts the scored ones, ``n_listed`` the listed ones); ``score = -1``
+    when no congruent triple exists.
     """
     nt = triples.shape[0]
     scores = np.full(nt, -1, np.int64)
     rots = np.zeros((nt, 3, 3))
     trans = np.zeros((nt, 3))
     nmatch = np.zeros(nt, np.int64)
+    nlisted = np.zeros(nt, np.int64)
     use_normals = src_normals.shape[0] == source.shape[0] and tgt_normals.shape[0] == target.shape[0]
+    n_enum = max(max_enumerated, max_matches)
+    prescreen = n_pre > 0 and visit.shape[0] == source.shape[0]
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
-        dab = _dist(source, a, source, b)
-        dac = _dist(source, a, source, c)
-        dbc = _dist(source, b, source, c)
+        ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist,
+                                              nidx, eps, n_enum, src_normals, tgt_normals, feature_tol,
+                                              use_normals)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
         gather_rows(src, source, a, b, c)
-        lo = _lower_bound(plen, dab - eps)
-        hi = _lower_bound(plen, dab + eps)
-        found = 0
-        for s in range(lo, hi):
-            if found >= max_matches:
-                break
-            for orient in range(2):
-                if orient == 0:
-                    k, l = pi[s], pj[s]
-                else:
-                    k, l = pj[s], pi[s]
-                if use_normals and not _features_agree(source, a, b, src_normals, target, k, l,
-                                                       tgt_normals, feature_tol):
-                    continue
-                row = ndist[k]
-                m0 = _lower_bound(row, dac - eps)
-                m1 = _lower_bound(row, dac + eps)
-                for u in range(m0, m1):
-                    m = nidx[k, u]
-                    if m == l:
-                        continue
-                    if abs(_dist(target, l, target, m) - dbc) > eps:
-                        continue
-                    if use_normals and not (
-                        _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
-                        and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
-                    ):
-                        continue
-                    found += 1
-                    gather_rows(dst, target, k, l, m)
-                    R, t = kabsch3(src, dst)
-                    sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius,
-                                       scores[q] + 1)
-                    if sc > scores[q]:
-                        scores[q] = sc
-                        rots[q] = R
-                        trans[q] = t
-                    if found >= max_matches:
-                        break
-                if found >= max_matches:
-                    break
-        nmatch[q] = found
-    return scores, rots, trans, nmatch
+        if ks.shape[0] > max_matches:
+            pick = np.argsort(disc, kind="mergesort")[:max_matches]
+        else:
+            pick = np.arange(ks.shape[0])
+        for v in pick:
+            gather_rows(dst, target, ks[v], ls[v], ms[v])
+            R, t = kabsch3(src, dst)
+            if prescreen:
+                sc = count_visited(R, t, source, visit, target, start, order, origin, cell, dims, radius,
+                                   scores[q] + 1, n_pre, pre_need)
+            else:
+                sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius,
+                                   scores[q] + 1)
+            if sc > scores[q]:
+                scores[q] = sc
+                rots[q] = R
+                trans[q] = t
+        nmatch[q] = pick.shape[0]
+        nlisted[q] = ks.shape[0]
+    return scores, rots, trans, nmatch, nlisted
 
 
 @njit(cache=True)

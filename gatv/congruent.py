@@ -22,6 +22,7 @@ the requested confidence.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +33,7 @@ from .models.base import homogeneous
 from .stats import chance_support, samples_needed
 
 __all__ = ["TargetIndex", "TrialMotions", "TrialPool", "accept_level", "trial_motions", "sample_triples",
-           "n_triples_needed", "chance_support"]
+           "expected_matches", "n_triples_needed", "chance_support"]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
@@ -58,8 +59,9 @@ class TargetIndex:
         lo = target.min(axis=0)
         hi = target.max(axis=0)
         ext = np.maximum(hi - lo, 1e-12)
-        # Cells no smaller than the radius, at most ~64 cells a side.
-        cell = max(float(radius), float(ext.max()) / 64.0)
+        # Cells twice the radius (a lookup then visits at most 2 x 2 x 2 of
+        # them), at most ~64 cells a side.
+        cell = max(2.0 * float(radius), float(ext.max()) / 64.0)
         dims = np.maximum(np.ceil(ext / cell).astype(np.int64), 1)
         self.radius = float(radius)
         self.origin = lo.astype(np.float64)
@@ -88,6 +90,7 @@ class TrialMotions:
     threshold: int
     n_triples: int
     n_congruent: int
+    n_listed: int = 0  # congruent matches listed (of which n_congruent were scored)
 
     def __len__(self) -> int:
         return int(self.support.shape[0])
@@ -163,6 +166,23 @@ def accept_level(accept: int | None, threshold: int) -> int:
     return accept
 
 
+def expected_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
+    """A proxy of how many target triples each source triple matches congruently.
+
+    The product over the triple's three sides of the number of target pairs
+    whose length is within ``eps`` of the side (a binary search in the
+    sorted pair-length table); the congruent matches a triple has to score
+    grow with it.  Long sides, where the target's pair lengths are sparse,
+    give few matches.
+    """
+    p = source
+    count = np.ones(triples.shape[0])
+    for u, v in ((0, 1), (0, 2), (1, 2)):
+        d = np.linalg.norm(p[triples[:, u]] - p[triples[:, v]], axis=1)
+        count *= np.maximum(np.searchsorted(index.plen, d + eps) - np.searchsorted(index.plen, d - eps), 0)
+    return count
+
+
 def sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
     """``count`` random triples of distinct indices below ``n``, (count, 3)."""
     t = np.empty((count, 3), np.int64)
@@ -193,6 +213,9 @@ def trial_motions(
     source_normals: np.ndarray | None = None,
     target_normals: np.ndarray | None = None,
     feature_tol: float = 0.15,
+    wide: int = 1,
+    max_enumerated: int = 0,
+    prescreen: bool = False,
     progress=None,
 ) -> TrialMotions:
     """Draw source triples, match them congruently, score the motions.
@@ -223,6 +246,22 @@ def trial_motions(
         rigid invariants ``|n_i·u|, |n_j·u|, |n_i·n_j|`` within
         ``feature_tol``, which prunes most congruent but wrong triangles
         on real surfaces.
+    wide : int, default: 1
+        Draw this many candidate triples for each one kept and keep the one
+        with the fewest expected congruent matches
+        (:func:`expected_matches`): under noise the tolerance ``eps`` lets
+        a triple match many target triples, about as many as its side
+        lengths have target pairs within ``eps``, and long, rare sides cut
+        that work without changing which points are drawn when inliers and
+        outliers are spread alike.
+    max_enumerated : int, default: 0
+        Congruent matches listed per triple, of which the ``max_matches``
+        tightest (smallest side-length discrepancy) are scored; ``0`` lists
+        only ``max_matches``.
+    prescreen : bool, default: False
+        Count a motion's support in full only when it passes a pre-test on
+        a random share of the source (:func:`_prescreen`); for large noisy
+        sets, where most of the scored motions are wrong.
     """
     n = source.shape[0]
     threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
@@ -234,9 +273,16 @@ def trial_motions(
     pool = TrialPool(keep, 3)
     drawn = 0
     n_congruent = 0
+    n_listed = 0
+    visit, n_pre, pre_need = _prescreen(n, index, accept if prescreen else 0, rng)
     while drawn < max_triples:
         m = min(batch, max_triples - drawn)
-        tri = sample_triples(n, m * 2 if min_side > 0 else m, rng)
+        if wide > 1:
+            pool_tri = sample_triples(n, m * int(wide), rng).reshape(m, int(wide), 3)
+            cost = expected_matches(source, pool_tri.reshape(-1, 3), index, eps).reshape(m, int(wide))
+            tri = pool_tri[np.arange(m), np.argmin(cost, axis=1)]
+        else:
+            tri = sample_triples(n, m * 2 if min_side > 0 else m, rng)
         if min_side > 0:
             p = source
             s1 = np.linalg.norm(p[tri[:, 0]] - p[tri[:, 1]], axis=1)
@@ -246,15 +292,47 @@ def trial_motions(
             if tri.shape[0] == 0:
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
-        scores, R, t, nm = _k.triple_hypotheses(
-            source, index.target, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx,
+        offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
+        scores, R, t, nm, nl = _k.triple_hypotheses(
+            source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
-            index.radius, int(max_matches), sn, tn, float(feature_tol),
+            index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
+            visit, n_pre, pre_need,
         )
         n_congruent += int(nm.sum())
+        n_listed += int(nl.sum())
         pool.add(scores, R, t)
         if progress is not None:
             progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
         if pool.best >= accept:
             break
-    return pool.trials(index.radius, threshold, drawn, n_congruent)
+    trials = pool.trials(index.radius, threshold, drawn, n_congruent)
+    return dataclasses.replace(trials, n_listed=n_listed)
+
+
+#: Source points of the pre-test of :func:`trial_motions` (``prescreen=True``).
+PRESCREEN_POINTS = 128
+
+
+def _prescreen(n: int, index: TargetIndex, accept: int, rng: np.random.Generator):
+    """Visit order, size and pass mark of the pre-test of a motion's support.
+
+    A wrong motion brings each source point onto some target with the chance
+    rate ``δ = 1 - exp(-n_target · ball(radius) / volume)``; among
+    :data:`PRESCREEN_POINTS` random source points it matches about
+    ``μ = δ · PRESCREEN_POINTS``.  A motion must match more than
+    ``μ + sqrt(μ)`` of them to be counted in full, but never more than half
+    of what a motion just at the ``accept`` level would match there, so that
+    motions worth judging pass.  No pre-test when that pass mark is below 2
+    or the source is small.
+    """
+    none = np.zeros(0, np.int64), 0, 0
+    if accept <= 0 or accept >= np.iinfo(np.int64).max or n <= 2 * PRESCREEN_POINTS:
+        return none
+    ball = 4.0 / 3.0 * np.pi * index.radius**3
+    delta = 1.0 - np.exp(-index.target.shape[0] * ball / index.volume)
+    mu = delta * PRESCREEN_POINTS
+    need = int(min(np.ceil(mu + np.sqrt(mu)), np.floor(0.5 * accept * PRESCREEN_POINTS / n)))
+    if need < 2:
+        return none
+    return rng.permutation(n).astype(np.int64), PRESCREEN_POINTS, need

@@ -41,6 +41,7 @@ __all__ = [
     "DataNotFoundError",
     "find_data_dir",
     "load_bunny_pair",
+    "load_uwa_pair",
     "demo_mesh",
     "DEMO_MESHES",
 ]
@@ -155,6 +156,7 @@ def synthetic_trial(
     max_translation: float = 10.0,
     cube_size: float = 10.0,
     inliers=None,
+    noise: float = 0.0,
     seed=None,
 ) -> Trial:
     """A trial of the paper's synthetic protocol with chosen motion ranges.
@@ -178,6 +180,12 @@ def synthetic_trial(
         Use these points (e.g. a real mesh's vertices) as the source inliers
         instead of drawing ``n_inliers`` points in the cube; ``n_inliers``
         and ``cube_size`` are then ignored.
+    noise : float, default: 0
+        Isotropic Gaussian noise added to every inlier coordinate of both
+        sets, its standard deviation given as a share of the inlier set's
+        RMS radius (about its centroid; 5 for the 10-cube). Outliers stay
+        uniform. ``0`` draws nothing, so a noise-free trial is the same as
+        before this option existed.
     seed : int, numpy.random.Generator or SeedSequence
         Everything is drawn from ``numpy.random.default_rng(seed)``; the same
         seed gives the same trial.
@@ -193,6 +201,9 @@ def synthetic_trial(
         given = as_points(inliers, "inliers", min_points=3)
         n_inliers = given.shape[0]
     n = _check_count(n_inliers, "n_inliers", 3)
+    noise = float(noise)
+    if not np.isfinite(noise) or noise < 0:
+        raise InputError(f"Expected `noise` >= 0 (a share of the inlier RMS radius), got {noise!r}.")
     if seed is None:
         msg = "Pass `seed` (an int or a numpy Generator) so that the trial is reproducible."
         raise InputError(msg)
@@ -214,6 +225,11 @@ def synthetic_trial(
 
     source = np.vstack([inliers, outliers(inliers)])
     target = np.vstack([moved, outliers(moved)])
+    if noise > 0:
+        centred = inliers - inliers.mean(axis=0)
+        sd = noise * float(np.sqrt(np.mean(np.sum(centred**2, axis=1))))
+        source[:n] += rng.normal(0.0, sd, size=(n, 3))
+        target[:n] += rng.normal(0.0, sd, size=(n, 3))
     perm_s = rng.permutation(n + n_out)  # new position k holds old row perm_s[k]
     perm_t = rng.permutation(n + n_out)
     where_s = np.argsort(perm_s)  # old row i is now at where_s[i]
@@ -230,7 +246,7 @@ def synthetic_trial(
     )
 
 
-def table2_trial(outlier_fraction: float, *, n_inliers: int = 50, seed=None) -> Trial:
+def table2_trial(outlier_fraction: float, *, n_inliers: int = 50, noise: float = 0.0, seed=None) -> Trial:
     """A trial of the paper's Table 2 protocol (section 4).
 
     50 inliers uniform in a 10×10×10 cube centred at the origin; rotation
@@ -244,6 +260,9 @@ def table2_trial(outlier_fraction: float, *, n_inliers: int = 50, seed=None) -> 
     outlier_fraction : float
         ``f`` in [0, 1); the paper uses 0.75–0.93.
     n_inliers : int, default: 50
+    noise : float, default: 0
+        Gaussian noise on the inliers of both sets, as a share of the inlier
+        RMS radius (see :func:`synthetic_trial`).
     seed : int or numpy.random.Generator
         Required; the trial is a pure function of it.
 
@@ -263,6 +282,7 @@ def table2_trial(outlier_fraction: float, *, n_inliers: int = 50, seed=None) -> 
         n_inliers=n_inliers,
         angle_range_deg=(0.0, 360.0),
         max_translation=10.0,
+        noise=noise,
         seed=seed,
     )
 
@@ -501,6 +521,50 @@ def load_bunny_pair(target_name: str, source_name: str, data_dir=None):
         raise DataNotFoundError(msg)
     R, t = T[:3, :3].copy(), T[:3, 3].copy()
     return read_points(files[tname]), read_points(files[sname]), R, t
+
+
+#: Objects of the UWA views in ``uwa_views_bcpd/``.
+UWA_OBJECTS = ("chef", "parasaurolophus")
+
+
+def load_uwa_pair(name: str, data_dir=None):
+    """Two real UWA range views of one object and their pseudo ground truth.
+
+    Parameters
+    ----------
+    name : {"chef", "parasaurolophus"}
+    data_dir : path-like, optional
+        Folder holding ``uwa_views_bcpd/`` (or that folder itself); default:
+        see :func:`find_data_dir`.
+
+    Returns
+    -------
+    target, source : (N, 3), (M, 3) ndarray of float
+        View 001 and view 002, millimetres.
+    rotation : (3, 3) ndarray
+    translation : (3,) ndarray
+        ``p_view001 = rotation @ p_view002 + translation``: a *pseudo* ground
+        truth (Open3D FPFH+RANSAC then ICP, about ±0.1° and ±0.3 mm; see the
+        data's README), not the authors'.
+
+    Raises
+    ------
+    DataNotFoundError
+        When the data is absent.
+    """
+    if name not in UWA_OBJECTS:
+        raise InputError(f"Expected `name` one of {UWA_OBJECTS}, got {name!r}.")
+    root = find_data_dir(data_dir)
+    folder = root if (root / f"{name}_view001.txt").exists() else root / "uwa_views_bcpd"
+    files = [folder / f"{name}_view001.txt", folder / f"{name}_view002.txt",
+             folder / f"{name}_pseudo_gt_view001_from_view002.txt"]
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        raise DataNotFoundError(f"UWA view files missing: {', '.join(missing)}.")
+    T = np.loadtxt(files[2], comments="#")
+    target = np.loadtxt(files[0], dtype=np.float64)
+    source = np.loadtxt(files[1], dtype=np.float64)
+    return target, source, T[:3, :3].copy(), T[:3, 3].copy()
 
 
 #: Meshes shipped inside the PyVista wheel (no download needed).

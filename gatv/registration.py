@@ -38,13 +38,19 @@ skipped: only the candidate pairs the bounds allow are voted on, with the
 ball pass and stick passes of section 3.3 extracting the plane — the
 paper's "optimised version" for small motions.
 
-Noise: with ``noise=None`` a schedule of tolerances is tried, from
-exact (relative 1e-6 of the point spacing) up to 5% of the spacing, in
-round robin (a chunk of triples at each in turn); the first tolerance at
-which a motion beats the chance level wins, and the tolerance then grows
-while the support does.  Give ``noise`` (standard deviation of the point
-noise, data units) for noisier data, or use :func:`gatv.register_scans`
-for real scans.
+Noise: with ``noise=None`` the search tries the tolerances of
+:data:`gatv.stages.NOISY_SCHEDULE`, from exact (1e-6 of the point spacing)
+up to 0.3 of the spacing, in round robin (a chunk of source triples at each
+in turn).  Under noise a triple matches many target triples; the search
+draws triples with long, rarely matched sides and scores the matches whose
+side lengths agree best, within a bounded amount of work.  Once a motion
+beats the chance level, the noise is measured from its residuals and the
+correspondences are re-gated there (``info["noise"]``).
+
+Pipelines: this is the *exact* pipeline, for sets whose inliers are the
+same points in both.  Dense, differently sampled range scans take the
+*scans* pipeline (:mod:`gatv.scans`); ``register`` chooses between them
+from the data (:func:`choose_pipeline`) unless ``pipeline=`` says.
 """
 
 from __future__ import annotations
@@ -54,14 +60,33 @@ import time
 import numpy as np
 
 from . import stages
-from ._validation import as_rng, check_fraction, check_int, check_positive, check_progress
+from ._validation import as_points, as_rng, check_fraction, check_int, check_positive, check_progress
 from .candidates import bounded_pairs
 from .congruent import n_triples_needed
 from .errors import InputError
-from .models import Motion
-from .stages import NOISE_SCHEDULE, Problem, gate
+from .models import Motion, get_model
+from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
-__all__ = ["register", "NOISE_SCHEDULE"]
+__all__ = ["register", "choose_pipeline", "surface_likeness", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
+
+#: Matches scored per source triple in the rigid search (the chance level
+#: counts them as tests).  Exact data rarely has more than a few; under noise
+#: a triple matches hundreds of target triples and a cap of 64 would mostly
+#: drop the true one.
+NOISY_MAX_MATCHES = 512
+#: Congruent matches listed per source triple, of which the
+#: ``NOISY_MAX_MATCHES`` tightest are scored.
+MAX_ENUMERATED = 32768
+#: Candidate triples drawn for each one matched (:func:`gatv.congruent.trial_motions`'s
+#: ``wide``): the one with the fewest expected matches is kept.
+WIDE = 32
+#: Options of the rigid model's trial motions in :func:`register` (see
+#: :func:`gatv.congruent.trial_motions`).
+RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "prescreen": True}
+#: Default work bound of a search, in the search's work units (about a
+#: microsecond each on one core): a call fails with a reason instead of
+#: running on.
+MAX_WORK = 3e7
 
 
 def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memory_budget, info):
@@ -106,11 +131,111 @@ def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memo
     return None
 
 
+#: Above this many points in either set the auto choice is the scans
+#: pipeline: the exact search's index grows as N² and its trials as N.
+EXACT_MAX_POINTS = 5000
+#: Sets of at least this many points (both) that lie on surfaces
+#: (:func:`surface_likeness`) are treated as scans by the auto choice.
+SCAN_MIN_POINTS = 1500
+#: Median local planarity ``λ3 / (λ1 + λ2 + λ3)`` below which a set is a
+#: sampled surface (a volume of scattered points gives about 0.1 to 0.2; a
+#: densely sampled surface the squared noise over the squared spacing).
+SURFACE_PLANARITY = 0.03
+
+
+def surface_likeness(points: np.ndarray, *, k: int = 12, sample: int = 400, seed: int = 0) -> float:
+    """Median local planarity ``λ3 / (λ1 + λ2 + λ3)`` of ``k``-neighbourhoods.
+
+    The eigenvalues are those of the covariance of each sampled point's
+    ``k`` nearest neighbours (at most ``sample`` points, drawn with a fixed
+    seed).  Near 0 for points on a surface, about 0.1–0.2 for points
+    scattered through a volume.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    k = min(int(k), n)
+    if k < 4:
+        return float("nan")
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(n, min(n, int(sample)), replace=False)
+    _, nb = cKDTree(pts).query(pts[pick], k=k)
+    local = pts[nb] - pts[nb].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", local, local)
+    ev = np.linalg.eigvalsh(cov)
+    return float(np.median(ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-300)))
+
+
+def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tuple[str, str]:
+    """The pipeline ``register`` takes for these sets: ``("exact" | "scans", reason)``.
+
+    Scans when either set has more than :data:`EXACT_MAX_POINTS` points or
+    its congruent-triple index would not fit the memory budget, or when
+    both sets have at least :data:`SCAN_MIN_POINTS` points lying on surfaces
+    (:func:`surface_likeness` below :data:`SURFACE_PLANARITY`): dense
+    samplings of surfaces, which two scans never sample at the same points.
+    Exact otherwise.
+    """
+    from ._validation import memory_budget_limit
+
+    X = as_points(source, "source")
+    Y = as_points(target, "target")
+    n1, n2 = X.shape[0], Y.shape[0]
+    if max(n1, n2) > EXACT_MAX_POINTS:
+        return "scans", f"{max(n1, n2)} points, more than the exact search's {EXACT_MAX_POINTS}"
+    need = 20.0 * n2 * n2
+    limit = memory_budget_limit(memory_budget)
+    if need > limit:
+        return "scans", f"the exact search's index of {n2} target points would need {need / 2**30:.2f} GiB"
+    if min(n1, n2) >= SCAN_MIN_POINTS and X.shape[1] == 3:
+        flat = max(surface_likeness(X), surface_likeness(Y))
+        if flat < SURFACE_PLANARITY:
+            return "scans", (f"{n1} and {n2} points on surfaces (local planarity {flat:.3g} < "
+                             f"{SURFACE_PLANARITY})")
+    return "exact", f"{n1} and {n2} points, not dense surfaces"
+
+
+def _check_exact_memory(target, memory_budget) -> None:
+    """The exact search's index over the budget: an error that names the scans pipeline."""
+    from ._validation import memory_budget_limit
+
+    n2 = as_points(target, "target").shape[0]
+    need, limit = 20.0 * n2 * n2, memory_budget_limit(memory_budget)
+    if need > limit:
+        msg = (f"The exact pipeline's congruent-triple index of {n2} target points would need about "
+               f"{need / 2**30:.2f} GiB, over the memory budget of {limit / 2**30:.2f} GiB. For dense "
+               "scans use pipeline='scans' (or pipeline='auto', the default; `gatv register --scans`), "
+               "or downsample, or raise `memory_budget=`.")
+        raise InputError(msg)
+
+
+def _pipeline(source, target, model, pipeline, memory_budget) -> tuple[str, str]:
+    if pipeline not in ("auto", "exact", "scans"):
+        raise InputError(f"Expected `pipeline` 'auto', 'exact' or 'scans', got {pipeline!r}.")
+    model = get_model(model)
+    name = model.name
+    if pipeline == "exact":
+        return "exact", "pipeline='exact' given"
+    if pipeline == "scans":
+        if name != "rigid":
+            raise InputError(f"The scans pipeline registers rigid motions; got model={name!r}.")
+        model.check_points(source, "source")
+        model.check_points(target, "target")
+        return "scans", "pipeline='scans' given"
+    if name != "rigid":
+        return "exact", f"the {name!r} model has the exact pipeline only"
+    # The model's own checks first: their errors name the model's dimension.
+    return choose_pipeline(model.check_points(source, "source"), model.check_points(target, "target"),
+                           memory_budget=memory_budget)
+
+
 def register(
     source,
     target,
     *,
     model="rigid",
+    pipeline: str = "auto",
     seed=0,
     max_angle: float | None = None,
     max_translation: float | None = None,
@@ -123,6 +248,8 @@ def register(
     n_judged: int = 4,
     max_candidates: int = 8,
     memory_budget: float | None = None,
+    max_work: float | None = MAX_WORK,
+    scan_options: dict | None = None,
     progress=None,
 ) -> Motion:
     """Register ``source`` onto ``target`` with no initial guess.
@@ -134,6 +261,16 @@ def register(
     model : {"rigid", "similarity"} or MotionModel, default: "rigid"
         The kind of motion (:mod:`gatv.models`): ``"similarity"`` adds a
         uniform scale (``target ≈ scale · source @ rotation.T + translation``).
+    pipeline : {"auto", "exact", "scans"}, default: "auto"
+        ``"exact"``: the congruent-triple search on the points themselves,
+        for sets whose inliers are the same points in both (synthetic sets,
+        landmarks, mesh vertices), noisy or not.  ``"scans"``: the surface
+        pipeline for dense, differently sampled range scans
+        (:func:`gatv.scans.register_surfaces`: tensor-voting surface tokens,
+        voxel downsampling, normal-pruned congruent triples, point-to-plane
+        polish at full resolution).  ``"auto"`` chooses from the data
+        (:func:`choose_pipeline`); ``info["pipeline"]`` and
+        ``info["pipeline_reason"]`` say which and why.
     seed : int or numpy.random.Generator, default: 0
         Seed of the random source-triple sampling; same seed, same result.
     max_angle : float, optional
@@ -142,9 +279,13 @@ def register(
     max_translation : float, optional
         Bound on ``|t|`` (data units) in the small-motion mode.
     noise : float, optional
-        Standard deviation of the point noise (data units). Default: the
-        schedule :data:`gatv.stages.NOISE_SCHEDULE`, from exact (1e-6 of
-        the point spacing) to 5% of the point spacing.
+        Standard deviation of the point noise (data units), exact pipeline.
+        Default: measured from the data: the search tries the tolerances of
+        :data:`gatv.stages.NOISY_SCHEDULE` (from 1e-6 to 0.3 of the point
+        spacing), and once a motion beats chance the noise is estimated
+        from its residuals (:func:`gatv.stages.settle_noise`) and the
+        correspondences re-gated there.  ``info["noise"]`` holds the
+        estimate (per coordinate, of each set).
     refine : bool, default: True
         Polish the motion with one-to-one ICP iterations inside the
         noise gate.
@@ -169,6 +310,14 @@ def register(
     memory_budget : float, optional
         Bytes; inputs needing more fail at once (see
         :func:`gatv._validation.check_memory`).
+    max_work : float or None, default: :data:`MAX_WORK`
+        Bound on the exact search's work (units of about a microsecond of
+        one core); past it the call returns a falsy result whose
+        ``info["reason"]`` says so.  ``None``: no bound.
+    scan_options : dict, optional
+        Options of the scans pipeline only (``n_points``, ``voxel``,
+        ``min_overlap``, ``feature_tol``, ``clutter``; see
+        :func:`gatv.scans.register_surfaces`).
     progress : callable, optional
         ``progress(fraction, message)`` called as work proceeds.
 
@@ -198,7 +347,28 @@ def register(
     (40, 150.0)
     """
     t_start = time.perf_counter()
+    chosen, why = _pipeline(source, target, model, pipeline, memory_budget)
+    if chosen == "scans":
+        exact_only = {"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
+                      "sigma": sigma, "min_inlier_share": None if min_inlier_share == 0.04 else min_inlier_share}
+        given = [name for name, value in exact_only.items() if value is not None]
+        if given:
+            msg = (f"{', '.join('`' + g + '`' for g in given)} apply to the exact pipeline, but the data "
+                   f"took the scans pipeline ({why}); pass pipeline='exact' to force the exact one, or drop "
+                   "the option.")
+            raise InputError(msg)
+        from .scans import register_surfaces
+
+        out = register_surfaces(source, target, seed=seed, confidence=confidence, max_triples=max_triples,
+                                n_judged=n_judged, refine=refine, memory_budget=memory_budget,
+                                progress=progress, **(scan_options or {}))
+        out.info.update(pipeline="scans", pipeline_reason=why)
+        return out
+    if scan_options:
+        raise InputError("`scan_options` apply to the scans pipeline only; pass pipeline='scans'.")
     P = stages.prepare(source, target, model)
+    if max_angle is None:
+        _check_exact_memory(P.target, memory_budget)
     if P.model.name not in ("rigid", "similarity"):
         msg = (f"`register` handles the 'rigid' and 'similarity' models, got {P.model.name!r}; "
                "use gatv.motions.segment for 'affine2d'.")
@@ -213,9 +383,11 @@ def register(
     max_triples = check_int(max_triples, "max_triples", 1, allow_none=True)
     rng = as_rng(seed)
     report = check_progress(progress)
-    levels = stages.tolerance_levels(P, noise)
+    schedule = NOISY_SCHEDULE if P.model.name == "rigid" else NOISE_SCHEDULE
+    levels = stages.tolerance_levels(P, noise, schedule)
     n, n2 = P.source.shape[0], P.target.shape[0]
-    info: dict = {"model": P.model.name, "n_source": int(n), "n_target": int(n2), "spacing": P.spacing}
+    info: dict = {"model": P.model.name, "pipeline": "exact", "pipeline_reason": why, "n_source": int(n),
+                  "n_target": int(n2), "spacing": P.spacing}
 
     if max_angle is not None:
         if P.model.name != "rigid":
@@ -238,14 +410,23 @@ def register(
     if max_triples is not None:
         budget = min(budget, max_triples)
     tried: list = []
+    rigid = P.model.name == "rigid"
     found = stages.search(P, levels, budget=budget, rng=rng, keep=n_judged, sigma=sigma,
-                          max_candidates=max_candidates, polish=refine, grow=noise is None,
-                          memory_budget=memory_budget, progress=report, tried=tried)
+                          max_candidates=max_candidates, polish=refine, grow=noise is None and not rigid,
+                          memory_budget=memory_budget, progress=report, tried=tried,
+                          max_matches=NOISY_MAX_MATCHES if rigid else stages.MAX_MATCHES,
+                          max_work=max_work, trial_options=RIGID_TRIALS if rigid else None)
     if found is None:
         info.update(trials=tried, time_s=time.perf_counter() - t_start)
-        return stages.failure(P.model, "no trial motion beat the chance level", info)
-    info.update(tolerance=found.tolerance, sigma=found.judged.sigma, n_tokens=found.judged.n_tokens,
-                trials=tried, trial_support=found.trial_support, chance_support=found.threshold,
-                time_s=time.perf_counter() - t_start)
-    report(1.0, f"found {found.fit.support} correspondences")
-    return stages.make_result(P, found.fit, info)
+        stopped = any("stopped" in rec for rec in tried)
+        reason = ("the work bound (`max_work`) ran out before a trial motion beat the chance level"
+                  if stopped else "no trial motion beat the chance level")
+        return stages.failure(P.model, reason, info)
+    fit, tolerance = found.fit, found.tolerance
+    if noise is None and rigid:
+        fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])
+    info.update(tolerance=tolerance, noise=tolerance, sigma=found.judged.sigma,
+                n_tokens=found.judged.n_tokens, trials=tried, trial_support=found.trial_support,
+                chance_support=found.threshold, time_s=time.perf_counter() - t_start)
+    report(1.0, f"found {fit.support} correspondences")
+    return stages.make_result(P, fit, info)

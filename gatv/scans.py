@@ -2,8 +2,9 @@
 
 Two scans of one object are sampled differently, so no source point has an
 exact partner in the target (the paper's conclusion warns that this breaks
-the point-to-point model).  :func:`register_scans` makes the problem fit the
-method again:
+the point-to-point model).  :func:`register_surfaces` (what
+:func:`gatv.register` runs for ``pipeline="scans"``, and what it chooses for
+dense scans) makes the problem fit the method again:
 
 1. **Surface tokens.** Tensor voting on the raw points (section 3.3 applied
    to the scans themselves) keeps the points that lie on salient surfaces
@@ -40,7 +41,8 @@ from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
-__all__ = ["register_scans", "voxel_downsample", "surface_points", "refine_point_to_plane"]
+__all__ = ["register_scans", "register_surfaces", "voxel_downsample", "surface_points",
+           "refine_point_to_plane", "plane_noise"]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -150,7 +152,61 @@ def _normals(points: np.ndarray) -> np.ndarray:
     return np.asarray(vote(points).normals)
 
 
-def register_scans(
+def register_scans(source, target, **options) -> RigidMotion:
+    """:func:`gatv.register` with ``pipeline="scans"`` (kept for existing code).
+
+    Takes the options of :func:`register_surfaces`.
+    """
+    from .registration import register
+
+    common = ("seed", "confidence", "max_triples", "n_judged", "refine", "memory_budget", "progress")
+    call = {k: options.pop(k) for k in common if k in options}
+    return register(source, target, pipeline="scans", scan_options=options, **call)
+
+
+#: Rival motions judged within this share of the best support make the
+#: answer ambiguous (a symmetric or nearly planar object).
+RIVAL_SHARE = 0.8
+
+
+def _ambiguity(best, others, voxel: float) -> dict:
+    """``info`` entries on rivals of the best judged trial: distinct motions nearly as well supported.
+
+    A rival differs from the best by more than 5° or more than 3 voxels of
+    translation and reaches :data:`RIVAL_SHARE` of its support; symmetric
+    objects and nearly planar surfaces give such rivals, and the answer
+    then is a guess between them, which ``info["ambiguous"]`` says.
+    """
+    from .ga import rotation_angle_deg
+
+    R0, t0 = best.matrix[:3, :3], best.matrix[:3, 3]
+    for fit in others:
+        if fit.support < RIVAL_SHARE * best.support:
+            break
+        angle = rotation_angle_deg(fit.matrix[:3, :3] @ R0.T)
+        shift = float(np.linalg.norm(fit.matrix[:3, 3] - t0))
+        if angle > 5.0 or shift > 3.0 * voxel:
+            return {"ambiguous": True, "rival": {"support": int(fit.support), "best_support": int(best.support),
+                                                 "angle_deg": angle, "translation": shift}}
+    return {"ambiguous": False}
+
+
+def plane_noise(source, target, target_normals, pairs) -> float:
+    """Point noise of each scan from point-to-plane residuals of matched pairs.
+
+    The residual along the target's normal carries the noise of both
+    scans, so ``1.4826 · MAD / sqrt(2)`` (a robust standard deviation, the
+    median absolute deviation scaled for a Gaussian) estimates each scan's
+    noise along the surface normal.  NaN without pairs.
+    """
+    if pairs.shape[0] == 0:
+        return float("nan")
+    r = np.einsum("ij,ij->i", source[pairs[:, 0]] - target[pairs[:, 1]], target_normals[pairs[:, 1]])
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return 1.4826 * mad / np.sqrt(2.0)
+
+
+def register_surfaces(
     source,
     target,
     *,
@@ -262,17 +318,18 @@ def register_scans(
     report(0.7, "tensor voting")
     P = stages.prepare(Xd, Yd, RIGID)
     tol = gate / 3.5  # so that the judge's gate is one voxel
-    best = None
+    fits = []
     for matrix in trials.matrices:
         judged = stages.judge(P, matrix, tol, max_candidates=4)
-        if judged is None:
-            continue
-        if best is None or judged.fit.support > best.support:
-            best = judged.fit
-    if best is None:
+        if judged is not None:
+            fits.append(judged.fit)
+    if not fits:
         return stages.failure(RIGID, "tensor voting found no consistent plane", info)
+    fits.sort(key=lambda f: -f.support)
+    best = fits[0]
     R, t = best.matrix[:3, :3], best.matrix[:3, 3]
     info.update(judged_support=best.support, t_judge=time.perf_counter() - t0)
+    info.update(_ambiguity(best, fits[1:], voxel))
 
     # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
     # the tensor-voting normals of the target's surface points.
@@ -292,8 +349,9 @@ def register_scans(
     ok = np.flatnonzero(np.isfinite(dist))
     pairs = np.stack([ok, j[ok]], axis=1)
     kept = pairs[stages.select_one_to_one(pairs, dist[ok])]
+    noise = plane_noise(Xs @ R.T + t, Ys, nys, kept)
     # Correspondences index the input points.
     kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)
-    info.update(final_gate=g, time_s=time.perf_counter() - t0)
+    info.update(final_gate=g, noise=noise, time_s=time.perf_counter() - t0)
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(R, t), kept), info)

@@ -6,7 +6,7 @@ trial motions → tokens → tensor votes → constraint → one-to-one selectio
 Each stage is a function over small frozen values; whatever depends on the
 kind of motion is asked of the :class:`~gatv.models.MotionModel` the
 :class:`Problem` carries, so the same stages serve rigid motions, similarities
-and 2D affine maps.  :func:`gatv.register`, :func:`gatv.register_scans` and
+and 2D affine maps.  :func:`gatv.register` (both its pipelines) and
 :func:`gatv.motions.segment` are short sequences of these stages.
 
 Motions travel between stages as homogeneous matrices ``T``
@@ -27,6 +27,7 @@ from .stats import chance_count
 
 __all__ = [
     "NOISE_SCHEDULE",
+    "NOISY_SCHEDULE",
     "tolerance_levels",
     "gate",
     "Problem",
@@ -42,6 +43,8 @@ __all__ = [
     "fit_and_gate",
     "refine",
     "grow_tolerance",
+    "noise_from_residuals",
+    "settle_noise",
     "Judged",
     "judge",
     "Found",
@@ -54,12 +57,20 @@ __all__ = [
 #: Tolerances tried when the noise is not given, relative to the point spacing.
 NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
 
+#: :data:`NOISE_SCHEDULE` continued to the noise of real sensors: a few
+#: percent of an object's size is a sizeable share of its point spacing.
+#: Beyond about a third of the spacing a point's true partner is no longer
+#: distinguishable from its neighbours.  Steps of about 2.5: a level at or
+#: above the data's noise finds the motion, and :func:`settle_noise` then
+#: measures the noise itself.
+NOISY_SCHEDULE = NOISE_SCHEDULE + (0.12, 0.3)
 
-def tolerance_levels(problem: Problem, noise: float | None) -> list[float]:
-    """The tolerances a search tries: ``[noise]`` when given, else :data:`NOISE_SCHEDULE` × spacing."""
+
+def tolerance_levels(problem: Problem, noise: float | None, schedule=NOISE_SCHEDULE) -> list[float]:
+    """The tolerances a search tries: ``[noise]`` when given, else ``schedule`` × spacing."""
     if noise is not None:
         return [noise]
-    return [r * problem.spacing for r in NOISE_SCHEDULE]
+    return [r * problem.spacing for r in schedule]
 
 
 def gate(tolerance: float) -> float:
@@ -351,6 +362,96 @@ def grow_tolerance(problem: Problem, fit: Fit, levels, level: int) -> tuple[Fit,
     return fit, level
 
 
+#: Gate of the final correspondences once the noise ``σ`` is measured, in
+#: units of ``σ``: the residual norm of a true pair (per-axis deviation
+#: ``sqrt(2) σ``) stays below it for about 98% of pairs in 3D.
+FINAL_GATE = 4.5
+
+
+def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3) -> float | None:
+    """Point noise ``σ`` of each set, from the residuals of true pairs cut at ``gate``.
+
+    A true pair's residual ``x' - T(x)`` is an isotropic Gaussian of per-axis
+    standard deviation ``s = sqrt(2) σ`` (both points noisy), so its norm
+    follows a chi distribution with ``dim`` degrees of freedom scaled by
+    ``s``; only residuals within ``gate`` are seen.  ``s`` solves
+    ``F(m / s) / F(gate / s) = 1/2`` for the median ``m`` of the seen
+    residuals (``F`` the chi CDF), which is unbiased by the cut.  ``None``
+    when the median is so close to the gate (above ``0.5 ** (1/dim)`` of it)
+    that the noise reaches beyond the gate: a wider gate is needed.
+    """
+    from scipy.optimize import brentq
+    from scipy.stats import chi
+
+    r = np.asarray(residuals, dtype=np.float64)
+    r = r[r <= gate]
+    if r.size < 3:
+        return None
+    m = float(np.median(r))
+    if m <= 0.0:
+        return 0.0
+    if m >= gate * 0.5 ** (1.0 / dim) * (1.0 - 1e-9):
+        return None
+    dist = chi(dim)
+
+    def excess(s):
+        return dist.cdf(m / s) / dist.cdf(gate / s) - 0.5
+
+    lo, hi = m * 1e-3, m * 1e3
+    if excess(hi) > 0:  # pragma: no cover - excluded by the median test above
+        return None
+    s = brentq(excess, lo, hi, xtol=1e-6 * m)
+    return float(s / np.sqrt(2.0))
+
+
+def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float = 0.0,
+                 rounds: int = 8) -> tuple[Fit, float]:
+    """Measure the point noise on a found motion and re-gate it there.
+
+    A motion accepted at ``levels[level]`` may have been found below the
+    data's noise, on its luckiest pairs, whose residuals say little about
+    the noise; the tolerance first grows up the schedule while the support
+    grows beyond chance (:func:`grow_tolerance`).  Then
+    :func:`noise_from_residuals` on the correspondences and :func:`refine`
+    at the gate of the estimate alternate until the estimate moves by less
+    than 5%.  When the residuals fill the gate (the noise reaches beyond it)
+    the gate grows by 1.5 while the support grows beyond what the wider gate
+    would collect from random points.  Returns the re-gated fit and the
+    noise estimate (at least ``floor``).
+    """
+    n1, n2 = problem.source.shape[0], problem.target.shape[0]
+    fit, level = grow_tolerance(problem, fit, levels, level)
+    sigma = float(levels[level])
+    for _ in range(rounds):
+        g = gate(sigma)
+        res = problem.residuals(fit.matrix, fit.correspondences)
+        est = noise_from_residuals(res, g, problem.dim)
+        if est is None:
+            wider = refine(problem, fit, gate(1.5 * sigma))
+            gain = chance_count(n1, n2, problem.volume, gate(1.5 * sigma), dim=problem.dim, alpha=1e-3)
+            if wider is fit or wider.support - fit.support <= max(2.0, gain):
+                break
+            fit, sigma = wider, 1.5 * sigma
+            continue
+        est = max(est, floor)
+        if abs(est - sigma) <= 0.05 * sigma:
+            sigma = est
+            break
+        moved = refine(problem, fit, gate(est))
+        if moved is fit or moved.support < problem.model.sample_size:
+            break
+        fit, sigma = moved, est
+    sigma = max(sigma, floor)
+    # Final correspondences within the wider gate that holds ~98% of true
+    # pairs (3D), when it brings in more than random points would.
+    g = FINAL_GATE * sigma
+    wider = refine(problem, fit, g)
+    gain = chance_count(n1, n2, problem.volume, g, dim=problem.dim, alpha=1e-3)
+    if wider is not fit and wider.support - fit.support > max(1.0, gain):
+        fit = wider
+    return fit, sigma
+
+
 # -------------------------------------------------------------------- judge
 @dataclass(frozen=True, eq=False)
 class Judged:
@@ -420,12 +521,15 @@ class Found:
 SEARCH_SHARE = 20000.0
 #: Best model matches scored per trial sample.
 MAX_MATCHES = 64
+#: Work units per congruent match listed but not necessarily scored.
+LIST_COST = 0.2
 
 
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
            sigma: float | None = None, max_candidates: int = 8, polish: bool = True, grow: bool = True,
            threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
-           progress=None, tried: list | None = None) -> Found | None:
+           progress=None, tried: list | None = None, max_matches: int = MAX_MATCHES,
+           max_work: float | None = None, trial_options: dict | None = None) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -444,7 +548,12 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
 
     ``tried`` (a list) receives one record per tolerance: samples drawn,
     matches scored, best trial support, the density test's threshold.
-    Returns ``None`` when the budget runs out.
+    ``max_matches`` caps the matches scored per sample (under noise a sample
+    matches many target samples; the model scans them from a random start,
+    so a capped scan is an unbiased share of them); ``max_work`` caps the
+    work units of the whole search, which bounds its time whatever the
+    noise; ``trial_options`` go to the model's ``trial_motions``.
+    Returns ``None`` when the budget or the work runs out.
     """
     model = problem.model
     report = progress if progress is not None else (lambda fraction, message="": None)
@@ -456,7 +565,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         idx = copy.copy(base)
         idx.set_radius(gate(tol))
         indexes.append(idx)
-    accept = [model.chance(n, n2, idx.volume, idx.radius, budget * MAX_MATCHES) for idx in indexes]
+    accept = [model.chance(n, n2, idx.volume, idx.radius, budget * max_matches) for idx in indexes]
     records = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
                for tol, a in zip(levels, accept)]
     if tried is not None:
@@ -464,22 +573,34 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     triple_cost = getattr(model, "triple_cost", None)
     done = [0] * len(levels)
     per_triple = [SEARCH_SHARE / 64.0] * len(levels)  # first chunk: 64 samples, then measured
+    options = dict(trial_options or {})
+    work = 0.0
     while min(done) < budget:
         for level, tol in enumerate(levels):
             if done[level] >= budget:
                 continue
+            if max_work is not None and work >= max_work:
+                if tried is not None:
+                    tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
+                return None
             m = int(min(budget - done[level], max(16, min(4096, SEARCH_SHARE / per_triple[level]))))
             done[level] += m
             rec = records[level]
             report(sum(done) / (budget * len(levels)), f"tolerance {tol:.3g}: {rec['triples']} triples")
             g = gate(tol)
-            eps = 2.0 * g  # side-length tolerance: two points' noise per side
+            # Side-length tolerance: a side's length error is the noise of four
+            # points projected on it (standard deviation 2 tol); 2.5 of those.
+            eps = 5.0 * tol
             trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
-                                         keep=keep, max_matches=MAX_MATCHES, accept=accept[level])
+                                         keep=keep, max_matches=max_matches, accept=accept[level],
+                                         **options)
             rec["triples"] += trials.n_triples
             rec["congruent"] += trials.n_congruent
             cost = triple_cost(n2) if triple_cost is not None else 0.0
             per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
+            listed = getattr(trials, "n_listed", 0)
+            per_triple[level] += LIST_COST * listed / max(trials.n_triples, 1)
+            work += (1.0 + cost) * trials.n_triples + (2.0 + 0.03 * n) * trials.n_congruent + LIST_COST * listed
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

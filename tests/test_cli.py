@@ -339,8 +339,8 @@ def test_real_register_end_to_end(tmp_path, files, trial):
     assert recall >= 0.9 and precision >= 0.9
 
 
-def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
-    """``--scans`` runs gatv.register_scans and refuses options it does not take."""
+def test_scans_option_forces_the_scans_pipeline(tmp_path, monkeypatch, capsys):
+    """``--scans`` (= ``--pipeline scans``) forces the scans pipeline and refuses options it does not take."""
     rng = np.random.default_rng(0)
     u = rng.normal(size=(3000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -349,12 +349,16 @@ def test_scans_option_uses_register_scans(tmp_path, monkeypatch, capsys):
     write_points(tgt, u * [1.0, 0.7, 0.5] + 0.01)
     seen = []
     monkeypatch.setattr(register_cmd, "load_register",
-                        lambda scans=False: seen.append(scans) or (lambda s, t, **kw: RigidMotion(
+                        lambda: (lambda s, t, **kw: seen.append(kw.get("pipeline", "auto")) or RigidMotion(
                             np.eye(3), np.full(3, 0.01), np.c_[np.arange(5), np.arange(5)])))
     assert cli.main(["register", str(src), str(tgt), "--scans", "-q"]) == 0
-    assert seen == [True]
+    assert cli.main(["register", str(src), str(tgt), "--pipeline", "exact", "-q"]) == 0
+    assert cli.main(["register", str(src), str(tgt), "-q"]) == 0
+    assert seen == ["scans", "exact", "auto"]
     assert cli.main(["register", str(src), str(tgt), "--scans", "--noise", "0.1"]) == 2
     _assert_one_error_line(capsys, "--scans takes no --noise")
+    assert cli.main(["register", str(src), str(tgt), "--scans", "--pipeline", "exact"]) == 2
+    _assert_one_error_line(capsys, "--scans contradicts --pipeline exact")
 
 
 def test_nonrigid_subcommand_is_wired(tmp_path, capsys):

@@ -96,8 +96,9 @@ def test_triple_hypotheses_find_the_best_congruent_triple(seed):
     radius, eps = 1e-6, 2e-6
     index = TargetIndex(y, radius)
     tri = sample_triples(9, 6, rng)
-    scores, _, _, _ = k.triple_hypotheses(
-        x, y, tri, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
+    offsets = rng.integers(0, 1 << 30, tri.shape[0])  # any start: the full scan wraps around
+    scores, _, _, _, _ = k.triple_hypotheses(
+        x, y, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
         index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15)
     for q in range(tri.shape[0]):
         assert scores[q] == _reference_best(x, y, tri[q], eps, radius)

@@ -57,10 +57,12 @@ def add_parser(subparsers):
     )
     add_point_files(p)
     p.add_argument(
-        "--scans", action="store_true",
-        help="real, differently sampled range scans (gatv.register_scans: surface tokens, "
-             "voxel downsampling, normal-pruned trials, point-to-plane polish)",
+        "--pipeline", choices=("auto", "exact", "scans"), default=None,
+        help="exact: congruent triples on the points themselves; scans: dense, differently sampled "
+             "range scans (surface tokens, voxel downsampling, normal-pruned trials, point-to-plane "
+             "polish at full resolution); auto (default): chosen from the data",
     )
+    p.add_argument("--scans", action="store_true", help="the same as --pipeline scans")
     add_model(p)
     add_run_options(p)
     p.set_defaults(handler=run)
@@ -83,15 +85,12 @@ def add_run_options(p) -> None:
     add_verbosity(p)
 
 
-def load_register(scans: bool = False):
-    """:func:`gatv.register` (or :func:`gatv.register_scans`); RuntimeError if it cannot be imported."""
+def load_register():
+    """:func:`gatv.register`; RuntimeError if it cannot be imported."""
     from ..io import one_line
 
     try:
-        if scans:
-            from ..scans import register_scans as register
-        else:
-            from ..registration import register
+        from ..registration import register
     except ImportError as exc:
         msg = f"the registration module gatv.registration cannot be imported ({one_line(exc)})."
         raise RuntimeError(msg) from exc
@@ -122,18 +121,30 @@ def _options(args) -> dict:
     return opts
 
 
+def _pipeline(args) -> str:
+    """``--pipeline`` and its shorthand ``--scans``, which must agree."""
+    chosen = getattr(args, "pipeline", None)
+    if getattr(args, "scans", False):
+        if chosen not in (None, "scans"):
+            raise UsageError(f"--scans contradicts --pipeline {chosen}; give one of them.")
+        chosen = "scans"
+    return chosen or "auto"
+
+
 def register_and_write(args, source, target, inputs: dict, extra: dict | None = None):
     """Register, print, and write every output atomically; return ``(status, motion)``."""
     from ..io import write_json, write_points
 
     check_point_counts((name, pts, inputs[name]) for name, pts in (("source", source), ("target", target)))
-    scans = bool(getattr(args, "scans", False))
-    register = load_register(scans)
+    pipeline = _pipeline(args)
+    register = load_register()
     options = _options(args)
-    if scans and options:
+    if pipeline == "scans" and options:
         raise UsageError(f"--scans takes no {', '.join('--' + k.replace('_', '-') for k in options)}.")
     progress = progress_printer(args)
     call = dict(options)
+    if pipeline != "auto":
+        call["pipeline"] = pipeline
     if progress is not None:
         call["progress"] = progress
     start = time.perf_counter()

@@ -1,0 +1,161 @@
+"""Rigid registration on real data: noise measured from the data, the pipeline choice, bounded work."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from gatv import InputError, register
+from gatv.datasets import (
+    DataNotFoundError,
+    correspondence_stats,
+    load_bunny_pair,
+    paper_success,
+    rotation_error_deg,
+    table2_trial,
+)
+from gatv.registration import NOISY_MAX_MATCHES, choose_pipeline, surface_likeness
+from gatv.scans import plane_noise, register_scans
+from gatv.stages import gate, noise_from_residuals
+
+
+def _sphere(n, seed=0):
+    u = np.random.default_rng(seed).normal(size=(n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+# ---------------------------------------------------------------- noise
+@settings(max_examples=30, deadline=None)
+@given(sigma=st.floats(1e-3, 10.0), cut=st.floats(2.0, 6.0), seed=st.integers(0, 2**31 - 1))
+def test_noise_from_truncated_residuals_is_unbiased(sigma, cut, seed):
+    """Residual norms of pairs noisy in both sets, seen only within a gate: σ comes back within 10%."""
+    rng = np.random.default_rng(seed)
+    r = np.linalg.norm(rng.normal(0.0, np.sqrt(2.0) * sigma, (4000, 3)), axis=1)
+    est = noise_from_residuals(r, cut * sigma)
+    if cut * sigma < 0.5 ** (1 / 3) * np.median(r):  # the gate hides more than half: unidentifiable
+        return
+    assert est is not None
+    assert abs(est / sigma - 1.0) < 0.1
+
+
+def test_noise_from_residuals_asks_for_a_wider_gate():
+    """Residuals that fill the gate (the noise reaches past it) give None, not a wrong number."""
+    r = np.linspace(0.6, 1.0, 1000)  # median 0.8 of the gate: more than a uniform ball's 0.794
+    assert noise_from_residuals(r, 1.0) is None
+    assert noise_from_residuals(np.zeros(10), 1.0) == 0.0
+
+
+@pytest.mark.parametrize("noise", [0.01, 0.03])
+def test_noisy_sets_recovered_without_noise_given(noise):
+    """The Table-2 protocol with Gaussian noise on every inlier: motion, pairs and the noise itself."""
+    trial = table2_trial(0.5, noise=noise, seed=3)
+    m = register(trial.source, trial.target)
+    assert m and m.info["pipeline"] == "exact"
+    assert rotation_error_deg(m.rotation, trial.rotation) < 2.0
+    assert paper_success(m.correspondences, trial.true_pairs)
+    precision, _ = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.9
+    sigma = noise * 5.0
+    assert 0.5 * sigma < m.info["noise"] < 1.5 * sigma
+
+
+def test_exact_sets_keep_an_exact_noise_estimate():
+    trial = table2_trial(0.75, seed=1)
+    m = register(trial.source, trial.target)
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision == 1.0 and recall == 1.0
+    assert m.info["noise"] < 1e-5 * m.info["spacing"]
+
+
+# ----------------------------------------------------------- bounded work
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(noise=st.sampled_from([0.0, 0.02, 0.08, 0.2]), seed=st.integers(0, 1000))
+def test_trial_motions_stay_under_their_bound_as_noise_grows(noise, seed):
+    """However noisy (and hopeless) the data, the scored trial motions stay under the work bound."""
+    trial = table2_trial(0.9, noise=noise, seed=seed)
+    n = trial.source.shape[0]
+    max_work = 2e5
+    m = register(trial.source, trial.target, seed=seed, max_work=max_work)
+    levels = [r for r in m.info["trials"] if "triples" in r]
+    scored = sum(r["congruent"] for r in levels)
+    triples = sum(r["triples"] for r in levels)
+    assert scored <= NOISY_MAX_MATCHES * triples
+    # The bound is checked between chunks of samples: at most one chunk (>= 16 samples) per level past it.
+    per_match = 2.0 + 0.03 * n
+    one_chunk = 4096 * (1.0 + per_match * NOISY_MAX_MATCHES)
+    assert scored * per_match + triples <= max_work + len(levels) * one_chunk
+    if not m:
+        assert "reason" in m.info
+
+
+# -------------------------------------------------------------- pipelines
+def test_pipeline_choice_follows_the_data():
+    trial = table2_trial(0.75, seed=0)
+    assert choose_pipeline(trial.source, trial.target)[0] == "exact"
+    surface = _sphere(3000) * [1.0, 0.7, 0.5]
+    kind, why = choose_pipeline(surface, surface + 0.1)
+    assert kind == "scans" and "surfaces" in why
+    assert surface_likeness(surface) < 0.01 < surface_likeness(trial.source)
+    big = np.random.default_rng(0).uniform(size=(6000, 3))
+    assert choose_pipeline(big, big)[0] == "scans"
+
+
+def test_forced_exact_pipeline_names_the_scans_pipeline():
+    x = np.random.default_rng(0).uniform(size=(3000, 3))
+    with pytest.raises(InputError, match="pipeline='scans'"):
+        register(x, x, pipeline="exact", memory_budget=1e6)
+    with pytest.raises(InputError, match="pipeline"):
+        register(x, x, pipeline="fast")
+    surface = _sphere(3000) * [1.0, 0.7, 0.5]
+    with pytest.raises(InputError, match="`noise`.*pipeline='exact'"):
+        register(surface, surface, noise=0.01)
+    with pytest.raises(InputError, match="scan_options"):
+        register(x[:50], x[:50], pipeline="exact", scan_options={"n_points": 100})
+
+
+def test_register_scans_is_the_scans_pipeline():
+    rng = np.random.default_rng(2)
+    surface = _sphere(4000, seed=2) * [1.0, 0.7, 0.5]
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = surface[rng.permutation(4000)[:3000]] @ R.T + [0.2, 0.0, -0.1]
+    a = register_scans(surface, moved, seed=0, n_points=300, max_triples=60)
+    b = register(surface, moved, seed=0, pipeline="scans", max_triples=60, scan_options={"n_points": 300})
+    np.testing.assert_array_equal(a.matrix, b.matrix)
+    assert a.info["pipeline"] == "scans" and "ambiguous" in a.info
+
+
+def test_plane_noise_measures_noise_along_the_normal():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (5000, 2))
+    a = np.c_[xy, rng.normal(0, 0.01, 5000)]
+    b = np.c_[xy, rng.normal(0, 0.01, 5000)]
+    normals = np.tile([0.0, 0.0, 1.0], (5000, 1))
+    pairs = np.c_[np.arange(5000), np.arange(5000)]
+    assert plane_noise(a, b, normals, pairs) == pytest.approx(0.01, rel=0.1)
+    assert np.isnan(plane_noise(a, b, normals, np.empty((0, 2), int)))
+
+
+def _bunny_pair():
+    try:
+        return load_bunny_pair("bun000", "bun045")
+    except DataNotFoundError:
+        pytest.skip("shared bunny scans not available")
+
+
+def test_pipeline_choice_on_a_real_scan_pair():
+    target, source, _, _ = _bunny_pair()
+    kind, why = choose_pipeline(source, target)
+    assert kind == "scans", why
+
+
+@pytest.mark.slow
+def test_real_scan_pair_registered_by_the_default_call():
+    target, source, R, t = _bunny_pair()
+    m = register(source, target)
+    assert m.info["pipeline"] == "scans"
+    assert rotation_error_deg(m.rotation, R) < 1.0
+    assert np.linalg.norm(m.translation - t) < 2e-3
+    assert 0 < m.info["noise"] < 1e-3  # the scanner's noise is well below a millimetre
+    assert gate(1.0) == 3.5

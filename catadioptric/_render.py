@@ -20,7 +20,7 @@ def _as_grey(image) -> np.ndarray:
 
 
 def render_matches(image1, image2, pixels1, pixels2, correspondences, path, *, title: str | None = None,
-                   size: tuple[int, int] | None = None) -> Path:
+                   size: tuple[int, int] | None = None, motion=None) -> Path:
     """Write the two images side by side with the matched corners linked.
 
     Image 1 on the left, image 2 on the right; every detected corner is a
@@ -41,6 +41,9 @@ def render_matches(image1, image2, pixels1, pixels2, correspondences, path, *, t
     title : str, optional
     size : (int, int), optional
         Picture size; default about 1600 pixels wide.
+    motion : (K,) array_like of int, optional
+        Motion of each match (0-based): the matches are then coloured by
+        motion (:func:`gatv.render.motion_color`), not one colour each.
 
     Returns
     -------
@@ -80,7 +83,8 @@ def render_matches(image1, image2, pixels1, pixels2, correspondences, path, *, t
             plotter.add_points(q[ok], color="#9E9E9E", point_size=4, render_points_as_spheres=True)
     if pairs.size:
         colors = np.array([render.rgb(render.motion_color(k)) for k in range(8)], dtype=np.uint8)
-        c = colors[np.arange(len(pairs)) % len(colors)]
+        which = np.arange(len(pairs)) if motion is None else np.asarray(motion, dtype=np.int64).reshape(-1)
+        c = colors[which % len(colors)]
         ends = np.vstack([q1[pairs[:, 0]], q2[pairs[:, 1]]])
         ends[:, 2] = 2.0
         n = len(pairs)

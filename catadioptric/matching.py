@@ -479,7 +479,9 @@ def match(
         if pairs.shape[0]:
             first = np.column_stack([index1[pairs[:, 0]], index2[pairs[:, 1]]])
             motions.append((SphereMotion(first, used, rotation, motion), pairs))
-        if max_motions > len(motions) and r1.shape[0] >= 5 and r2.shape[0] >= 5:
+        # further motions after the first; with "auto" the plane stage may
+        # also be the first (a repeated pattern the dominant stages call ambiguous)
+        if (motions or strategy == "auto") and max_motions > len(motions) and min(r1.shape[0], r2.shape[0]) >= 5:
             t_p = time.perf_counter()
             peel(motions, r1, r2, s1, s2, index1, index2, noise, np.random.default_rng(seed),
                  max_motions=max_motions, progress=progress, info=info)

@@ -25,10 +25,12 @@ Stages (:func:`plane_stage`):
    unmatched (and moves the pattern's border onto empty sphere). The
    winner is compared with every distinct rival (the other grown trials
    and the winner's matches shifted by one neighbour step) by a one-sided
-   sign test on the rays that one explains and the other does not. A rival
-   that explains significantly more rays replaces the winner; one that
-   nothing distinguishes (a pattern symmetric under a half-turn matches
-   itself turned, with every corner explained) is reported in ``info``.
+   sign test on the rays that one explains and the other does not. A
+   mapping that leaves significantly more rays unexplained than another
+   loses; among the rest the best fit (:func:`mapping_score`) wins. A
+   rival that nothing distinguishes (a pattern symmetric under a half-turn
+   matches itself turned, with every corner explained) is reported in
+   ``info["tie"]``.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import math
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import binom
+from scipy.stats import binom, norm
 
 from catadioptric.constants import (
     GATE_SIGMAS,
@@ -356,7 +358,9 @@ def resolve_pattern(candidates, r1, r2, tree2, s1, s2, *, alpha=PATTERN_ALPHA, m
         ``info`` holds ``rivals_tested``, ``rival_support`` (the best
         rival with other partners), ``rival_p`` (its sign-test p-value)
         and, when a rival explains as many rays and nothing tells them
-        apart, ``tie`` with the displacement rule that chose.
+        apart (neither the sign test nor the likelihood gap beyond the
+        scores' own noise), ``tie``: the better fit is kept and the tie
+        reported.
     """
     cands = [(H, p) for H, p in candidates if p.shape[0] >= 5]
     if not cands:
@@ -416,17 +420,16 @@ def resolve_pattern(candidates, r1, r2, tree2, s1, s2, *, alpha=PATTERN_ALPHA, m
         gap = rank(win)[0] - rank(best_rival)[0]
         info.update(rival_support=int(best_rival[1].shape[0]), rival_p=best_p, rival_score_gap=gap,
                     score=rank(win)[0])
-        if best_p >= alpha and gap < math.log(1.0 / alpha):
-            dw, dr = _displacement(win[1], r1, r2), _displacement(best_rival[1], r1, r2)
+        # the scores' own noise: each fits its scale c from its n residuals
+        # (sd of log c² about 1/sqrt(n)), so a gap is within noise below
+        # the alpha-quantile of a normal with sd sqrt(2 n)
+        noise_gap = float(norm.isf(alpha)) * math.sqrt(2.0 * win[1].shape[0])
+        if best_p >= alpha and gap < max(noise_gap, math.log(1.0 / alpha)):
             info["tie"] = (
                 f"a rival with other partners explains {best_rival[1].shape[0]} rays against "
-                f"{win[1].shape[0]} (sign test p = {best_p:.2f}, log-likelihood gap {gap:.1f}): nothing "
-                f"in the geometry tells them "
-                f"apart (a pattern symmetric under a half-turn); the mapping that moves the rays "
-                f"less was chosen (median {math.degrees(min(dw, dr)):.1f} deg against "
-                f"{math.degrees(max(dw, dr)):.1f} deg)")
-            if dr < dw:
-                win = best_rival
+                f"{win[1].shape[0]} (sign test p = {best_p:.2f}, log-likelihood gap {gap:.1f}, within the "
+                f"scores' noise {noise_gap:.1f}): nothing in the geometry tells them apart (a pattern "
+                f"symmetric under a half-turn matches itself turned); the better fit is kept")
     return win[0], win[1], info
 
 

@@ -23,12 +23,13 @@ locally (the non-rigid mode, Fig. 14). :func:`voting_stage` runs it as
    candidate is kept when it survives in both, with the smaller of its two
    relative surface saliencies.
 4. **Local eq. 41.** Each kept token is checked against its closest kept
-   token that uses neither of its rays (Fig. 14): the length half of eq. 41,
+   tokens that use neither of its rays (Fig. 14 shows the closest one;
+   here the ``EQ41_NEIGHBOURS`` closest, and most must pass): the length half of eq. 41,
    ``|V · Vs| / |Vs|`` on the sphere points (a locally rigid motion about
    the sphere's centre keeps the distance between neighbouring rays), up to
    ``strain · |Δx|`` plus the pair noise gate.
-5. **Selection.** One-to-one by saliency; the whole must beat the chance
-   level of the sphere.
+5. **Selection.** One-to-one by the share of passed checks, then
+   saliency; the whole must beat the chance level of the sphere.
 
 No growth, no epipolar model: the stage is the paper's, measured beside
 the default (``"auto"``) in ``benchmarks/catadioptric.py``.
@@ -51,6 +52,10 @@ __all__ = ["chart", "voting_stage"]
 #: local eq. 41 (the default of :func:`gatv.nonrigid.register`): parallax
 #: stretches the rays' neighbourhoods where depth changes.
 STRAIN = 0.35
+#: Closest kept tokens each token is checked against with the local eq. 41;
+#: a token is verified when most of them pass (Fig. 14 checks the closest
+#: one; a majority of several is what a lone chance token cannot reach).
+EQ41_NEIGHBOURS = 6
 #: Candidates per ray of view 1 at most (the nearest within ``max_parallax``):
 #: the true surface is sampled only as densely as the corners, so every
 #: further candidate per ray thickens the clutter around it.
@@ -123,28 +128,33 @@ def voting_stage(r1, r2, tree2, s1, s2, R, noise, max_parallax, chance, info, me
     if idx.size < 4:
         info["voting_reason"] = "tensor voting kept fewer than 4 tokens"
         return empty
-    # local eq. 41 against the closest kept token that uses neither ray (Fig. 14)
+    # local eq. 41 against the closest kept tokens that use neither ray (Fig. 14)
     pairs = cand[idx]
     joint = np.column_stack([uv[idx], stretch * duv[idx]])
     m = idx.size
-    _, nb = cKDTree(joint).query(joint, k=min(13, m))
-    nb = nb.reshape(m, -1)
+    _, nb = cKDTree(joint).query(joint, k=min(4 * EQ41_NEIGHBOURS + 1, m))
+    nb = nb.reshape(m, -1)[:, 1:]
     active = (pairs[nb, 0] != pairs[:, None, 0]) & (pairs[nb, 1] != pairs[:, None, 1])
-    first = np.argmax(active, axis=1)
-    has = active[np.arange(m), first]
-    part = nb[np.arange(m), first]
-    xi, xj = x[pairs[:, 0]], x[pairs[part, 0]]
-    yi, yj = r2[pairs[:, 1]], r2[pairs[part, 1]]
+    # the first EQ41_NEIGHBOURS active neighbours of each token
+    rank = np.cumsum(active, axis=1)
+    use = active & (rank <= EQ41_NEIGHBOURS)
+    a, q = np.nonzero(use)
+    b = nb[a, q]
+    xi, xj = x[pairs[a, 0]], x[pairs[b, 0]]
+    yi, yj = r2[pairs[a, 1]], r2[pairs[b, 1]]
     res = eq41_length_residual(yi - xi, yi + xi, yj - xj, yj + xj)
-    sig = np.sqrt(s1[pairs[:, 0]] ** 2 + s2[pairs[:, 1]] ** 2)
-    tol = STRAIN * np.linalg.norm(xi - xj, axis=1) + GATE_SIGMAS * math.sqrt(2.0) * sig
-    ok = has & (res <= tol)
+    sig = np.sqrt(s1[pairs[a, 0]] ** 2 + s2[pairs[a, 1]] ** 2 + s1[pairs[b, 0]] ** 2 + s2[pairs[b, 1]] ** 2)
+    tol = STRAIN * np.linalg.norm(xi - xj, axis=1) + GATE_SIGMAS * sig
+    passes = np.bincount(a, weights=(res <= tol).astype(float), minlength=m)
+    checked = np.bincount(a, minlength=m)
+    # a token is verified when most of its closest neighbours agree with it
+    ok = (checked > 0) & (passes > 0.5 * checked)
     info["voting_eq41_passed"] = int(ok.sum())
     ver = np.flatnonzero(ok)
     if ver.size < 4:
         info["voting_reason"] = "fewer than 4 tokens pass the local eq. 41"
         return empty
-    sel = pairs[ver[one_to_one(pairs[ver], -sal[idx[ver]])]]
+    sel = pairs[ver[one_to_one(pairs[ver], -(passes[ver] / np.maximum(checked[ver], 1)) - 1e-3 * sal[idx[ver]])]]
     info["voting_support"] = int(sel.shape[0])
     if sel.shape[0] < chance:
         info["voting_reason"] = f"{sel.shape[0]} pairs, below the chance level {chance}"

@@ -2,8 +2,11 @@
 
 Detects corners in both images (:func:`catadioptric.detect_corners`), lifts
 them to the unit sphere with the camera, matches them
-(:func:`catadioptric.match`) and optionally writes the result as JSON and a
-Fig. 15-style picture.  The :mod:`catadioptric` package (the second
+(:func:`catadioptric.match`: every motion, the dominant one first) and
+optionally writes the result as JSON and a Fig. 15-style picture. The JSON
+has a list ``motions``, each with its ``correspondences``, ``matches_px``,
+rotation and translation direction; the top-level ``matches_px`` holds the
+matches of all motions.  The :mod:`catadioptric` package (the second
 top-level package of the distribution) is imported only when the command
 runs; when it cannot be imported the command fails with exit status 1 and
 the rest of ``gatv`` is unaffected.
@@ -52,8 +55,11 @@ def add_parser(subparsers):
                    help="corner noise in pixels (default: 1.0)")
     p.add_argument("--max-corners", type=int, default=400, metavar="N",
                    help="corners detected per image (default: 400)")
-    p.add_argument("--strategy", choices=("auto", "rigid", "local", "epipolar", "nonrigid"), default="auto",
-                   help="matching strategy (default: auto)")
+    p.add_argument("--strategy", choices=("auto", "rigid", "local", "epipolar", "nonrigid", "voting"),
+                   default="auto", help="matching strategy of the dominant motion (default: auto)")
+    p.add_argument("--max-motions", type=int, default=3, metavar="N",
+                   help="most motions reported: after the dominant one, planes moved rigidly are "
+                        "looked for on the corners left (default: 3; 1: the dominant motion only)")
     p.add_argument("--seed", type=int, default=0, help="seed (default: 0)")
     add_verbosity(p, progress=False)
     p.set_defaults(handler=run)
@@ -83,10 +89,14 @@ def _import_catadioptric():
     return catadioptric
 
 
-def _render(image1, image2, pixels1, pixels2, pairs, path, title) -> None:
+def _render(image1, image2, pixels1, pixels2, motions, path, title) -> None:
+    import numpy as np
+
     from catadioptric._render import render_matches
 
-    render_matches(image1, image2, pixels1, pixels2, pairs, path, title=title)
+    pairs = np.vstack([m.correspondences for m in motions]) if motions else np.empty((0, 2), np.int64)
+    which = np.concatenate([np.full(m.support, k) for k, m in enumerate(motions)]) if motions else None
+    render_matches(image1, image2, pixels1, pixels2, pairs, path, title=title, motion=which)
 
 
 @guarded
@@ -101,6 +111,8 @@ def run(args) -> int:
             raise UsageError(f"{path}: no such file.")
     if args.max_corners < 3:
         raise UsageError(f"Expected --max-corners >= 3, got {args.max_corners}.")
+    if args.max_motions < 1:
+        raise UsageError(f"Expected --max-motions >= 1, got {args.max_motions}.")
     cata = _import_catadioptric()
     cam1 = cata.UnifiedCamera.from_file(args.camera)
     cam2 = cata.UnifiedCamera.from_file(args.camera2) if args.camera2 else cam1
@@ -109,7 +121,8 @@ def run(args) -> int:
     pix1 = cata.detect_corners(img1, max_corners=args.max_corners, mask=_mirror_mask(cam1, img1.shape))
     pix2 = cata.detect_corners(img2, max_corners=args.max_corners, mask=_mirror_mask(cam2, img2.shape))
     t_detect = time.perf_counter() - start
-    result = cata.match(pix1, pix2, cam1, cam2, noise_px=args.noise_px, strategy=args.strategy, seed=args.seed)
+    result = cata.match(pix1, pix2, cam1, cam2, noise_px=args.noise_px, strategy=args.strategy, seed=args.seed,
+                        max_motions=args.max_motions)
     seconds = time.perf_counter() - start
     ok = bool(result)
     if not args.quiet:
@@ -120,10 +133,20 @@ def run(args) -> int:
             print(f"rotation:        {result.rotation_deg:.3f} deg ({result.rotation_support} pairs)")
         if result.translation is not None:
             print(f"translation dir: {' '.join(f'{v:+.4f}' for v in result.translation)}")
+        print(f"motions:         {len(result.motions)}")
+        for k, motion in enumerate(result.motions, start=1):
+            rot = "" if motion.angle_deg is None else f", rotation {motion.angle_deg:.3f} deg"
+            print(f"  motion {k}:      {motion.support} pairs ({motion.strategy}{rot})")
         print(f"time:            {seconds:.3f} s")
     if not ok:
         print(f"{PROG}: matching failed: {result.info.get('reason', 'nothing matched')}", file=sys.stderr)
     pairs = result.correspondences
+
+    def matches_px(c):
+        return [[*pix1[i].tolist(), *pix2[j].tolist()] for i, j in c]
+
+    motions = [{**m.to_dict(), "matches_px": matches_px(m.correspondences), "info": to_jsonable(m.info)}
+               for m in result.motions]
     record = {
         "image1": str(args.image1), "image2": str(args.image2), "camera": str(args.camera),
         "camera2": str(args.camera2) if args.camera2 else None,
@@ -131,13 +154,15 @@ def run(args) -> int:
         "time_s": seconds, "time_detect_s": t_detect,
         "corners1": pix1.tolist(), "corners2": pix2.tolist(),
         **result.to_dict(),
-        "matches_px": [[*pix1[i].tolist(), *pix2[j].tolist()] for i, j in pairs],
+        "motions": motions,
+        "matches_px": matches_px(pairs),
         "info": to_jsonable(result.info),
     }
-    title = f"{result.support} matches ({result.strategy})"
+    title = f"{result.support} matches, {len(result.motions)} motion{'s' * (len(result.motions) != 1)} " + (
+        f"({', '.join(f'{m.support} {m.strategy}' for m in result.motions)})")
     write_outputs([
         (args.out, lambda tmp: write_json(tmp, record)),
         (args.render if ok else None,
-         lambda tmp: _render(img1, img2, pix1, pix2, pairs, tmp, title)),
+         lambda tmp: _render(img1, img2, pix1, pix2, result.motions, tmp, title)),
     ], quiet=args.quiet)
     return EXIT_OK if ok else EXIT_FAILED

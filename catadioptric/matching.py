@@ -85,13 +85,13 @@ from catadioptric.constants import (
 )
 from catadioptric.epipolar import epipolar_stage, essential_from_motion
 from catadioptric.peeling import SphereMotion, peel
-from catadioptric.voting import voting_stage
 from catadioptric.rotation import (
     dominant_rotation,
     grow_local,
     rotation_icp,
     voted_seeds,
 )
+from catadioptric.voting import voting_stage
 from gatv._validation import as_rng, check_progress, seed_int
 from gatv._validation import frozen_array as _frozen
 from gatv.errors import InputError

@@ -20,7 +20,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from catadioptric.acceptance import cap_area
-from catadioptric.constants import CHANCE_ALPHA, GATE_SIGMAS, PEEL_OVERLAP, REACH_SPACINGS
+from catadioptric.constants import (
+    CHANCE_ALPHA,
+    GATE_SIGMAS,
+    PEEL_OVERLAP,
+    REACH_SPACINGS,
+)
 from catadioptric.plane import decompose_homography, plane_stage
 from gatv._validation import frozen_array as _frozen
 from gatv.fitting import kabsch

@@ -37,8 +37,6 @@ the default (``"auto"``) in ``benchmarks/catadioptric.py``.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial import cKDTree
 

@@ -67,12 +67,12 @@ def two_motion_scene(seed=0, n_static=150, n_outliers=30, board_turn_deg=25.0):
     turn = Rotation.from_rotvec(np.radians(board_turn_deg) * np.array([0.3, 0.9, 0.3])
                                 / np.linalg.norm([0.3, 0.9, 0.3])).as_matrix()
     X2 = (X1 - tb) @ turn.T + tb + np.array([0.05, -0.08, 0.04])
-    noise = lambda n: rng.normal(0.0, 0.5, (n, 2))  # noqa: E731
+    noise = lambda n: rng.normal(0.0, 0.5, (n, 2))
     s1 = CAMERA.project(static) + noise(len(static))
     s2 = CAMERA.project(static) + noise(len(static))
     b1 = CAMERA.project(X1) + noise(len(X1))
     b2 = CAMERA.project(X2) + noise(len(X2))
-    out = lambda: CAMERA.project(rng.normal(size=(n_outliers, 3)) * [1, 1, 0.3] + [0, 0, 1.0])  # noqa: E731
+    out = lambda: CAMERA.project(rng.normal(size=(n_outliers, 3)) * [1, 1, 0.3] + [0, 0, 1.0])
     p1 = np.vstack([s1, b1, out()])
     p2 = np.vstack([s2, b2, out()])
     perm = rng.permutation(len(p2))
@@ -120,7 +120,7 @@ def test_whole_pattern_beats_the_shifted_rival(seed):
     p1, p2, _, truth = two_motion_scene(seed, n_static=0, n_outliers=0)
     r1, r2 = CAMERA.lift(p1), CAMERA.lift(p2)
     info = {}
-    H, pairs = plane_stage(r1, r2, sphere_noise(CAMERA, p1), sphere_noise(CAMERA, p2),
+    _, pairs = plane_stage(r1, r2, sphere_noise(CAMERA, p1), sphere_noise(CAMERA, p2),
                            np.random.default_rng(0), info)
     precision, recall = correspondence_stats(pairs, truth)
     assert precision == 1.0 and recall == 1.0
@@ -130,7 +130,7 @@ def test_whole_pattern_beats_the_shifted_rival(seed):
 
 def test_symmetric_pattern_reports_the_tie():
     """Without the notch the half-turned match explains every corner too: said so in info."""
-    import catadioptric.plane as plane
+    from catadioptric import plane
 
     Rb, tb = _pose([0.8, 0.3, 0.5], 1.0, 20.0, 0)
     X1 = _board(notch=False) @ Rb.T + tb

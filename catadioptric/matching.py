@@ -10,6 +10,10 @@ orchestration of the stages, which live in their own modules:
 * :mod:`catadioptric.rotation`: the dominant rotation and locally rigid growth;
 * :mod:`catadioptric.epipolar`: the motion (R, t) and matching along epipolar arcs;
 * :mod:`catadioptric.acceptance`: posteriors, the chance level, rivals;
+* :mod:`catadioptric.plane` and :mod:`catadioptric.peeling`: a plane moved
+  rigidly (a homography of the sphere) and every further motion;
+* :mod:`catadioptric.voting`: the paper's tensor-voting surface
+  (``strategy="voting"``);
 * :mod:`catadioptric.constants`: the tuning constants, each explained.
 
 How it works
@@ -56,7 +60,17 @@ How it works
    (repeated structure) ...": nothing tells which of the two is right,
    and precision comes first. The threshold and its margins: see
    :data:`catadioptric.constants.RIVAL_RATIO` and docs/design-notes.md
-   (catadioptric).
+   (catadioptric). With ``strategy="auto"`` the plane stage then compares
+   whole-pattern supports (step 6): a pattern on a plane seen whole in
+   both views is resolved, ``info["resolved"]`` says so.
+6. **Every motion.** The rays the motions so far leave unexplained are
+   searched for a plane moved rigidly (:mod:`catadioptric.plane`: local
+   quadruples matched by affine signature, grown homographies, rivals of a
+   repeated pattern compared by whole-pattern support), kept when it beats
+   the chance level of those rays and is not more of an earlier motion,
+   again until ``max_motions`` (:func:`catadioptric.peeling.peel`, the
+   peeling of section 5 on the sphere). :attr:`SphereMatch.motions` lists
+   them, the dominant first; ``correspondences`` is their union.
 
 Motion convention: a scene point seen along ray ``x`` in view 1 is seen
 along ``y ≈ R x`` in view 2 (pure rotation), ``y ∝ R X + t`` in general

@@ -1,4 +1,5 @@
-"""``gatv nonrigid SOURCE TARGET``: a locally rigid, non-rigid motion (:func:`gatv.nonrigid.register`)."""
+"""``gatv nonrigid SOURCE TARGET``: a locally rigid, non-rigid motion (:func:`gatv.nonrigid.register`),
+or with ``--segment`` every non-rigid motion (:func:`gatv.nonrigid.segment`)."""
 
 from __future__ import annotations
 
@@ -46,6 +47,8 @@ def add_parser(subparsers):
                    help="start a coarse-to-fine hypothesis from the dominant rigid motion: "
                         "auto (only when nothing else beats chance, bounded search), always, never "
                         "(default: auto)")
+    p.add_argument("--segment", action="store_true",
+                   help="find several non-rigid motions (their number unknown) with per-point labels")
     add_verbosity(p, progress=False)
     p.set_defaults(handler=run)
     return p
@@ -75,7 +78,7 @@ def render(source, target, motion, path) -> None:
 def run(args) -> int:
     """Run ``gatv nonrigid`` on parsed ``args``; return the exit status."""
     from ..io import read_points, write_json
-    from ..nonrigid import register
+    from ..nonrigid import register, segment
 
     check_outputs(args, inputs=(args.source, args.target))
     source = read_points(args.source)
@@ -87,6 +90,8 @@ def run(args) -> int:
         options["noise"] = args.noise
     options["prealign"] = {"auto": "auto", "always": True, "never": False}[args.prealign]
     start = time.perf_counter()
+    if getattr(args, "segment", False):
+        return _run_segment(args, source, target, options, segment)
     motion = register(source, target, seed=args.seed, **options)
     seconds = time.perf_counter() - start
     ok = bool(motion)
@@ -103,4 +108,31 @@ def run(args) -> int:
         (args.out, lambda tmp: write_json(tmp, record)),
         (args.render if ok else None, lambda tmp: render(source, target, motion, tmp)),
     ], quiet=args.quiet)
+    return EXIT_OK if ok else EXIT_FAILED
+
+
+def _run_segment(args, source, target, options, segment) -> int:
+    """``gatv nonrigid --segment``: print each motion, write the JSON record (labels included)."""
+    import numpy as np
+
+    from ..io import write_json
+
+    start = time.perf_counter()
+    result = segment(source, target, seed=args.seed, **options)
+    seconds = time.perf_counter() - start
+    ok = bool(result)
+    if not args.quiet:
+        print(f"motions:         {len(result)}")
+        for k, m in enumerate(result.motions):
+            print(f"motion {k}:        {m.support} correspondences")
+        print(f"unexplained:     {int(np.sum(result.source_labels < 0))} source, "
+              f"{int(np.sum(result.target_labels < 0))} target points")
+        print(f"time:            {seconds:.3f} s")
+    if not ok:
+        print(f"{PROG}: segmentation found no non-rigid motion: "
+              f"{result.info.get('reason', 'nothing found')}", file=sys.stderr)
+    inputs = {"source": str(args.source), "target": str(args.target)}
+    record = result_record(inputs, source, target, seed=args.seed, options=dict(options, segment=True),
+                           seconds=seconds, result=result)
+    write_outputs([(args.out, lambda tmp: write_json(tmp, record))], quiet=args.quiet)
     return EXIT_OK if ok else EXIT_FAILED

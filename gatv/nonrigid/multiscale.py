@@ -235,7 +235,7 @@ def memory_estimate(n_source: int, n_target: int, coarse_points: int,
     Counted: the inputs and their k-d trees, per-row k-nearest-neighbour
     tables and affine systems (in blocks of at most ``_BLOCK`` rows), the
     matches, the per-correspondence local rotations, and the coarse solve
-    (``coarse_points²`` candidate pairs at most, times the bytes a pair
+    (``min(coarse_points, N) · min(coarse_points, M)`` candidate pairs at most, times the bytes a pair
     costs downstream).  No N × M term: a larger set costs proportionally
     more.
 
@@ -251,7 +251,7 @@ def memory_estimate(n_source: int, n_target: int, coarse_points: int,
     n = int(n_source) + int(n_target)
     per_row = 8 * (3 + 3 + 3 + 3 + 2 + 9 + 3 + 4)  # points, tree, warped, displacement, pair, R, t, misc
     block = min(_BLOCK, max(n_source, n_target)) * 8 * (k * (3 + 3 + 4 + 1) + 16 + 12)
-    coarse = float(coarse_points) ** 2 * BYTES_PER_CANDIDATE_PAIR
+    coarse = float(min(coarse_points, n_source)) * min(coarse_points, n_target) * BYTES_PER_CANDIDATE_PAIR
     return float(n * per_row + block + coarse)
 
 
@@ -423,3 +423,47 @@ def window(X, Y, tree_x, tree_y, centre, warp, radius: float, margin: float):
     moved = warp(centre[None])[0]
     tgt = np.sort(np.asarray(tree_y.query_ball_point(moved, radius + margin), np.int64))
     return src, tgt
+
+
+# ------------------------------------------------------------------ pre-alignment fallback
+def moment_prealign(X, Y, *, iterations: int = 30, max_points: int = 3000, seed: int = 0):
+    """Similarity pre-alignment from principal axes, refined by trimmed similarity ICP.
+
+    The scale is the ratio of the RMS radii about the centroids, the
+    rotation one of the four proper sign choices of the principal axes
+    (the one with the smallest median nearest-target distance), then
+    ``iterations`` rounds of Umeyama's fit on the nearest-target pairs of
+    the closest 80% of at most ``max_points`` seeded source points.  For a
+    deformation on top of a large rotation and scale change, when the
+    similarity model's search on the coarse sets finds nothing (differently
+    sampled sets have no exact triples).  Works for bodies whose principal
+    axes are distinct; returns the 4×4 matrix ``[[s R, t], [0, 1]]``.
+    """
+    from ..fitting import umeyama
+
+    rng = np.random.default_rng(seed)
+    xs = X if X.shape[0] <= max_points else X[rng.choice(X.shape[0], max_points, replace=False)]
+    cx, cy = X.mean(axis=0), Y.mean(axis=0)
+    s = float(np.sqrt(np.mean(np.sum((Y - cy) ** 2, axis=1)) / np.mean(np.sum((X - cx) ** 2, axis=1))))
+    _, ux = np.linalg.eigh(np.cov((X - cx).T))
+    _, uy = np.linalg.eigh(np.cov((Y - cy).T))
+    tree = cKDTree(Y)
+    best = None
+    for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
+        D = np.diag(signs).astype(float)
+        R = uy @ D @ ux.T
+        if np.linalg.det(R) < 0:
+            R = uy @ (D * np.diag([1.0, 1.0, -1.0])) @ ux.T
+        t = cy - s * R @ cx
+        d = tree.query(s * xs @ R.T + t, k=1)[0]
+        if best is None or np.median(d) < best[0]:
+            best = (float(np.median(d)), s, R, t)
+    _, s, R, t = best
+    for _ in range(iterations):
+        moved = s * xs @ R.T + t
+        d, j = tree.query(moved, k=1)
+        keep = d <= np.percentile(d, 80)
+        s, R, t = umeyama(xs[keep], Y[j[keep]])
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = s * R, t
+    return A

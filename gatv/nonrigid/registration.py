@@ -65,6 +65,7 @@ from ..errors import InputError
 from ..models.rigid import check_spread
 from .motion import Diagnostics, NonRigidMotion
 from .stages import (
+    AUTO_RIGID_TRIPLES,
     Problem,
     Settings,
     anneal_hypothesis,
@@ -395,13 +396,20 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         report(0.02, f"pre-alignment ({settings.model})")
         from ..registration import register as rigid_register
 
-        prior = rigid_register(X[si], Y[ti], model=settings.model, seed=settings.seed,
-                               noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5))
-        info["prealign"] = None if not prior else {"model": settings.model, "support": prior.support}
-        if prior:
-            X = prior.transform(X)
+        found = rigid_register(X[si], Y[ti], model=settings.model, seed=settings.seed,
+                               noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5),
+                               max_triples=AUTO_RIGID_TRIPLES)
+        if found:
+            prior = np.asarray(found.matrix, dtype=float)
+            info["prealign"] = {"model": settings.model, "support": found.support}
+        elif settings.model == "similarity":
+            prior = ms.moment_prealign(X[dx], Y[dy], seed=settings.seed)
+            info["prealign"] = {"model": "principal axes + similarity ICP",
+                                "reason": found.info.get("reason")}
         else:
-            prior = None
+            info["prealign"] = {"model": settings.model, "reason": found.info.get("reason")}
+        if prior is not None:
+            X = X @ prior[:3, :3].T + prior[:3, 3]
 
     # 2. coarse solve
     report(0.05, f"coarse solve on {si.size} x {ti.size} points")
@@ -469,9 +477,8 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     passed, R, t = ms.local_eq41_pairs(X, Y, pairs, settings.strain, gate)
     info.update(n_eq41_rejected=int((~passed).sum()), gate=gate, spacing=spacing)
     pairs, R, t = pairs[passed], R[passed], t[passed]
-    if prior is not None:  # local motions of the original source: compose with the pre-alignment
-        A = prior.matrix[:3, :3]
-        R, t = R @ A, t + np.einsum("kij,j->ki", R, prior.matrix[:3, 3])
+    if prior is not None:  # local rigid motions of the original source points
+        _, R, t = ms.local_eq41_pairs(X0, Y, pairs, settings.strain, gate)
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
     return NonRigidMotion(pairs, X0[pairs[:, 0]], Y[pairs[:, 1]], R, t, 0.0, coarse.diagnostics, info)

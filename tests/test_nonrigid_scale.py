@@ -1,0 +1,294 @@
+"""Non-rigid registration at scale (gatv.nonrigid.multiscale) and several non-rigid motions (segment)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv.datasets import correspondence_stats
+from gatv.errors import InputError
+from gatv.nonrigid import NonRigidSegmentation, register, segment
+from gatv.nonrigid import deformations as deform
+from gatv.nonrigid import multiscale as ms
+
+
+def _pairs(m):
+    return set(map(tuple, np.asarray(m.correspondences).tolist()))
+
+
+# ------------------------------------------------------------------ kernels against numpy references
+def test_grid_subsample_keeps_one_point_per_voxel_nearest_its_centre():
+    p = np.random.default_rng(0).uniform(0, 10, (3000, 3)) * [1, 1, 0.01]
+    idx = ms.grid_subsample(p, 200)
+    assert 180 <= idx.size <= 220 and np.all(np.diff(idx) > 0)
+    assert np.array_equal(idx, ms.grid_subsample(p, 200))  # deterministic
+    # min_share: isolated points far from the structure take no voxel
+    far = np.random.default_rng(1).uniform(-50, 60, (300, 3))
+    both = np.vstack([p, far])
+    idx = ms.grid_subsample(both, 200, min_share=0.25)
+    assert np.mean(idx < p.shape[0]) > 0.95
+    assert np.array_equal(ms.grid_subsample(p, 10_000), np.arange(p.shape[0]))
+
+
+def test_local_affine_warp_reproduces_an_affine_field_and_matches_lstsq():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-5, 5, (400, 3))
+    A = np.eye(3) + 0.1 * rng.normal(size=(3, 3))
+    b = np.array([1.0, -2.0, 0.5])
+    w = ms.LocalAffineWarp(x, x @ A.T + b - x)
+    q = rng.uniform(-4, 4, (50, 3))
+    np.testing.assert_allclose(w(q), q @ A.T + b, atol=1e-6)
+    # a non-affine field: the constant of the least-squares fit on the k nearest (numpy reference)
+    d = np.sin(x)
+    w = ms.LocalAffineWarp(x, d, k=10)
+    for qq in q[:5]:
+        nb = np.argsort(np.linalg.norm(x - qq, axis=1))[:10]
+        M = np.column_stack([np.ones(10), x[nb] - qq])
+        coef, *_ = np.linalg.lstsq(M, d[nb], rcond=None)
+        np.testing.assert_allclose(w(qq[None])[0], qq + coef[0], atol=1e-4)
+
+
+def test_loo_affine_residuals_zero_for_affine_and_flag_a_swapped_match():
+    x = deform.sample_plane(300, 10.0, seed=1)
+    y = deform.twist(x, 20.0)
+    r = ms.loo_affine_residuals(x, y - x)
+    assert np.median(r) < 0.01
+    d = y - x
+    d[[10, 11]] = y[[11, 10]] - x[[10, 11]]  # two matches swapped
+    r = ms.loo_affine_residuals(x, d)
+    assert r[10] > 10 * np.median(r) and r[11] > 10 * np.median(r)
+
+
+def test_local_eq41_passes_a_rigid_motion_and_rejects_wrong_matches():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-5, 5, (200, 3))
+    y = deform.rigid(x, 40.0, axis=(1, 1, 0), translation=(1.0, 2.0, 3.0))
+    pairs = np.column_stack([np.arange(200), np.arange(200)])
+    passed, R, t = ms.local_eq41_pairs(x, y, pairs, strain=0.0, gate=1e-6)
+    assert passed.all()
+    np.testing.assert_allclose(x[:5] @ R[0].T + t[0], y[:5], atol=1e-8)
+    wrong = pairs.copy()
+    wrong[:20, 1] = rng.permutation(200)[:20]
+    passed, _, _ = ms.local_eq41_pairs(x, y, wrong, strain=0.0, gate=1e-3)
+    assert np.mean(passed[:20]) < 0.2
+    # matches whose local patch (12 nearest) holds no wrong match keep passing
+    from scipy.spatial import cKDTree
+
+    _, nb = cKDTree(x).query(x, k=ms.MLS_NEIGHBOURS)
+    clean = ~np.any(nb < 20, axis=1)
+    assert clean.sum() > 20 and passed[clean].all()
+
+
+# ------------------------------------------------------------------ memory: no N x M term
+@settings(max_examples=40, deadline=None)
+@given(n1=st.integers(5000, 10**7), n2=st.integers(5000, 10**7), c=st.integers(50, 5000))
+def test_memory_estimate_grows_linearly_not_as_n_times_m(n1, n2, c):
+    base = ms.memory_estimate(n1, n2, c)
+    double = ms.memory_estimate(2 * n1, 2 * n2, c)
+    # beyond the coarse subsample: linear in N + M (plus fixed terms), never 4x
+    assert base < double <= 2 * base
+    # bounded per point: no N x M allocation hides in the estimate
+    from gatv.candidates import BYTES_PER_CANDIDATE_PAIR
+
+    assert base <= 1000.0 * (n1 + n2) + BYTES_PER_CANDIDATE_PAIR * c * c + 1e8
+
+
+def test_size_over_the_memory_budget_fails_at_once_naming_budget_and_subsampling():
+    x = deform.sample_plane(3000, 10.0, seed=0)
+    with pytest.raises(InputError, match="memory budget") as info:
+        register(x, deform.twist(x, 30.0), multiscale=True, memory_budget=1e6)
+    assert "coarse_points" in str(info.value) and "subsample" in str(info.value)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"multiscale": "yes"}, "multiscale"),
+    ({"coarse_points": 10}, "coarse_points"),
+    ({"window_points": 0}, "window_points"),
+    ({"model": "affine"}, "model"),
+])
+def test_bad_multiscale_options_name_the_argument(kwargs, match):
+    x = deform.sample_plane(50, 10.0, seed=0)
+    with pytest.raises(InputError, match=match):
+        register(x, x + 1.0, **kwargs)
+
+
+# ------------------------------------------------------------------ multi-resolution solve
+@pytest.fixture(scope="module")
+def twisted_multi():
+    x = deform.sample_plane(200, 10.0, seed=3)
+    trial = deform.nonrigid_trial(x, deform.twist(x, 60.0), 0.0, seed=4)
+    m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
+    return trial, m
+
+
+def test_multiscale_recovers_the_twist_with_the_local_mode(twisted_multi):
+    trial, m = twisted_multi
+    assert m and m.info["multiscale"]
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.98 and recall >= 0.9
+    c = m.correspondences
+    assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
+    assert trial.warp_error(m.warp) < 0.05
+    assert m.info["hypothesis"] == "voting"  # the paper's local mode gave the seeds
+
+
+def test_multiscale_same_seed_same_result(twisted_multi):
+    trial, m = twisted_multi
+    again = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
+    assert np.array_equal(again.correspondences, m.correspondences)
+
+
+def test_multiscale_equals_the_direct_solve_where_both_run(twisted_multi):
+    trial, m = twisted_multi
+    direct = register(trial.source, trial.target, multiscale=False)
+    common = _pairs(m) & _pairs(direct)
+    assert len(common) >= 0.97 * max(m.support, direct.support)
+
+
+@pytest.mark.slow
+def test_multiscale_equals_the_direct_solve_on_a_few_thousand_points():
+    x = deform.sample_plane(1200, 10.0, seed=3)
+    trial = deform.nonrigid_trial(x, deform.twist(x, 60.0), 0.0, seed=4)
+    direct = register(trial.source, trial.target, multiscale=False)
+    multi = register(trial.source, trial.target, multiscale=True, coarse_points=300, window_points=200)
+    assert len(_pairs(multi) & _pairs(direct)) >= 0.99 * max(multi.support, direct.support)
+    assert correspondence_stats(multi.correspondences, trial.true_pairs)[0] >= 0.99
+
+
+@pytest.mark.slow
+def test_multiscale_differently_sampled_sets_report_only_within_the_sampling_gate():
+    rng = np.random.default_rng(0)
+    x = deform.sample_plane(5000, 10.0, seed=1)
+    y = deform.twist(x, 90.0)
+    a = np.sort(rng.choice(5000, 4000, replace=False))
+    b = np.sort(rng.choice(5000, 4000, replace=False))
+    m = register(x[a], y[b])
+    assert m.info["multiscale"]
+    d = np.linalg.norm(y[b][m.correspondences[:, 1]] - y[a][m.correspondences[:, 0]], axis=1)
+    assert np.mean(d <= m.info["spacing"]) >= 0.95
+    assert m.support >= 0.7 * 4000 * 0.8
+
+
+def test_large_result_warp_is_local_and_linear_in_memory():
+    from gatv.nonrigid.motion import TPS_MAX_CONTROL
+
+    k = TPS_MAX_CONTROL + 10
+    x = np.random.default_rng(0).uniform(-1, 1, (k, 3))
+    y = x @ np.diag([1.1, 0.9, 1.0]) + 0.2
+    from gatv.nonrigid import NonRigidMotion
+
+    m = NonRigidMotion(np.column_stack([np.arange(k), np.arange(k)]), x, y,
+                       np.tile(np.eye(3), (k, 1, 1)), np.zeros((k, 3)))
+    np.testing.assert_allclose(m.warp(x[:100]), y[:100], atol=1e-6)
+
+
+# ------------------------------------------------------------------ several non-rigid motions
+@pytest.fixture(scope="module")
+def two_motions():
+    plate = deform.sample_plane(90, 10.0, seed=5)
+    bar = deform.sample_plane(90, 10.0, seed=6) * [1.0, 0.3, 1.0] + [13.0, 0.0, 0.0]
+    x = np.vstack([plate, bar])
+    y = np.vstack([deform.twist(plate, 60.0),
+                   deform.rigid(deform.bend(bar, 60.0), 20.0, translation=(1.0, 2.0, 1.0))])
+    trial = deform.nonrigid_trial(x, y, 0.2, seed=7)
+    return trial, segment(trial.source, trial.target)
+
+
+def test_two_motion_scene_gives_two_labelled_motions(two_motions):
+    trial, seg = two_motions
+    assert isinstance(seg, NonRigidSegmentation) and len(seg) == 2
+    # every motion lies on one body: its matched true pairs come from one of the two halves
+    inlier_body = np.full(trial.source.shape[0], -1)
+    order = np.argsort(trial.true_pairs[:, 0])
+    truth_rows = trial.true_pairs[order]
+    # recover which body each inlier source row came from through its true position
+    inlier_body[truth_rows[:, 0]] = (trial.target[truth_rows[:, 1], 0] > 7.0).astype(int)
+    found = set()
+    for m in seg.motions:
+        bodies = inlier_body[m.correspondences[:, 0]]
+        bodies = bodies[bodies >= 0]
+        assert np.mean(bodies == np.bincount(bodies).argmax()) > 0.98
+        found.add(int(np.bincount(bodies).argmax()))
+        precision, _ = correspondence_stats(m.correspondences, trial.true_pairs)
+        assert precision >= 0.95
+    assert found == {0, 1}
+    # labels: matched rows carry their motion's label; no row in two motions
+    for k, m in enumerate(seg.motions):
+        assert np.all(seg.source_labels[m.correspondences[:, 0]] == k)
+        assert np.all(seg.target_labels[m.correspondences[:, 1]] == k)
+    all_src = np.concatenate([m.correspondences[:, 0] for m in seg.motions])
+    assert len(np.unique(all_src)) == len(all_src)
+    assert json.loads(json.dumps(seg.to_dict()))["n_motions"] == 2
+
+
+@pytest.mark.slow
+def test_segment_same_seed_same_result(two_motions):
+    trial, seg = two_motions
+    again = segment(trial.source, trial.target)
+    assert np.array_equal(again.source_labels, seg.source_labels)
+    assert [m.support for m in again] == [m.support for m in seg]
+
+
+def test_segment_of_noise_is_falsy_with_a_reason():
+    rng = np.random.default_rng(9)
+    seg = segment(rng.uniform(0, 1, (40, 3)), rng.uniform(0, 1, (40, 3)), prealign=False)
+    assert not seg and seg.info["reason"]
+    assert seg.source_labels.shape == (40,) and np.all(seg.source_labels == -1)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"max_motions": 0}, "max_motions"),
+    ({"min_share": 1.5}, "min_share"),
+    ({"progress": 3}, "progress"),
+])
+def test_segment_bad_options_name_the_argument(kwargs, match):
+    x = deform.sample_plane(50, 10.0, seed=0)
+    with pytest.raises(InputError, match=match):
+        segment(x, x + 1.0, **kwargs)
+
+
+def test_motion_parts_splits_disconnected_and_discontinuous_matches():
+    a = deform.sample_plane(100, 10.0, seed=0)
+    b = a + [0.0, 0.0, 0.0]
+    xs = np.vstack([a, b + [20.0, 0, 0]])  # two bodies far apart
+    ys = np.vstack([a + 0.1, b + [20.0, 0, 0] + 0.1])
+    labels = ms_parts = __import__("gatv.nonrigid.segment", fromlist=["motion_parts"]).motion_parts(
+        xs, ys, 0.35, 0.05)
+    assert len(np.unique(labels)) == 2 and ms_parts is labels
+    # one body, but its right half jumps by 3 units: two parts
+    ys = np.vstack([a + 0.1, b + [20.0, 0, 0] + 0.1])
+    ys[:100][a[:, 0] > 0] += [0, 0, 3.0]
+    parts = __import__("gatv.nonrigid.segment", fromlist=["motion_parts"]).motion_parts(
+        xs[:100], ys[:100], 0.35, 0.05)
+    assert len(np.unique(parts)) == 2
+
+
+# ------------------------------------------------------------------ command line
+def _parse(argv):
+    from gatv.cli.nonrigid import add_parser
+
+    parser = argparse.ArgumentParser(prog="gatv")
+    add_parser(parser.add_subparsers(dest="command"))
+    return parser.parse_args(argv)
+
+
+def test_cli_segment_writes_labels(tmp_path, capsys):
+    from gatv.cli.nonrigid import run
+
+    a = deform.sample_plane(80, 10.0, seed=0)
+    b = a + [14.0, 0, 0]
+    np.save(tmp_path / "s.npy", np.vstack([a, b]))
+    np.save(tmp_path / "t.npy", np.vstack([deform.twist(a, 45.0), deform.bend(b, 60.0) + [0, 0, 3]]))
+    out = tmp_path / "r.json"
+    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--segment",
+                   "--out", str(out)])
+    assert run(args) == 0
+    record = json.loads(out.read_text())
+    assert record["success"] and record["n_motions"] == 2
+    assert len(record["source_labels"]) == 160
+    assert "motions:         2" in capsys.readouterr().out

@@ -315,7 +315,10 @@ def _rows(pairs) -> tuple[list[dict], list[str], str]:
 
 # ---------------------------------------------------------------- one task
 def _call(task: Task):
-    """Read the task's files and run its command; return ``(source, target, options, result)``."""
+    """Read the task's files and run its command; return ``(source, target, options, result, seconds)``.
+
+    ``seconds`` times the command alone, as ``gatv register`` does.
+    """
     from .io import read_points
 
     source = read_points(task.source)
@@ -339,7 +342,9 @@ def _call(task: Task):
             opts["prealign"] = _PREALIGN[opts["prealign"]]
     if opts.get("model") == "rigid":
         opts.pop("model")
-    return source, target, opts, fn(source, target, seed=task.seed, **opts)
+    start = time.perf_counter()
+    result = fn(source, target, seed=task.seed, **opts)
+    return source, target, opts, result, time.perf_counter() - start
 
 
 def compute(task: Task) -> dict:
@@ -356,12 +361,11 @@ def compute(task: Task) -> dict:
     try:
         if task.problem:
             raise InputError(f"row {task.row}: {task.problem}.")
-        source, target, options, result = _call(task)
+        source, target, options, result, seconds = _call(task)
     except Exception as exc:  # recorded in the row's JSON; the batch goes on
         return {**inputs, "seed": task.seed, "options": to_jsonable(dict(task.options)),
                 "success": False, "time_s": time.perf_counter() - start,
                 "error": one_line(exc, limit=None), "error_type": type(exc).__name__, "batch": batch}
-    seconds = time.perf_counter() - start
     record = result_record(inputs, source, target, seed=task.seed, options=options, seconds=seconds,
                            result=result)
     record["batch"] = batch

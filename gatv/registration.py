@@ -86,7 +86,7 @@ RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "prescreen": Tru
 #: Default work bound of a search, in the search's work units (about a
 #: microsecond each on one core): a call fails with a reason instead of
 #: running on.
-MAX_WORK = 3e7
+MAX_WORK = 2.5e7
 
 
 def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memory_budget, info):

@@ -45,6 +45,8 @@ __all__ = [
     "grow_tolerance",
     "noise_from_residuals",
     "settle_noise",
+    "regate",
+    "weighted_pose",
     "Judged",
     "judge",
     "Found",
@@ -442,14 +444,63 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
             break
         fit, sigma = moved, est
     sigma = max(sigma, floor)
+    fit = weighted_pose(problem, fit, sigma)
     # Final correspondences within the wider gate that holds ~98% of true
-    # pairs (3D), when it brings in more than random points would.
+    # pairs (3D), when it brings in more than random points would; the pose
+    # stays the one weighted by the noise.
     g = FINAL_GATE * sigma
-    wider = refine(problem, fit, g)
+    wider = regate(problem, fit, g)
     gain = chance_count(n1, n2, problem.volume, g, dim=problem.dim, alpha=1e-3)
-    if wider is not fit and wider.support - fit.support > max(1.0, gain):
+    if wider.support - fit.support > max(1.0, gain):
         fit = wider
     return fit, sigma
+
+
+def regate(problem: Problem, fit: Fit, gate_radius: float) -> Fit:
+    """The one-to-one nearest pairs within ``gate_radius`` of ``fit``'s motion, which stays as it is."""
+    A, t = split_matrix(fit.matrix)
+    dist, j = problem.tree.query(problem.source @ A.T + t, k=1, distance_upper_bound=gate_radius)
+    ok = np.flatnonzero(np.isfinite(dist))
+    pairs = np.stack([ok, j[ok]], axis=1)
+    return Fit(fit.matrix, pairs[one_to_one(pairs, dist[ok])])
+
+
+def weighted_pose(problem: Problem, fit: Fit, sigma: float, rounds: int = 8) -> Fit:
+    """Refit the motion by soft correspondences at the noise ``σ`` (an EM step per round).
+
+    Under noise comparable to the point spacing, a point's nearest target is
+    often a neighbour of its true partner, and a fit on the one-to-one
+    nearest pairs is biased by them.  Here each moved source point spreads
+    its weight over every target within the gate, in proportion to
+    ``exp(-r² / (4 σ²))`` (the Gaussian likelihood of the residual ``r``,
+    per-axis variance ``2 σ²``), against an outlier term equal to what the
+    target's mean density would give (``n_target / volume · (4 π σ²)^{3/2}``);
+    the motion is the weighted least-squares fit over all those pairs, as in
+    the rigid EM of Coherent Point Drift restricted to the gate, its scale
+    annealed from ``2 σ`` down to ``σ``.  The correspondences stay those of
+    ``fit``.
+    """
+    if sigma <= 0 or fit.support < 2 * problem.model.sample_size:
+        return fit
+    model, X, Y = problem.model, problem.source, problem.target
+    d = problem.dim
+    T = fit.matrix
+    # Annealed from twice the noise: a start a few degrees off converges.
+    for scale in np.geomspace(2.0, 1.0, rounds):
+        s2 = (scale * sigma) ** 2
+        outlier = Y.shape[0] / problem.volume * (4.0 * np.pi * s2) ** (d / 2.0)
+        A, t = split_matrix(T)
+        dist, j = problem.tree.query(X @ A.T + t, k=8, distance_upper_bound=gate(scale * sigma))
+        ii, kk = np.nonzero(np.isfinite(dist))
+        if ii.size < model.sample_size:
+            return fit
+        kern = np.exp(-(dist[ii, kk] ** 2) / (4.0 * s2))
+        total = np.bincount(ii, weights=kern, minlength=X.shape[0])
+        w = kern / (total[ii] + outlier)
+        if w.sum() < model.sample_size:
+            return fit
+        T = model.fit(X[ii], Y[j[ii, kk]], w)
+    return Fit(T, fit.correspondences)
 
 
 # -------------------------------------------------------------------- judge
@@ -523,6 +574,11 @@ SEARCH_SHARE = 20000.0
 MAX_MATCHES = 64
 #: Work units per congruent match listed but not necessarily scored.
 LIST_COST = 0.2
+#: Samples of the first chunk at each tolerance, before its cost is measured.
+FIRST_CHUNK = 2
+#: Matches listed per sample from which :func:`search` passes its
+#: ``trial_options`` (ways of coping with many matches) to the model.
+OPTIONS_FROM = 8
 
 
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
@@ -572,8 +628,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         tried.extend(records)
     triple_cost = getattr(model, "triple_cost", None)
     done = [0] * len(levels)
-    per_triple = [SEARCH_SHARE / 64.0] * len(levels)  # first chunk: 64 samples, then measured
+    per_triple = [SEARCH_SHARE / FIRST_CHUNK] * len(levels)  # first chunk: a few samples, then measured
     options = dict(trial_options or {})
+    listed_total = [0] * len(levels)
     work = 0.0
     while min(done) < budget:
         for level, tol in enumerate(levels):
@@ -583,7 +640,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 if tried is not None:
                     tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
                 return None
-            m = int(min(budget - done[level], max(16, min(4096, SEARCH_SHARE / per_triple[level]))))
+            m = int(min(budget - done[level], max(2, min(4096, SEARCH_SHARE / per_triple[level]))))
             done[level] += m
             rec = records[level]
             report(sum(done) / (budget * len(levels)), f"tolerance {tol:.3g}: {rec['triples']} triples")
@@ -591,14 +648,19 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             # Side-length tolerance: a side's length error is the noise of four
             # points projected on it (standard deviation 2 tol); 2.5 of those.
             eps = 5.0 * tol
+            # The model's options for many matches a sample (``trial_options``)
+            # only where the samples so far had many: they cost more than they
+            # save on exact data.
+            busy = rec["triples"] > 0 and listed_total[level] >= OPTIONS_FROM * rec["triples"]
             trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
                                          keep=keep, max_matches=max_matches, accept=accept[level],
-                                         **options)
+                                         **(options if busy else {}))
             rec["triples"] += trials.n_triples
             rec["congruent"] += trials.n_congruent
             cost = triple_cost(n2) if triple_cost is not None else 0.0
             per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
-            listed = getattr(trials, "n_listed", 0)
+            listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
+            listed_total[level] += listed
             per_triple[level] += LIST_COST * listed / max(trials.n_triples, 1)
             work += (1.0 + cost) * trials.n_triples + (2.0 + 0.03 * n) * trials.n_congruent + LIST_COST * listed
             if len(trials):

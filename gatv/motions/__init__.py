@@ -1,26 +1,35 @@
 """Multiple overlapping rigid motions (Reyes, Medioni & Bayro 2007, section 5).
 
-:func:`segment` finds every rigid motion between two point sets and
-labels each point with its motion (any model: ``model=``; models other
-than rigid are peeled one at a time by :func:`peel`); :func:`ransac_segment` is the
-sequential-RANSAC baseline; :func:`multi_motion_scene` and
-:func:`fig12_scene` build test scenes with known motions.
+:func:`segment` finds every rigid motion between two point sets, K
+unknown, and labels each point with its motion, choosing its pipeline from
+the data as :func:`gatv.register` does: exact or noisy point sets
+(:func:`segment_points`, the graph grouping of section 5, or :func:`peel`
+with the noise-aware search) or real scans (:func:`segment_scans`).  Models
+other than rigid are peeled one at a time by :func:`peel`;
+:func:`ransac_segment` is the sequential-RANSAC baseline;
+:func:`multi_motion_scene`, :func:`fig12_scene` and :func:`scan_scene`
+build test scenes with known motions.
 """
 
 from __future__ import annotations
 
 from .peeling import peel
 from .ransac import ransac_segment
-from .scenes import MotionScene, fig12_scene, multi_motion_scene
-from .segmentation import Segmentation, joint_space_residuals, segment
+from .scans import segment_scans
+from .scenes import MotionScene, ScanScene, fig12_scene, multi_motion_scene, scan_scene
+from .segmentation import Segmentation, joint_space_residuals, segment, segment_points
 
 __all__ = [
     "Segmentation",
     "segment",
+    "segment_points",
+    "segment_scans",
     "peel",
     "joint_space_residuals",
     "ransac_segment",
     "MotionScene",
     "multi_motion_scene",
     "fig12_scene",
+    "ScanScene",
+    "scan_scene",
 ]

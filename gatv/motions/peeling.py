@@ -63,7 +63,8 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
 def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
          noise: float | None = None, refine: bool = True, min_inlier_share: float = 0.03,
          confidence: float = 0.999, max_triples: int | None = None, sigma: float | None = None,
-         max_candidates: int = 8, memory_budget: float | None = None, progress=None) -> Segmentation:
+         max_candidates: int = 8, memory_budget: float | None = None, noisy: bool | None = None,
+         max_work: float | None = None, schedule=None, progress=None) -> Segmentation:
     """Find several motions of ``problem.model``, one at a time (section 5).
 
     Parameters
@@ -93,6 +94,22 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         Voting scale; default as in :func:`gatv.stages.judge`.
     max_candidates : int, default: 8
     memory_budget : float, optional
+    noisy : bool, optional
+        The noise-aware search of :func:`gatv.register` (rigid model): the
+        tolerances of :data:`gatv.stages.NOISY_SCHEDULE`, the trial options
+        :data:`gatv.registration.RIGID_TRIALS` with
+        :data:`gatv.registration.NOISY_MAX_MATCHES` matches scored per
+        triple, and each motion's noise measured from its residuals and its
+        correspondences re-gated there (:func:`gatv.stages.settle_noise`).
+        Default: for the rigid model when ``noise`` is not given.
+    schedule : sequence of float, optional
+        Tolerances tried when ``noise`` is not given, relative to the
+        spacing; default :data:`gatv.stages.NOISY_SCHEDULE` for a noisy
+        search, else :data:`gatv.stages.NOISE_SCHEDULE`.
+    max_work : float, optional
+        Work bound of each round's search (:func:`gatv.stages.search`);
+        default :data:`gatv.registration.MAX_WORK` for a noisy search, none
+        otherwise.  A round that runs out stops the peeling with that reason.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -120,10 +137,29 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     max_candidates = check_int(max_candidates, "max_candidates", 1)
     report = check_progress(progress)
     rng = as_rng(seed)
-    levels = stages.tolerance_levels(P, noise)
+    if noisy is None:
+        noisy = model.name == "rigid" and noise is None
+    noisy = bool(noisy)
+    if noisy and model.name != "rigid":
+        raise InputError(f"`noisy=True` is the rigid model's search; got model={model.name!r}.")
+    search_options = {}
+    if noisy:
+        from ..registration import MAX_WORK, NOISY_MAX_MATCHES, RIGID_TRIALS
+
+        search_options = {"max_matches": NOISY_MAX_MATCHES, "trial_options": RIGID_TRIALS,
+                          "max_work": MAX_WORK if max_work is None else float(max_work)}
+    elif max_work is not None:
+        search_options["max_work"] = float(max_work)
+    if schedule is None:
+        schedule = stages.NOISY_SCHEDULE if noisy else stages.NOISE_SCHEDULE
+    schedule = tuple(float(check_positive(r, "schedule")) for r in schedule)
+    if not schedule:
+        raise InputError("Expected `schedule` to hold at least one tolerance.")
+    levels = stages.tolerance_levels(P, noise, schedule)
     n1, n2 = P.source.shape[0], P.target.shape[0]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     smallest = max(float(min_inlier_share) * n1, float(k_pts))
+    round_levels = list(levels)
     used_s = np.zeros(n1, bool)
     used_t = np.zeros(n2, bool)
     fits: list[Fit] = []
@@ -145,16 +181,24 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         budget = int(min(budget, 3 * n_possible, max_triples))
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
         tried: list = []
-        found = stages.search(S, levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
-                              max_candidates=max_candidates, polish=refine, grow=noise is None,
+        t_round = time.perf_counter()
+        found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
+                              max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
                               threshold_tests=N_JUDGED, min_support=min_support,
-                              memory_budget=memory_budget, tried=tried)
+                              memory_budget=memory_budget, tried=tried, **search_options)
         if found is None:
-            log.append({"levels": tried})
-            reason = "no trial motion beat the chance level"
+            log.append({"levels": tried, "time_s": time.perf_counter() - t_round})
+            stopped = any("stopped" in rec for rec in tried)
+            reason = ("the work bound (`max_work`) ran out before a trial motion beat the chance level"
+                      if stopped else "no trial motion beat the chance level")
             break
         fit, tol = found.fit, found.tolerance
-        log.append({"levels": tried, "support": fit.support, "threshold": found.threshold,
+        if noisy:
+            fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol), floor=levels[0])
+            # One sensor: the next rounds search at the noise measured here (and the
+            # exact level, for parts that moved without noise), not the whole schedule.
+            round_levels = sorted({levels[0], max(tol, levels[0])})
+        log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
                     "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
                     "sigma": found.judged.sigma})
         kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
@@ -172,13 +216,13 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         c = fit.correspondences
         src_lab[c[:, 0]] = new
         tgt_lab[c[:, 1]] = new
-        motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k],
+        motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k], "noise": tolerances[k],
                                                    "round": k}))
         c = c[np.argsort(c[:, 0], kind="stable")]
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
     info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+            "mode": "peel", "noisy": noisy, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),

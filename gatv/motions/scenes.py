@@ -10,7 +10,7 @@ from .._validation import frozen_array as _frozen
 from ..errors import InputError
 from ..ga import Rotor
 
-__all__ = ["MotionScene", "multi_motion_scene", "fig12_scene"]
+__all__ = ["MotionScene", "multi_motion_scene", "fig12_scene", "ScanScene", "scan_scene"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,3 +111,151 @@ def fig12_scene(*, n_per_motion: int = 40, n_outliers: int = 0, noise: float = 0
     ]
     ts = [[2.0, 1.0, 0.0], [-3.0, 2.0, 1.5], [1.0, -2.0, -3.0]]
     return multi_motion_scene(rots, ts, [n_per_motion] * 3, n_outliers=n_outliers, noise=noise, seed=seed)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanScene:
+    """Two scenes of real scans: several objects, each moved by its own motion, clutter, a static patch.
+
+    Attributes
+    ----------
+    source, target : (N, 3), (M, 3) ndarray of float
+        The two scenes.
+    rotations : (K, 3, 3) ndarray of float
+    translations : (K, 3) ndarray of float
+        Motion ``k`` takes object ``k`` of the source scene onto the target
+        scene (``target = source @ R.T + t``); the static patch, when there
+        is one, is motion ``K - 1`` (the identity).
+    source_labels, target_labels : (N,), (M,) ndarray of int
+        Motion of each point (the static patch is the last) where the other
+        scene sees its surface (a counterpart within three point spacings
+        under the true motion); ``-1`` for clutter and parts seen in one
+        scene only.
+    static : bool
+        Whether the last motion is the static patch.
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    source_labels: np.ndarray
+    target_labels: np.ndarray
+    static: bool
+
+    @property
+    def n_motions(self) -> int:
+        return int(self.rotations.shape[0])
+
+
+def _random_rotation(rng) -> np.ndarray:
+    axis = rng.normal(size=3)
+    return Rotor.from_axis_angle(axis / np.linalg.norm(axis), rng.uniform(0.0, np.pi)).as_matrix()
+
+
+def scan_scene(pairs, *, n_points: int = 40000, clutter: float = 0.2, static_patch: float = 0.1,
+               seed=None) -> ScanScene:
+    """Compose two scenes from real scan pairs, each object moved by its own random motion.
+
+    Parameters
+    ----------
+    pairs : sequence of (target, source, rotation, translation)
+        Scan pairs of one object each (as :func:`gatv.datasets.load_bunny_pair`
+        returns them, in one unit): ``target ≈ source @ rotation.T + translation``.
+    n_points : int, default: 40000
+        Points per scene, about; each object's scans are subsampled to an
+        equal share of what clutter and the patch leave.
+    clutter : float, default: 0.2
+        Share of each scene that is uniform clutter in the scene's bounding box.
+    static_patch : float, default: 0.1
+        Share of each scene on a static square plane patch below the objects
+        (sampled independently in the two scenes, with the objects' point
+        spacing); 0 for none.
+    seed : int or numpy.random.Generator
+        Required: the scene is reproducible.
+
+    Returns
+    -------
+    ScanScene
+        Objects side by side in the target scene; in the source scene each
+        is rotated about its centroid by a random rotation (any angle) and
+        shifted by up to a fifth of its size.
+    """
+    from ..candidates import median_spacing
+
+    if seed is None:
+        raise InputError("Pass `seed` so that the scene is reproducible.")
+    pairs = list(pairs)
+    if not pairs:
+        raise InputError("Expected `pairs` to hold at least one (target, source, rotation, translation).")
+    if not 0.0 <= clutter < 1.0 or not 0.0 <= static_patch < 1.0 or clutter + static_patch >= 1.0:
+        raise InputError(f"Expected `clutter` and `static_patch` in [0, 1) with a sum below 1, got "
+                         f"{clutter!r} and {static_patch!r}.")
+    rng = np.random.default_rng(seed)
+    per_object = int(n_points * (1.0 - clutter - static_patch) / len(pairs))
+    src_parts, tgt_parts, src_lab, tgt_lab, rots, ts = [], [], [], [], [], []
+    offset = 0.0
+    spacing = []
+    for k, (tgt, src, R, t) in enumerate(pairs):
+        tgt = np.asarray(tgt, dtype=np.float64)
+        src = np.asarray(src, dtype=np.float64) @ np.asarray(R).T + np.asarray(t)  # target frame
+        tgt = tgt[rng.choice(tgt.shape[0], min(per_object, tgt.shape[0]), replace=False)]
+        src = src[rng.choice(src.shape[0], min(per_object, src.shape[0]), replace=False)]
+        lo, hi = tgt.min(axis=0), tgt.max(axis=0)
+        size = float(np.max(hi - lo))
+        shift = np.array([offset - lo[0], -0.5 * (lo[1] + hi[1]), -lo[2]])  # side by side along x
+        offset += 1.3 * (hi[0] - lo[0])
+        tgt, src = tgt + shift, src + shift
+        c = tgt.mean(axis=0)
+        Q = _random_rotation(rng)
+        v = rng.uniform(-0.2, 0.2, 3) * size
+        moved = (src - c) @ Q.T + c + v  # source scene = Q (p - c) + c + v
+        # true motion source scene -> target scene: p = Q^T (s - c - v) + c
+        rots.append(Q.T)
+        ts.append(c - Q.T @ (c + v))
+        src_parts.append(moved)
+        tgt_parts.append(tgt)
+        src_lab.append(np.full(moved.shape[0], k))
+        tgt_lab.append(np.full(tgt.shape[0], k))
+        spacing.append(median_spacing(tgt[: min(2000, tgt.shape[0])]))
+    all_t = np.vstack(tgt_parts)
+    static = static_patch > 0
+    if static:
+        n_patch = int(n_points * static_patch)
+        lo, hi = all_t.min(axis=0), all_t.max(axis=0)
+        z = lo[2] - 0.05 * (hi[2] - lo[2])
+        side = np.sqrt(n_patch) * float(np.median(spacing))  # the objects' spacing
+        mid = 0.5 * (lo[:2] + hi[:2])
+        for parts, labs in ((src_parts, src_lab), (tgt_parts, tgt_lab)):
+            xy = mid + rng.uniform(-0.5 * side, 0.5 * side, (n_patch, 2))
+            zs = z + rng.normal(0.0, 0.1 * float(np.median(spacing)), n_patch)  # a noisy floor
+            parts.append(np.column_stack([xy, zs]))
+            labs.append(np.full(n_patch, len(pairs)))
+        rots.append(np.eye(3))
+        ts.append(np.zeros(3))
+    out = []
+    for parts, labs in ((src_parts, src_lab), (tgt_parts, tgt_lab)):
+        pts, lab = np.vstack(parts), np.concatenate(labs)
+        n_clutter = int(round(clutter / (1.0 - clutter) * pts.shape[0]))
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pts = np.vstack([pts, rng.uniform(lo, hi, (n_clutter, 3))])
+        lab = np.concatenate([lab, np.full(n_clutter, -1)])
+        perm = rng.permutation(pts.shape[0])
+        out.append((pts[perm], lab[perm]))
+    (S, ls), (T, lt) = out
+    # A point is explained by its motion where the other scene sees its surface:
+    # its counterpart lies within three point spacings; elsewhere -1.
+    from scipy.spatial import cKDTree
+
+    gate = 3.0 * float(np.median(spacing))
+    rots_a, ts_a = np.array(rots), np.array(ts)
+    for k in range(len(rots)):
+        ms, mt = np.flatnonzero(ls == k), np.flatnonzero(lt == k)
+        moved = S[ms] @ rots_a[k].T + ts_a[k]
+        ds, _ = cKDTree(T[mt]).query(moved, k=1, distance_upper_bound=gate)
+        dt, _ = cKDTree(moved).query(T[mt], k=1, distance_upper_bound=gate)
+        ls[ms[~np.isfinite(ds)]] = -1
+        lt[mt[~np.isfinite(dt)]] = -1
+    return ScanScene(source=_frozen(S), target=_frozen(T), rotations=_frozen(np.array(rots)),
+                     translations=_frozen(np.array(ts)), source_labels=_frozen(ls, np.int64),
+                     target_labels=_frozen(lt, np.int64), static=static)

@@ -66,7 +66,7 @@ from ..models.base import homogeneous
 from ..motion import RigidMotion
 from ..stages import Fit, Problem
 
-__all__ = ["Segmentation", "segment", "joint_space_residuals"]
+__all__ = ["Segmentation", "segment", "segment_points", "joint_space_residuals"]
 
 GROUPINGS = ("graph", "greedy")
 
@@ -419,7 +419,173 @@ def _resolve(P: Problem, motions: list[Fit], tokens, threshold, gate, rounds=3):
 
 
 # ------------------------------------------------------------------ entry
+#: Triples the exact probe of ``grouping="auto"`` draws: data without noise
+#: shows its motions at the exact tolerance long before.
+PROBE_TRIPLES = 20000
+#: The noisy search skips the schedule's levels below this share of the
+#: spacing once the exact probe found nothing.
+NOISY_FROM = 1e-2
+
+
+def _choose(source, target, model, pipeline, memory_budget) -> tuple[str, str]:
+    """``(pipeline, reason)`` as :func:`gatv.register` chooses it."""
+    from ..models import get_model
+    from ..registration import choose_pipeline
+
+    if pipeline not in ("auto", "exact", "scans"):
+        raise InputError(f"Expected `pipeline` 'auto', 'exact' or 'scans', got {pipeline!r}.")
+    m = get_model(model)
+    if pipeline == "exact":
+        return "exact", "pipeline='exact' given"
+    if m.name != "rigid":
+        if pipeline == "scans":
+            raise InputError(f"The scans pipeline segments rigid motions; got model={m.name!r}.")
+        return "exact", f"the {m.name!r} model has the exact pipeline only"
+    X, Y = m.check_points(source, "source"), m.check_points(target, "target")
+    if pipeline == "scans":
+        return "scans", "pipeline='scans' given"
+    return choose_pipeline(X, Y, memory_budget=memory_budget)
+
+
 def segment(
+    source,
+    target,
+    *,
+    model="rigid",
+    pipeline: str = "auto",
+    max_motions: int | None = None,
+    min_support: int | None = None,
+    seed=0,
+    noise: float | None = None,
+    grouping: str = "auto",
+    refine: bool = True,
+    min_inlier_share: float = 0.03,
+    confidence: float = 0.999,
+    max_triples: int | None = None,
+    max_judged: int = 32,
+    sigma: float | None = None,
+    max_candidates: int = 8,
+    memory_budget: float | None = None,
+    scan_options: dict | None = None,
+    progress=None,
+) -> Segmentation:
+    """Find every motion between ``source`` and ``target``, K unknown (section 5).
+
+    Parameters
+    ----------
+    source, target : (N, 3) array_like or object with ``.points``
+        The two point sets; any share of either may be outliers ((N, 2)
+        for ``model="affine2d"``).
+    model : {"rigid", "similarity", "affine2d"} or MotionModel, default: "rigid"
+        The kind of each motion (:mod:`gatv.models`).  The rigid model runs
+        the grouping of section 5 below; the others peel one motion at a
+        time (:func:`gatv.motions.peel`).
+    pipeline : {"auto", "exact", "scans"}, default: "auto"
+        As :func:`gatv.register`: ``"scans"`` for dense, differently
+        sampled range scans (:func:`gatv.motions.scans.segment_scans`: the
+        identity first, then motions peeled with the surface pipeline, each
+        kept only when it beats chance and fits at the scans' noise; planes
+        reported as degenerate), ``"exact"`` for sets whose inliers are the
+        same points in both; ``"auto"`` chooses from the data
+        (:func:`gatv.registration.choose_pipeline`).  ``info["pipeline"]``
+        and ``info["pipeline_reason"]`` say which and why.
+    grouping : {"auto", "graph", "greedy", "peel"}, default: "auto"
+        Exact pipeline, rigid model.  ``"graph"``: one trial search, then
+        dense components of the eq.-41 graph inside each salient surface
+        (the shared-axis split of eqs. 27–29); ``"greedy"``: each judged
+        hypothesis's own correspondences; ``"peel"``: one motion at a time
+        with the noise-aware search of :func:`gatv.register`
+        (:func:`gatv.motions.peel` with ``noisy=True``: noise measured from
+        each motion's residuals).  ``"auto"``: a short probe at the exact
+        tolerance (:data:`PROBE_TRIPLES` triples); motions there mean
+        noise-free data and ``"graph"``, none mean noise and ``"peel"``
+        (given ``noise=``: ``"graph"`` at that noise).
+    scan_options : dict, optional
+        Options of :func:`gatv.scans.register_surfaces` (scans pipeline).
+
+    Other parameters are those of the exact pipeline's graph grouping
+    (:func:`segment_points`); ``max_motions``, ``seed``, ``confidence``,
+    ``max_triples``, ``refine`` and ``memory_budget`` apply to every path.
+
+    Returns
+    -------
+    Segmentation
+        Falsy (no motions) when no motion beats the chance level;
+        ``info["reason"]`` says why the search stopped.
+
+    Raises
+    ------
+    ValueError
+        Bad points (as :func:`gatv.register`), ``max_motions < 1``,
+        ``min_support < 3``, options of the exact pipeline when the data
+        took the scans pipeline, or other bad options.
+
+    Examples
+    --------
+    >>> from gatv.motions import fig12_scene, segment
+    >>> scene = fig12_scene(seed=0)
+    >>> seg = segment(scene.source, scene.target)
+    >>> len(seg), sorted(m.support for m in seg)
+    (3, [40, 40, 40])
+    """
+    chosen, why = _choose(source, target, model, pipeline, memory_budget)
+    if grouping not in GROUPINGS + ("auto", "peel"):
+        raise InputError(f"Expected `grouping` to be one of {('auto',) + GROUPINGS + ('peel',)}, "
+                         f"got {grouping!r}.")
+    if chosen == "scans":
+        exact_only = {"noise": noise, "sigma": sigma, "min_support": min_support,
+                      "grouping": None if grouping == "auto" else grouping}
+        given = [name for name, value in exact_only.items() if value is not None]
+        if given:
+            msg = (f"{', '.join('`' + g + '`' for g in given)} apply to the exact pipeline, but the data took "
+                   f"the scans pipeline ({why}); pass pipeline='exact' to force the exact one, or drop the "
+                   "option.")
+            raise InputError(msg)
+        from .scans import segment_scans
+
+        out = segment_scans(source, target, max_motions=max_motions, seed=seed, confidence=confidence,
+                            max_triples=max_triples, refine=refine, memory_budget=memory_budget,
+                            scan_options=scan_options, progress=progress)
+        out.info.update(pipeline="scans", pipeline_reason=why)
+        return out
+    if scan_options:
+        raise InputError("`scan_options` apply to the scans pipeline only; pass pipeline='scans'.")
+    common = dict(model=model, max_motions=max_motions, min_support=min_support, seed=seed,
+                  refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
+                  max_triples=max_triples, max_judged=max_judged, sigma=sigma, max_candidates=max_candidates,
+                  memory_budget=memory_budget, progress=progress)
+    P = stages.prepare(source, target, model)
+    if P.model.name != "rigid" or grouping in GROUPINGS or (grouping == "auto" and noise is not None):
+        out = segment_points(source, target, noise=noise,
+                             grouping="graph" if grouping == "auto" else grouping, **common)
+    else:
+        out = None
+        if grouping == "auto":
+            t0 = time.perf_counter()
+            probe = segment_points(source, target, noise=P.spacing * stages.NOISE_SCHEDULE[0],
+                                   **dict(common, max_triples=min(max_triples or PROBE_TRIPLES, PROBE_TRIPLES),
+                                          progress=None))
+            if probe:
+                out = segment_points(source, target, noise=None, grouping="graph", **common)
+            probe_s = time.perf_counter() - t0
+        if out is None:
+            from .peeling import peel
+
+            schedule = stages.NOISY_SCHEDULE
+            if grouping == "auto":  # the probe found no exact motion: skip the exact levels
+                schedule = tuple(r for r in schedule if r >= NOISY_FROM)
+            out = peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
+                       refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
+                       max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
+                       memory_budget=memory_budget, noisy=True, schedule=schedule, progress=progress)
+            out.info["grouping"] = "peel"
+        if grouping == "auto":
+            out.info["probe_s"] = probe_s
+    out.info.update(pipeline="exact", pipeline_reason=why)
+    return out
+
+
+def segment_points(
     source,
     target,
     *,
@@ -439,7 +605,7 @@ def segment(
     memory_budget: float | None = None,
     progress=None,
 ) -> Segmentation:
-    """Find every rigid motion between ``source`` and ``target`` (section 5).
+    """Every rigid motion between two point sets by the graph grouping of section 5 (exact pipeline).
 
     Parameters
     ----------
@@ -506,9 +672,9 @@ def segment(
 
     Examples
     --------
-    >>> from gatv.motions import fig12_scene, segment
+    >>> from gatv.motions import fig12_scene, segment_points
     >>> scene = fig12_scene(seed=0)
-    >>> seg = segment(scene.source, scene.target)
+    >>> seg = segment_points(scene.source, scene.target)
     >>> len(seg), sorted(m.support for m in seg)
     (3, [40, 40, 40])
     """

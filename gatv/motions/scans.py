@@ -1,0 +1,406 @@
+"""Several motions between two real scans of a scene (section 5 on the scans pipeline).
+
+Two scans of a scene in which several objects moved sample every surface
+differently, so the point-to-point joint space of section 5 has no exact
+planes; :func:`segment_scans` peels motions with the surface pipeline of
+:func:`gatv.register` (``pipeline="scans"``, :mod:`gatv.scans`) instead,
+one at a time, on the points no motion explains yet (the paper's "removed
+its tokens ... and the process was repeated until no more planes were
+found"):
+
+1. **The identity first.** A static part of the scene (background, a
+   table) is a motion like any other; it is tried explicitly, since a
+   search draws its trials from the moving parts as readily as from it.
+2. **Peel.** ``register(pipeline="scans")`` on the unexplained points; its
+   motion labels every unexplained source point that lands within the
+   sampling gate (a few point spacings) of an unexplained target point, at
+   full input resolution; the one-to-one nearest pairs are its
+   correspondences.
+3. **Keep it only when it beats chance.** A random rigid motion that puts
+   one unexplained source point onto one unexplained target point also
+   brings some of the scene's surfaces within the gate where they cross;
+   :func:`chance_support` measures the largest support of such motions on
+   the points still unexplained (the sampling and clutter found in the
+   data).  A motion is kept when its support exceeds it; otherwise the
+   peeling stops (``info["reason"]``), so leftovers of partial overlap and
+   clutter give nothing.
+4. **Degenerate surfaces.** A motion whose supporting points lie on one
+   plane (as thin as the scans' noise) slides along that plane with equal
+   support: it is reported in ``info["degenerate"]`` and
+   its points set aside, not peeled into a set of spurious motions.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import stages
+from .._validation import check_int, check_progress, seed_int
+from ..candidates import median_spacing
+from ..fitting import fit_rigid
+from ..models.base import homogeneous
+from ..models.rigid import MODEL as RIGID
+from .segmentation import Segmentation
+
+__all__ = ["segment_scans", "chance_support", "thickness", "local_noise", "residual_noise", "SAMPLING_GATE",
+           "PLANE_THICKNESS", "NOISE_FACTOR"]
+
+#: Gate of a scans motion's labels and correspondences, in target point
+#: spacings: two samplings of one surface put a point's partner within
+#: about one spacing, noise and the motion's error add to it.
+SAMPLING_GATE = 3.0
+#: Random motions drawn for the chance level (:func:`chance_support`).
+N_CHANCE = 64
+#: A motion's supporting points lie on one plane (and the motion can slide
+#: along it) when their spread along their least axis, ``sqrt(λ3)``, is within
+#: this many times the scans' noise (:func:`local_noise`): a floor or a wall
+#: is as thick as its noise, any solid object seen from one side far more.
+PLANE_THICKNESS = 3.0
+#: A motion's point-to-plane residuals (:func:`residual_noise`) may exceed the
+#: scans' own noise at its points (:func:`local_noise`) by this factor: a
+#: right motion leaves residuals at the noise (its own error and curvature
+#: add a little), two surfaces that only resemble each other several times it.
+NOISE_FACTOR = 2.5
+#: Pairs the noise of a motion is measured on.
+NOISE_SAMPLE = 2000
+#: Source points the chance level is measured on (counts are scaled up).
+CHANCE_SAMPLE = 4000
+
+
+def thickness(points: np.ndarray) -> float:
+    """Standard deviation of the points along their least axis, ``sqrt(λ3)`` of their covariance (0 on a plane)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] < 4:
+        return 0.0
+    ev = np.linalg.eigvalsh(np.cov(pts.T))
+    return float(np.sqrt(max(ev[0], 0.0)))
+
+
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` rotations uniform over SO(3) (unit quaternions from a 4D Gaussian)."""
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
+def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: float) -> np.ndarray:
+    """Which rows of ``X`` land within ``gate`` of a target point under ``(R, t)``."""
+    d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+    return np.isfinite(d)
+
+
+def _unit_normals(points: np.ndarray, tree: cKDTree, at: np.ndarray, k: int = 12) -> np.ndarray:
+    """Unit normals at rows ``at`` of ``points``: least-variance axis of their ``k`` nearest neighbours."""
+    _, nb = tree.query(points[at], k=min(k, points.shape[0]))
+    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    return vecs[:, :, 0]
+
+
+def _aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A rotation taking unit vector ``a`` onto unit vector ``b``."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if c < -1.0 + 1e-12:  # opposite: a half-turn about any axis normal to a
+        u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        return 2.0 * np.outer(u, u) - np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_draws: int = N_CHANCE,
+                   tangent: bool = True, polish: int = 10, seed=0, tree: cKDTree | None = None,
+                   sample: int = CHANCE_SAMPLE) -> int:
+    """Largest support of ``n_draws`` wrong rigid motions that put a source point onto a target point.
+
+    Each draw takes a random source point onto a random target point.  With
+    ``tangent=True`` (what a search's wrong hypotheses look like: it matches
+    triples of surface points with agreeing normals) the source's surface
+    normal there is turned onto the target's, with a random sign and a random
+    spin about it, so the two surfaces touch tangentially; otherwise the
+    rotation is uniform over SO(3) (what one fixed hypothesis, such as the
+    identity, is to be compared with).  A draw's support is the number of
+    source points landing within ``gate`` of a target point (counted on at
+    most ``sample`` source points and scaled up): where the surfaces touch
+    or cross, plus clutter, as for a wrong motion.  A plane that slides on
+    itself reaches its full support.  Same seed, same level.
+    """
+    X = np.asarray(source, dtype=np.float64)
+    Y = np.asarray(target, dtype=np.float64)
+    if X.shape[0] < 4 or Y.shape[0] < 4:
+        return 0
+    rng = np.random.default_rng(seed)
+    tree = cKDTree(Y) if tree is None else tree
+    sub = X if X.shape[0] <= sample else X[rng.choice(X.shape[0], sample, replace=False)]
+    scale = X.shape[0] / sub.shape[0]
+    ia = rng.integers(0, X.shape[0], n_draws)
+    ib = rng.integers(0, Y.shape[0], n_draws)
+    if tangent:
+        na = _unit_normals(X, cKDTree(X), ia)
+        nb = _unit_normals(Y, tree, ib)
+        signs = rng.choice([-1.0, 1.0], n_draws)
+        spins = rng.uniform(0.0, 2.0 * np.pi, n_draws)
+        rots = []
+        for a, b, s, phi in zip(na, nb, signs, spins):
+            b = s * b
+            K = np.array([[0.0, -b[2], b[1]], [b[2], 0.0, -b[0]], [-b[1], b[0], 0.0]])
+            spin = np.eye(3) + np.sin(phi) * K + (1.0 - np.cos(phi)) * K @ K  # Rodrigues about b
+            rots.append(spin @ _aligning(a, b))
+    else:
+        rots = _random_rotations(rng, n_draws)
+    best = 0
+    for R, p, q in zip(rots, X[ia], Y[ib]):
+        t = q - R @ p
+        if polish:
+            R, t = _icp(sub, Y, tree, R, t, gate, polish)
+        best = max(best, int(np.count_nonzero(_support(sub, tree, R, t, gate))))
+    return int(np.ceil(best * scale))
+
+
+def _icp(X, Y, tree, R, t, gate, iterations):
+    """Point-to-point ICP inside ``gate`` (what a search's polish does to a wrong start)."""
+    for _ in range(int(iterations)):
+        d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        if np.count_nonzero(ok) < 3:
+            break
+        R_new, t_new = fit_rigid(X[ok], Y[j[ok]])
+        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
+            break
+        R, t = R_new, t_new
+    return R, t
+
+
+def local_noise(points: np.ndarray, at: np.ndarray, *, k: int = 10, tree: cKDTree | None = None) -> float:
+    """Median scan noise at rows ``at`` of ``points``: residual deviation of each one's ``k + 1`` neighbours from their plane.
+
+    ``sqrt(λ3 / (k - 2))`` of the neighbourhood's scatter (``k + 1`` points,
+    three parameters of the plane), median over ``at``: the sensor noise
+    along the surface normal, measured on one scan alone.
+    """
+    tree = cKDTree(points) if tree is None else tree
+    kk = min(int(k) + 1, points.shape[0])
+    _, nb = tree.query(points[at], k=kk)
+    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
+    ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", local, local))
+    return float(np.median(np.sqrt(np.maximum(ev[:, 0], 0.0) / max(kk - 3, 1))))
+
+
+def residual_noise(X: np.ndarray, Y: np.ndarray, R: np.ndarray, t: np.ndarray, pairs: np.ndarray, *,
+                   tree: cKDTree) -> float:
+    """Robust deviation of the point-to-plane residuals of ``pairs`` under ``(R, t)``, per scan.
+
+    ``1.4826 · MAD / sqrt(2)`` of ``(R x + t - y) · n_y`` with the target's
+    local normals (as :func:`gatv.scans.plane_noise`): what
+    :func:`local_noise` measures on each scan when the motion is right.
+    """
+    if pairs.shape[0] < 4:
+        return float("inf")
+    n = _unit_normals(Y, tree, pairs[:, 1])
+    r = np.einsum("ij,ij->i", X[pairs[:, 0]] @ R.T + t - Y[pairs[:, 1]], n)
+    return float(1.4826 * np.median(np.abs(r - np.median(r))) / np.sqrt(2.0))
+
+
+def _pairs(X, Y, R, t, gate, src, tgt, tree):
+    """One-to-one nearest pairs (indices into the full sets) of ``src`` landing within ``gate`` of ``tgt``."""
+    d, j = tree.query(X[src] @ R.T + t, k=1, distance_upper_bound=gate)
+    ok = np.flatnonzero(np.isfinite(d))
+    pairs = np.stack([src[ok], tgt[j[ok]]], axis=1)
+    return pairs[stages.select_one_to_one(pairs, d[ok])]
+
+
+def regions(points: np.ndarray, link: float, *, min_points: int = 1) -> list[np.ndarray]:
+    """Connected parts of a point set: points closer than ``link`` are joined; largest first.
+
+    Returns the row indices of each part of at least ``min_points`` points.
+    Objects of a scene are connected surfaces sampled at a few times less
+    than ``link``; clutter falls apart into small parts.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = points.shape[0]
+    if n == 0:
+        return []
+    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    counts = np.bincount(comp)
+    order = np.argsort(-counts, kind="stable")
+    by_comp = np.argsort(comp, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    return [np.sort(by_comp[starts[c]:starts[c + 1]]) for c in order if counts[c] >= min_points]
+
+
+def segment_scans(source, target, *, max_motions: int | None = None, seed=0, confidence: float = 0.999,
+                  max_triples: int | None = None, n_judged: int = 4, refine: bool = True,
+                  memory_budget: float | None = None, scan_options: dict | None = None,
+                  progress=None) -> Segmentation:
+    """Find every rigid motion between two real scans of a scene, K unknown.
+
+    Parameters
+    ----------
+    source, target : (N, 3) array_like or object with ``.points``
+        The two scans of the scene (clutter and parts seen in one only allowed).
+    max_motions : int, optional
+        Stop after this many motions (the identity counts when found).
+    seed : int, default: 0
+        Same seed, same result.
+    confidence, max_triples, n_judged, refine, memory_budget
+        As :func:`gatv.register` (scans pipeline).
+    scan_options : dict, optional
+        Options of :func:`gatv.scans.register_surfaces` for every round.
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Segmentation
+        Motions in the order found (the identity first when the scene has a
+        static part); ``source_labels``/``target_labels`` at full
+        resolution (``-1``: unexplained); ``tokens`` the correspondences.
+        ``info["reason"]`` says why it stopped; ``info["degenerate"]``
+        lists plane-like parts set aside; ``info["rounds"]`` each round's
+        support against its chance level.
+    """
+    from ..registration import register
+
+    t_start = time.perf_counter()
+    X = RIGID.check_points(source, "source")
+    Y = RIGID.check_points(target, "target")
+    max_motions = check_int(max_motions, "max_motions", 1, allow_none=True)
+    n_judged = check_int(n_judged, "n_judged", 1)
+    report = check_progress(progress)
+    seed = seed_int(seed)
+    options = dict(scan_options or {})
+    n1, n2 = X.shape[0], Y.shape[0]
+    spacing = median_spacing(Y)
+    gate = SAMPLING_GATE * spacing
+    tree_x, tree_y = cKDTree(X), cKDTree(Y)
+    free_s = np.ones(n1, bool)
+    free_t = np.ones(n2, bool)
+    rounds, degenerate = [], []
+
+    def judge(R, t, kind, src, extra):
+        """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones."""
+        tgt = np.flatnonzero(free_t)
+        tree = cKDTree(Y[tgt])
+        inl = _support(X[src], tree, R, t, gate)
+        support = int(np.count_nonzero(inl))
+        searched = kind != "identity"
+        chance = chance_support(X[np.flatnonzero(free_s)], Y[tgt], gate, seed=seed + len(rounds), tree=tree,
+                                tangent=searched, polish=10 if searched else 0)
+        flat = thickness(X[src[inl]]) if support >= 4 else 0.0
+        pairs = _pairs(X, Y, R, t, gate, src, tgt, tree)
+        pick = pairs if pairs.shape[0] <= NOISE_SAMPLE else pairs[np.random.default_rng(seed).choice(
+            pairs.shape[0], NOISE_SAMPLE, replace=False)]
+        fit_noise = residual_noise(X, Y, R, t, pick, tree=tree_y)
+        scan_noise = local_noise(X, pick[:, 0], tree=tree_x) if pick.shape[0] else float("nan")
+        rec = dict(extra, kind=kind, support=support, chance=chance, thickness=flat, noise=fit_noise,
+                   scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s)), int(tgt.size)))
+        rounds.append(rec)
+        if searched and support > 3 and flat <= PLANE_THICKNESS * scan_noise:
+            verdict = "degenerate"
+            degenerate.append({"points": support, "thickness": flat,
+                               "centroid": X[src[inl]].mean(axis=0).tolist()})
+            free_s[src[inl]] = False
+            free_t[pairs[:, 1]] = False
+        elif support <= chance:
+            verdict = "chance"
+        elif not fit_noise <= NOISE_FACTOR * scan_noise:
+            verdict = "noise"
+        else:
+            verdict = "kept"
+            kept.append((R, t, dict(extra, kind=kind, chance_support=chance, thickness=flat, noise=fit_noise,
+                                    scan_noise=scan_noise)))
+            # every unexplained source point it explains, also beyond the part (an object cut in two)
+            free = np.flatnonzero(free_s)
+            mine = free[_support(X[free], tree, R, t, gate)]
+            moved = X[mine] @ R.T + t
+            d, _ = cKDTree(moved).query(Y[tgt], k=1, distance_upper_bound=gate)
+            if searched:
+                free_s[mine] = False
+                free_t[tgt[np.isfinite(d)]] = False
+            else:
+                # The static part stays in the pool: moving objects cross their old place and
+                # would be cut where they do; the parts it explains for the most part leave it.
+                static_s[mine] = True
+        rec["verdict"] = verdict
+        return verdict
+
+    kept: list = []
+    static_s = np.zeros(n1, bool)
+    report(0.0, "identity (static part)")
+    judge(np.eye(3), np.zeros(3), "identity", np.arange(n1), {})
+    tried = np.zeros(n1, bool)  # source points of parts whose best motion was rejected
+    reason = ""
+    while True:
+        if max_motions is not None and len(kept) >= max_motions:
+            reason = "max_motions reached"
+            break
+        open_s = np.flatnonzero(free_s & ~tried)
+        tgt = np.flatnonzero(free_t)
+        # a part smaller than the chance level of the unexplained points cannot beat it
+        smallest = max(10, chance_support(X[np.flatnonzero(free_s)], Y[tgt], gate, seed=seed, n_draws=16,
+                                          polish=0) if tgt.size >= 4 else 10)
+        parts = [open_s[r] for r in regions(X[open_s], gate, min_points=smallest)] if open_s.size else []
+        parts = [p for p in parts if np.mean(static_s[p]) < 0.5]
+        if not parts or tgt.size < 10:
+            reason = ("no unexplained part of the scene is left that a motion could explain beyond the "
+                      "chance level" if tgt.size >= 10 else "too few target points left")
+            break
+        part = parts[0]
+        report(float(1.0 - open_s.size / n1), f"round {len(rounds)}: part of {part.size} points, "
+                                              f"{open_s.size} source points left")
+        found = register(X[part], Y[tgt], pipeline="scans", seed=seed + len(rounds), confidence=confidence,
+                         max_triples=max_triples, n_judged=n_judged, refine=refine,
+                         memory_budget=memory_budget, scan_options=options)
+        if not found:
+            rounds.append({"kind": "search", "part": int(part.size), "verdict": "none",
+                           "reason": found.info.get("reason", "")})
+            tried[part] = True
+            continue
+        extra = {"part": int(part.size), "ambiguous": found.info.get("ambiguous"), "voxel": found.info.get("voxel")}
+        if judge(found.rotation, found.translation, "search", part, extra) in ("chance", "noise"):
+            tried[part] = True
+
+    # Labels: each point to the kept motion that brings it closest to the other scan.
+    src_lab = np.full(n1, -1, np.int64)
+    tgt_lab = np.full(n2, -1, np.int64)
+    if kept:
+        dist = np.stack([tree_y.query(X @ R.T + t, k=1, distance_upper_bound=gate)[0] for R, t, _ in kept])
+        best = np.argmin(dist, axis=0)
+        src_lab = np.where(np.isfinite(dist[best, np.arange(n1)]), best, -1)
+        dist_t = np.full((len(kept), n2), np.inf)
+        for k, (R, t, _) in enumerate(kept):
+            mine = np.flatnonzero(src_lab == k)
+            if mine.size:
+                dist_t[k] = cKDTree(X[mine] @ R.T + t).query(Y, k=1, distance_upper_bound=gate)[0]
+        best_t = np.argmin(dist_t, axis=0)
+        tgt_lab = np.where(np.isfinite(dist_t[best_t, np.arange(n2)]), best_t, -1)
+    motions, tokens, token_labels = [], [], []
+    for k, (R, t, extra) in enumerate(kept):
+        src, tgt = np.flatnonzero(src_lab == k), np.flatnonzero(tgt_lab == k)
+        pairs = _pairs(X, Y, R, t, gate, src, tgt, cKDTree(Y[tgt])) if tgt.size else np.empty((0, 2), np.int64)
+        motions.append(stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(R, t), pairs),
+                                            dict(extra, label=k, gate=gate)))
+        c = pairs[np.argsort(pairs[:, 0], kind="stable")]
+        tokens.append(c)
+        token_labels.append(np.full(c.shape[0], k, np.int64))
+    info = {"pipeline": "scans", "n_source": int(n1), "n_target": int(n2), "spacing": spacing, "gate": gate,
+            "reason": reason, "rounds": rounds, "degenerate": degenerate,
+            "static": bool(motions) and motions[0].info.get("kind") == "identity",
+            "time_s": time.perf_counter() - t_start}
+    report(1.0, f"found {len(motions)} motions ({reason})")
+    return Segmentation(tuple(motions), src_lab, tgt_lab,
+                        np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),
+                        np.concatenate(token_labels) if token_labels else np.empty(0, np.int64), info)

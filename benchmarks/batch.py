@@ -33,11 +33,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import DEFAULT_OUT, markdown_table, trial_seed, write_csv  # noqa: E402
+from _common import DEFAULT_OUT, markdown_table, trial_seed, write_csv
 
-from gatv import batch  # noqa: E402
-from gatv.datasets import table2_trial  # noqa: E402
-from gatv.io import write_points  # noqa: E402
+from gatv import batch
+from gatv.datasets import table2_trial
+from gatv.io import write_points
 
 
 def peak_rss_mib() -> float:

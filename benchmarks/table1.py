@@ -35,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (  # noqa: E402
+from _common import (
     TrialRecord,
     add_common_arguments,
     add_scheduler_argument,
@@ -48,8 +48,8 @@ from _common import (  # noqa: E402
     write_csv,
 )
 
-from gatv.baselines import fitzgibbon_icp, icp  # noqa: E402
-from gatv.datasets import table1_trial  # noqa: E402
+from gatv.baselines import fitzgibbon_icp, icp
+from gatv.datasets import table1_trial
 
 #: Outlier fractions of Table 1 and the paper's F-ICP success rates (%).
 PAPER_FICP = {0.50: 90, 0.66: 80, 0.75: 60, 0.80: 67, 0.83: 50}

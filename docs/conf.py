@@ -29,14 +29,14 @@ sys.path.insert(0, str(ROOT))
 
 # off-screen rendering for every gallery script, before PyVista is imported
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-import pyvista  # noqa: E402
+import pyvista
 
 pyvista.OFF_SCREEN = True
-from gatv import render  # noqa: E402
+from gatv import render
 
 render.configure_offscreen()
 
-import gatv  # noqa: E402
+import gatv
 
 project = "gatv"
 author = "the gatv developers"
@@ -141,7 +141,7 @@ def documented_modules() -> set[str]:
     found = set()
     for page in (HERE / "api").glob("*.rst"):
         if page != MORE:
-            found |= set(re.findall(r"^\.\. automodule:: (\S+)", page.read_text(), flags=re.M))
+            found |= set(re.findall(r"^\.\. automodule:: (\S+)", page.read_text(), flags=re.MULTILINE))
     return found
 
 

@@ -13,20 +13,20 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "frozen_array",
-    "as_points",
-    "as_vectors",
-    "coordinates",
-    "check_positive",
-    "check_finite_array",
-    "check_memory",
-    "memory_budget_limit",
-    "check_int",
-    "check_fraction",
-    "as_rng",
-    "check_progress",
-    "seed_int",
     "DEFAULT_MEMORY_BUDGET",
+    "as_points",
+    "as_rng",
+    "as_vectors",
+    "check_finite_array",
+    "check_fraction",
+    "check_int",
+    "check_memory",
+    "check_positive",
+    "check_progress",
+    "coordinates",
+    "frozen_array",
+    "memory_budget_limit",
+    "seed_int",
 ]
 
 #: Default budget (bytes) for the largest array one call may allocate.

@@ -362,7 +362,7 @@ def compute(task: Task) -> dict:
         if task.problem:
             raise InputError(f"row {task.row}: {task.problem}.")
         source, target, options, result, seconds = _call(task)
-    except Exception as exc:  # recorded in the row's JSON; the batch goes on
+    except Exception as exc:  # noqa: BLE001 - any failure is recorded in the row's JSON; the batch goes on
         return {**inputs, "seed": task.seed, "options": to_jsonable(dict(task.options)),
                 "success": False, "time_s": time.perf_counter() - start,
                 "error": one_line(exc, limit=None), "error_type": type(exc).__name__, "batch": batch}
@@ -612,9 +612,7 @@ def map_tasks(fn: Callable, tasks: Sequence, *, scheduler="local", workers: int 
     with connect(scheduler, workers=workers) as client:
         _register_paths(client, fn)
         futures = client.map(fn, tasks, pure=False, retries=retries)
-        done = 0
-        for future in distributed.as_completed(futures):
-            done += 1
+        for done, future in enumerate(distributed.as_completed(futures), start=1):
             if future.status == "error":
                 try:
                     future.result()  # raises the task's exception
@@ -735,7 +733,7 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                 k = where[future.key]
                 try:
                     record = future.result()
-                except Exception as exc:  # KilledWorker past allowed-failures, cancelled...
+                except Exception as exc:  # noqa: BLE001 - KilledWorker past allowed-failures, cancelled...
                     record = _lost(tasks[k], exc)
                 finish(k, record)
                 future.release()

@@ -53,20 +53,20 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "PointFileError",
-    "read_points",
-    "write_points",
-    "write_json",
-    "atomic_path",
-    "to_jsonable",
-    "one_line",
-    "result_record",
-    "read_matrix",
-    "write_matrix",
-    "read_log",
-    "write_log",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
+    "PointFileError",
+    "atomic_path",
+    "one_line",
+    "read_log",
+    "read_matrix",
+    "read_points",
+    "result_record",
+    "to_jsonable",
+    "write_json",
+    "write_log",
+    "write_matrix",
+    "write_points",
 ]
 
 _PYVISTA_READ = (".ply", ".vtk", ".vtp", ".stl", ".obj")
@@ -581,8 +581,8 @@ def result_record(inputs: dict, source, target, *, seed, options: dict, seconds:
     """
     return {
         **inputs,
-        "n_source": int(len(source)),
-        "n_target": int(len(target)),
+        "n_source": len(source),
+        "n_target": len(target),
         "seed": seed,
         "options": options,
         "success": bool(result),

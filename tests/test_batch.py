@@ -10,7 +10,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import threading
 
 import numpy as np
 import pytest
@@ -161,7 +160,7 @@ def test_killed_worker_loses_no_row(tmp_path, pair_files, client):
 
     def kill_one(fraction, message=""):
         if not killed:  # after the first row: both workers are busy with the next ones
-            addr, pid = sorted(client.run(os.getpid).items())[0]
+            pid = min(client.run(os.getpid).items())[1]
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
 
@@ -256,7 +255,7 @@ def test_map_tasks_runs_a_scripts_functions(tmp_path):
             print(map_tasks(job, [3, 1, 2], scheduler="local", workers=1))
     """))
     done = subprocess.run([sys.executable, "script.py"], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=180, env={**os.environ, "PYTHONPATH": ""})
+                          timeout=180, env={**os.environ, "PYTHONPATH": ""}, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "[10, 2, 5]"
 

@@ -114,10 +114,9 @@ def test_write_rejects_bad_input_without_writing(tmp_path, points):
 
 def test_atomic_write_failure_leaves_nothing(tmp_path):
     dest = tmp_path / "out.json"
-    with pytest.raises(RuntimeError):
-        with atomic_path(dest) as tmp:
-            tmp.write_text("half")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), atomic_path(dest) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -128,10 +127,9 @@ def test_atomic_write_failure_keeps_old_file(tmp_path, monkeypatch):
     def broken_dumps(*args, **kwargs):
         raise OSError("disk full")
 
-    with pytest.raises(ValueError):
-        with atomic_path(dest) as tmp:
-            tmp.write_text("partial")
-            raise ValueError("disk full")
+    with pytest.raises(ValueError), atomic_path(dest) as tmp:
+        tmp.write_text("partial")
+        raise ValueError("disk full")
     monkeypatch.setattr(np, "savetxt", broken_dumps)
     with pytest.raises(OSError, match="disk full"):
         write_points(tmp_path / "out.xyz", np.zeros((2, 3)))
@@ -148,7 +146,7 @@ def test_write_json_numpy_and_nan(tmp_path):
 
 
 # ------------------------------------------------------------------------ PCD
-from gatv.io import read_log, read_matrix, write_log, write_matrix  # noqa: E402
+from gatv.io import read_log, read_matrix, write_log, write_matrix
 
 
 @pytest.mark.parametrize("ascii_", [False, True])

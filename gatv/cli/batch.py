@@ -17,7 +17,15 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ._common import EXIT_FAILED, EXIT_OK, PROG, UsageError, add_verbosity, guarded, progress_printer
+from ._common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    PROG,
+    UsageError,
+    add_verbosity,
+    guarded,
+    progress_printer,
+)
 
 __all__ = ["NAME", "add_parser", "parse_settings", "run"]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -28,7 +29,12 @@ from ._common import (
     write_outputs,
 )
 
-__all__ = ["NAME", "add_parser", "load_segment", "render_segmentation", "run"]
+__all__ = ["NAME", "add_parser", "load_segment", "render_segmentation", "write_labelled", "run",
+           "LABELLED_EXTENSIONS"]
+
+#: Files ``--labelled`` writes: PLY (binary, float32 x y z and an int32
+#: ``motion`` property per vertex), or VTK PolyData through PyVista.
+LABELLED_EXTENSIONS = (".ply", ".vtk", ".vtp")
 
 NAME = "segment"
 
@@ -52,6 +58,14 @@ def add_parser(subparsers):
     p.add_argument("--min-support", type=int, metavar="N",
                    help="correspondences a motion needs (default: from the chance level)")
     add_noise(p)
+    p.add_argument(
+        "--pipeline", choices=("auto", "exact", "scans"), default="auto",
+        help="exact: sets whose inliers are the same points in both (noisy or not); scans: dense, "
+             "differently sampled range scans (the identity first, motions peeled with the surface "
+             "pipeline, each kept only above the chance level); auto: chosen from the data (default)")
+    p.add_argument("--labelled", type=Path, metavar="PLY",
+                   help="write the source points with a per-point `motion` scalar (-1: unexplained; "
+                        ".ply .vtk .vtp)")
     add_verbosity(p)
     p.set_defaults(handler=run)
     return p
@@ -76,6 +90,51 @@ def render_segmentation(source, target, segmentation, path) -> None:
     render(source, target, segmentation, path)
 
 
+def write_labelled(path, points, labels) -> None:
+    """Write ``points`` with an int ``motion`` scalar per point (``labels``) to ``path``.
+
+    ``.ply``: binary little-endian PLY, ``float x, y, z`` and ``int motion``
+    per vertex (what PyVista, Open3D's tensor API, CloudCompare and
+    MeshLab read as a scalar field).  ``.vtk``/``.vtp``: PyVista PolyData
+    with a ``motion`` point array.  ``gatv.io.write_points`` writes
+    coordinates only.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    lab = np.asarray(labels, dtype=np.int32)
+    p = Path(path)
+    if p.suffix.lower() == ".ply":
+        rows = np.empty(pts.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("motion", "<i4")])
+        rows["x"], rows["y"], rows["z"], rows["motion"] = pts[:, 0], pts[:, 1], pts[:, 2], lab
+        header = ("ply\nformat binary_little_endian 1.0\ncomment gatv segment: motion = index of the "
+                  "point's motion, -1 unexplained\n"
+                  f"element vertex {pts.shape[0]}\nproperty float x\nproperty float y\nproperty float z\n"
+                  "property int motion\nend_header\n")
+        with open(p, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(rows.tobytes())
+        return
+    import pyvista as pv
+
+    cloud = pv.PolyData(pts)
+    cloud.point_data["motion"] = lab
+    cloud.save(str(p))
+
+
+def _check_labelled(args, inputs) -> None:
+    path = args.labelled
+    if path is None:
+        return
+    if path.suffix.lower() not in LABELLED_EXTENSIONS:
+        raise UsageError(f"{path}: cannot write labelled points as {path.suffix or 'a file without extension'!r}; "
+                         f"expected one of {', '.join(LABELLED_EXTENSIONS)}.")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise UsageError(f"{path}: cannot write labelled points: folder {str(folder)!r} does not exist.")
+    others = [Path(x).resolve() for x in (args.out, args.render, *inputs) if x is not None]
+    if path.resolve() in others:
+        raise UsageError(f"{path}: --labelled must name a file of its own (not an input or another output).")
+
+
 def _describe(motion) -> str:
     parts = []
     for label, text in motion_lines(motion):
@@ -89,6 +148,7 @@ def run(args) -> int:
     from ..io import read_points, write_json
 
     check_outputs(args, inputs=(args.source, args.target))
+    _check_labelled(args, (args.source, args.target))
     if args.max_motions is not None and args.max_motions < 1:
         raise UsageError(f"expected --max-motions >= 1, got {args.max_motions}.")
     source = read_points(args.source)
@@ -99,6 +159,8 @@ def run(args) -> int:
     options = {k: v for k, v in (("max_motions", args.max_motions), ("min_support", args.min_support),
                                  ("noise", args.noise)) if v is not None}
     options.update(model_options(args))
+    if getattr(args, "pipeline", "auto") != "auto":
+        options["pipeline"] = args.pipeline
     progress = progress_printer(args)
     start = time.perf_counter()
     result = segment(source, target, seed=args.seed, progress=progress, **options)
@@ -111,6 +173,12 @@ def run(args) -> int:
             print(f"motion {k}:        {_describe(m)}, {m.support} correspondences, rms {m.rms:.3g}")
         print(f"unexplained:     {int(np.sum(result.source_labels < 0))} source, "
               f"{int(np.sum(result.target_labels < 0))} target points")
+        if "pipeline" in result.info:
+            print(f"pipeline:        {result.info['pipeline']} ({result.info.get('pipeline_reason', '')})")
+        for d in result.info.get("degenerate", []):
+            print(f"degenerate:      a plane-like part of {d['points']} points (a motion could slide along it)")
+        if result.info.get("reason"):
+            print(f"stopped:         {result.info['reason']}")
         print(f"time:            {seconds:.3f} s")
     if not ok:
         print(f"{PROG}: segmentation found no motion: "
@@ -121,5 +189,6 @@ def run(args) -> int:
     write_outputs([
         (args.out, lambda tmp: write_json(tmp, record)),
         (args.render if ok else None, lambda tmp: render_segmentation(source, target, result, tmp)),
+        (getattr(args, "labelled", None), lambda tmp: write_labelled(tmp, source, result.source_labels)),
     ], quiet=args.quiet)
     return EXIT_OK if ok else EXIT_FAILED

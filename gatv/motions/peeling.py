@@ -177,7 +177,12 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         S = _subproblem(P, src, tgt)
         n_possible = _sample_space(model, src.size)
-        budget = samples_needed(min(1.0, smallest / src.size), confidence, k_pts)
+        # A motion needs the chance level's support at the coarsest tolerance searched to be
+        # kept: smaller ones are not worth the samples that would find them.
+        need_min = smallest
+        if noisy:
+            need_min = max(smallest, float(S.chance(stages.gate(max(round_levels)), N_JUDGED)))
+        budget = samples_needed(min(1.0, need_min / src.size), confidence, k_pts)
         budget = int(min(budget, 3 * n_possible, max_triples))
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
         tried: list = []
@@ -194,10 +199,11 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         fit, tol = found.fit, found.tolerance
         if noisy:
-            fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol), floor=levels[0])
-            # One sensor: the next rounds search at the noise measured here (and the
-            # exact level, for parts that moved without noise), not the whole schedule.
-            round_levels = sorted({levels[0], max(tol, levels[0])})
+            fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
+                                           floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
+            # One sensor: the next rounds search at the noise measured here, not the
+            # whole schedule.
+            round_levels = [max(tol, levels[0])]
         log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
                     "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
                     "sigma": found.judged.sigma})

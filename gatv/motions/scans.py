@@ -26,8 +26,10 @@ found"):
    clutter give nothing.
 4. **Degenerate surfaces.** A motion whose supporting points lie on one
    plane (as thin as the scans' noise) slides along that plane with equal
-   support: it is reported in ``info["degenerate"]`` and
-   its points set aside, not peeled into a set of spurious motions.
+   support: it is reported in ``info["degenerate"]`` and its points set
+   aside, not peeled into a set of spurious motions.  A plane that the
+   identity explains (a floor, a wall) is kept as the static part and also
+   listed there: a slide along it would fit as well.
 """
 
 from __future__ import annotations
@@ -320,6 +322,10 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             verdict = "noise"
         else:
             verdict = "kept"
+            if not searched and flat <= PLANE_THICKNESS * scan_noise:
+                # a static plane: any slide along it fits as well; the identity is reported
+                degenerate.append({"points": support, "thickness": flat, "motion": "identity",
+                                   "centroid": X[src[inl]].mean(axis=0).tolist()})
             kept.append((R, t, dict(extra, kind=kind, chance_support=chance, thickness=flat, noise=fit_noise,
                                     scan_noise=scan_noise)))
             # every unexplained source point it explains, also beyond the part (an object cut in two)

@@ -423,8 +423,9 @@ def _resolve(P: Problem, motions: list[Fit], tokens, threshold, gate, rounds=3):
 #: shows its motions at the exact tolerance long before.
 PROBE_TRIPLES = 20000
 #: The noisy search skips the schedule's levels below this share of the
-#: spacing once the exact probe found nothing.
-NOISY_FROM = 1e-2
+#: spacing once the exact probe found nothing: the level of 0.05 spacing
+#: holds noise from there down to the probe's exact level.
+NOISY_FROM = 0.04
 
 
 def _choose(source, target, model, pipeline, memory_budget) -> tuple[str, str]:

@@ -1,0 +1,237 @@
+"""gatv.motions.segment on noisy point sets and real scans (issue 16).
+
+Fast tests: the pipeline choice, a static plane (identity only, reported
+degenerate), the chance level's properties, labels against
+correspondences, seeds, bad input, the labelled PLY.  Slow tests: a noisy
+three-motion scene without ``noise=``, the shared-axis split under noise,
+two real objects in a real-scan scene, leftovers of a partial-overlap pair.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv import Rotor
+from gatv.datasets import DataNotFoundError, load_bunny_pair, rotation_error_deg
+from gatv.errors import InputError
+from gatv.motions import multi_motion_scene, scan_scene, segment
+from gatv.motions.scans import chance_support, local_noise, regions, thickness
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def _bunny(target, source):
+    try:
+        return load_bunny_pair(target, source, data_dir=DATA)
+    except DataNotFoundError:
+        pytest.skip("real data (../shared/data) not available")
+
+
+def _plane(rng, n, noise=0.001):
+    xy = rng.uniform(-0.5, 0.5, (n, 2))
+    return np.column_stack([xy, rng.normal(0.0, noise, n)])
+
+
+def _labels_match(seg):
+    for k, m in enumerate(seg.motions):
+        c = m.correspondences
+        assert np.all(seg.source_labels[c[:, 0]] == k)
+        assert np.all(seg.target_labels[c[:, 1]] == k)
+        assert len(np.unique(c[:, 0])) == len(c) and len(np.unique(c[:, 1])) == len(c)  # one-to-one
+
+
+# ------------------------------------------------------------------ scans, fast
+@pytest.fixture(scope="module")
+def static_plane():
+    rng = np.random.default_rng(0)
+    return _plane(rng, 2500), _plane(rng, 2500)
+
+
+def test_static_plane_gives_the_identity_only(static_plane):
+    source, target = static_plane
+    seg = segment(source, target)
+    assert seg.info["pipeline"] == "scans"
+    assert len(seg) == 1
+    m = seg[0]
+    assert m.angle_deg == 0.0 and np.all(m.translation == 0.0)
+    assert m.info["kind"] == "identity" and seg.info["static"]
+    # a plane: a slide along it would fit as well, which the result says
+    assert [d["motion"] for d in seg.info["degenerate"]] == ["identity"]
+    assert np.mean(seg.source_labels == 0) > 0.9
+    assert seg.info["reason"]
+    _labels_match(seg)
+
+
+def test_slid_plane_is_not_peeled_into_motions(static_plane):
+    source, target = static_plane
+    seg = segment(source, target + [0.1, 0.05, 0.0])
+    assert len(seg) <= 1  # the identity (a plane slides on itself), nothing more
+    assert all(m.info["kind"] == "identity" for m in seg)
+
+
+def test_same_seed_same_result(static_plane):
+    source, target = static_plane
+    a = segment(source, target, seed=3)
+    b = segment(source, target, seed=3)
+    assert np.array_equal(a.source_labels, b.source_labels)
+    assert np.array_equal(a.target_labels, b.target_labels)
+    assert [m.correspondences.tolist() for m in a] == [m.correspondences.tolist() for m in b]
+
+
+def test_scans_pipeline_rejects_exact_only_options(static_plane):
+    source, target = static_plane
+    with pytest.raises(InputError, match="`noise`.*scans pipeline"):
+        segment(source, target, noise=0.01)
+    with pytest.raises(InputError, match="pipeline"):
+        segment(source, target, pipeline="dense")
+    with pytest.raises(InputError, match="scan_options"):
+        segment(source[:100], target[:100], pipeline="exact", scan_options={"n_points": 300})
+    with pytest.raises(InputError, match="grouping"):
+        segment(source[:100], target[:100], grouping="clusters")
+    with pytest.raises(ValueError, match="source"):
+        segment(np.full((10, 3), np.nan), target)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 1000), g1=st.floats(0.005, 0.05), g2=st.floats(0.005, 0.05))
+def test_chance_level_grows_with_the_gate(seed, g1, g2):
+    rng = np.random.default_rng(seed)
+    x, y = _plane(rng, 400), rng.uniform(-0.5, 0.5, (400, 3))
+    lo, hi = sorted((g1, g2))
+    for tangent in (True, False):
+        a = chance_support(x, y, lo, seed=seed, tangent=tangent, polish=0)
+        b = chance_support(x, y, hi, seed=seed, tangent=tangent, polish=0)
+        assert 0 <= a <= b <= x.shape[0]
+
+
+def test_chance_level_of_a_plane_sliding_on_itself_is_its_size():
+    rng = np.random.default_rng(1)
+    x, y = _plane(rng, 1500, 0.0005), _plane(rng, 1500, 0.0005)
+    gate = 0.05
+    slide = chance_support(x, y, gate, seed=0, tangent=True)
+    assert slide > 0.8 * x.shape[0]
+    assert chance_support(x, y, gate, seed=0, tangent=False, polish=0) < 0.6 * slide
+
+
+def test_thickness_local_noise_and_regions():
+    rng = np.random.default_rng(2)
+    p = _plane(rng, 3000, 0.002)
+    assert thickness(p) == pytest.approx(0.002, rel=0.1)
+    assert local_noise(p, np.arange(300)) == pytest.approx(0.002, rel=0.3)
+    two = np.vstack([p, p + [5.0, 0.0, 0.0]])
+    parts = regions(two, 0.1, min_points=10)
+    assert [len(r) for r in parts] == [3000, 3000]
+    assert set(parts[0].tolist()) in (set(range(3000)), set(range(3000, 6000)))
+
+
+# ---------------------------------------------------------- exact/noisy, fast
+def test_exact_scene_keeps_the_graph_grouping():
+    from gatv.motions import fig12_scene
+
+    scene = fig12_scene(seed=0, n_outliers=20)
+    seg = segment(scene.source, scene.target)
+    assert seg.info["pipeline"] == "exact" and seg.info["grouping"] == "graph"
+    assert sorted(m.support for m in seg) == [40, 40, 40]
+    _labels_match(seg)
+
+
+# ------------------------------------------------------------------ slow
+def _noisy_scene(seed, k, share, outliers=0.5):
+    rng = np.random.default_rng(seed)
+    rots, ts = [], []
+    for _ in range(k):
+        a = rng.normal(size=3)
+        rots.append(Rotor.from_axis_angle(a / np.linalg.norm(a), np.radians(rng.uniform(20, 170))).as_matrix())
+        ts.append(rng.uniform(-5, 5, 3))
+    sizes = [40] * k
+    n_out = int(round(sum(sizes) * outliers / (1 - outliers)))
+    # noise as a share of each object's RMS radius (points uniform in a 10-cube: 5)
+    return multi_motion_scene(rots, ts, sizes, n_outliers=n_out, noise=share * 5.0, seed=rng)
+
+
+def _check_against_truth(scene, seg, rot_deg, trans):
+    assert len(seg) == scene.n_motions
+    for m in seg:
+        errs = [(rotation_error_deg(m.rotation, R), np.linalg.norm(m.translation - t))
+                for R, t in zip(scene.rotations, scene.translations)]
+        best = min(errs, key=lambda e: e[0])
+        assert best[0] < rot_deg and best[1] < trans
+    _labels_match(seg)
+
+
+@pytest.mark.slow
+def test_noisy_three_motions_without_noise_given():
+    scene = _noisy_scene(0, 3, 0.01, outliers=0.33)
+    seg = segment(scene.source, scene.target)
+    assert seg.info["grouping"] == "peel"
+    _check_against_truth(scene, seg, 2.0, 0.3)
+    for m in seg:  # the noise is measured, not given: target noise 0.05 per axis
+        assert 0.02 < m.info["noise"] < 0.1
+
+
+@pytest.mark.slow
+def test_shared_axis_split_under_noise():
+    rng = np.random.default_rng(5)
+    axis = np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)
+    rots = [Rotor.from_axis_angle(axis, np.radians(a)).as_matrix() for a in (40.0, 110.0)]
+    t = rng.uniform(-3, 3, 3)
+    scene = multi_motion_scene(rots, [t, t], [50, 50], n_outliers=30, noise=0.05, seed=rng)
+    seg = segment(scene.source, scene.target)
+    _check_against_truth(scene, seg, 2.0, 0.3)
+
+
+@pytest.mark.slow
+def test_two_real_objects_in_a_scan_scene():
+    a, b = _bunny("bun000", "bun045"), _bunny("bun000", "bun315")
+    scene = scan_scene([a, b], n_points=40000, seed=1)
+    seg = segment(scene.source, scene.target)
+    assert seg.info["pipeline"] == "scans"
+    assert len(seg) == 3  # two objects and the static patch
+    assert seg[0].info["kind"] == "identity"
+    for m in seg:
+        errs = [(rotation_error_deg(m.rotation, R), 1000 * np.linalg.norm(m.translation - t))
+                for R, t in zip(scene.rotations, scene.translations)]
+        k = int(np.argmin([e[0] + e[1] for e in errs]))
+        assert errs[k][0] < 1.0 and errs[k][1] < 3.0
+        assert np.mean(scene.source_labels[seg.source_labels == seg.motions.index(m)] == k) > 0.9
+    _labels_match(seg)
+
+
+@pytest.mark.slow
+def test_leftovers_of_a_partial_overlap_pair_give_no_extra_motion():
+    target, source, R, t = _bunny("bun045", "bun090")  # 71% of the source overlaps
+    scene = scan_scene([(target, source, R, t)], n_points=20000, clutter=0.0, static_patch=0.0, seed=4)
+    seg = segment(scene.source, scene.target)
+    assert len(seg) == 1
+    assert rotation_error_deg(seg[0].rotation, scene.rotations[0]) < 1.0
+    assert any(r["verdict"] in ("chance", "noise") for r in seg.info["rounds"]) or "no unexplained" in seg.info[
+        "reason"]
+
+
+# ------------------------------------------------------------------ CLI
+def test_cli_labelled_ply(tmp_path):
+    from gatv import cli
+    from gatv.motions import fig12_scene
+
+    scene = fig12_scene(seed=0)
+    src, tgt = tmp_path / "s.xyz", tmp_path / "t.xyz"
+    np.savetxt(src, scene.source)
+    np.savetxt(tgt, scene.target)
+    out, lab = tmp_path / "r.json", tmp_path / "labelled.ply"
+    assert cli.main(["segment", str(src), str(tgt), "--out", str(out), "--labelled", str(lab), "-q"]) == 0
+    raw = lab.read_bytes()
+    head, body = raw.split(b"end_header\n", 1)
+    assert b"property int motion" in head
+    rows = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("motion", "<i4")])
+    assert np.allclose(np.column_stack([rows["x"], rows["y"], rows["z"]]), scene.source, atol=1e-5)
+    import json
+
+    record = json.loads(out.read_text())
+    assert rows["motion"].tolist() == record["source_labels"]
+    assert sorted(np.bincount(rows["motion"][rows["motion"] >= 0]).tolist()) == [40, 40, 40]
+    assert cli.main(["segment", str(src), str(tgt), "--labelled", str(tmp_path / "x.txt"), "-q"]) == 2

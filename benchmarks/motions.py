@@ -12,11 +12,27 @@ Rows (20 trials each, ``--trials``):
   angles at least 20° apart (0 and 50% outliers).
 * ``shared axis``: two motions with the same axis only.
 
-All scenes are noise-free: with noise the congruent-triple stage needs far
-more work per triple (many congruent matches, each scored), which this
-benchmark does not cover.
+* ``noise=N% K=k f=50%``: ``k`` = 2..4 motions of 30–60 points each, 50%
+  outliers, Gaussian noise on every moved point with standard deviation
+  ``N`` = 1, 2 or 4% of each object's RMS radius (its points are uniform in
+  the 10-cube: radius 5); ``segment`` is not told the noise.
+* ``scans: A+B(+C)``: real-scan scenes composed from ``../shared/data``
+  (:func:`gatv.motions.scan_scene`): bunny scan pairs and the UWA chef and
+  parasaurolophus pairs (in metres), each object moved by its own random
+  motion, 40k points per scene, 20% uniform clutter and a static plane
+  patch (the last motion, the identity).  Methods ``auto`` and
+  ``o3d-seq`` (sequential Open3D RANSAC on FPFH + point-to-plane ICP,
+  peeling the explained points and repeating while a motion explains at
+  least 5% of the remaining source points and 500 points).  Scores: exact
+  K (objects + static patch), worst per-object pose error (degrees, mm),
+  objects within 1° and 3 mm, spurious motions (found motions matching no
+  true one within 5° and 10 mm), source-label accuracy against the truth
+  (a point's motion where the other scene sees its surface, else -1),
+  static patch labelled static, median and max time, and the peak RSS of
+  the benchmark process so far (an upper bound for each scene).
 
-Methods: ``graph`` (:func:`gatv.motions.segment`, default), ``greedy``
+Methods: ``auto`` (:func:`gatv.motions.segment` as a user calls it: the
+pipeline and grouping chosen from the data), ``graph`` (``grouping="graph"``), ``greedy``
 (``segment(grouping="greedy")``) and ``ransac`` (sequential RANSAC on
 three-pair samples of all candidate pairs, :func:`gatv.motions.ransac_segment`).
 
@@ -29,7 +45,12 @@ over all source and target points (outliers must stay ``-1``); median time.
 Usage::
 
     python benchmarks/motions.py [--trials 20] [--seed 0] [--rows fig12,K=2,...]
-                                 [--methods graph,greedy,ransac] [--out benchmarks/results]
+                                 [--methods auto,graph,greedy,ransac,o3d-seq] [--out benchmarks/results]
+                                 [--scheduler local|ADDRESS]
+
+Rows are point-set rows or scan rows; each method runs on the rows of its
+kind (``o3d-seq`` on scan rows only, ``graph``/``greedy``/``ransac`` on
+point-set rows only).
 
 Prints a markdown table; writes ``motions.csv`` and ``motions_trials.csv``.
 """
@@ -44,12 +65,28 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import DEFAULT_OUT, Timer, fmt, markdown_table, median, parse_list, write_csv  # noqa: E402
-from scipy.optimize import linear_sum_assignment  # noqa: E402
+from _common import (
+    DEFAULT_OUT,
+    Timer,
+    add_scheduler_argument,
+    fmt,
+    map_trials,
+    markdown_table,
+    median,
+    parse_list,
+    write_csv,
+)
+from scipy.optimize import linear_sum_assignment
 
-from gatv.datasets import rotation_error_deg, translation_error  # noqa: E402
-from gatv.ga import Rotor  # noqa: E402
-from gatv.motions import fig12_scene, multi_motion_scene, ransac_segment, segment  # noqa: E402
+from gatv.datasets import rotation_error_deg, translation_error
+from gatv.ga import Rotor
+from gatv.motions import (
+    fig12_scene,
+    multi_motion_scene,
+    ransac_segment,
+    scan_scene,
+    segment,
+)
 
 
 def _random_axis(rng):
@@ -65,6 +102,32 @@ def _random_motions(rng, k):
 
 def _outliers(n_in, f):
     return int(round(n_in * f / (1.0 - f))) if f > 0 else 0
+
+
+#: RMS radius of an object whose points are uniform in the 10-cube (sqrt(3 * 10² / 12)).
+RMS_RADIUS = 5.0
+
+#: Scan rows: objects of each scene ("T<-S" a bunny pair, else a UWA object).
+SCAN_ROWS = {
+    "scans: bun000<-045 + bun000<-315": ("bun000<-bun045", "bun000<-bun315"),
+    "scans: bun000<-045 + chef": ("bun000<-bun045", "chef"),
+    "scans: bun000<-315 + parasaurolophus": ("bun000<-bun315", "parasaurolophus"),
+    "scans: bun000<-045 + chef + parasaurolophus": ("bun000<-bun045", "chef", "parasaurolophus"),
+}
+
+
+def _load_object(name):
+    from gatv.datasets import load_bunny_pair, load_uwa_pair
+
+    if "<-" in name:
+        return load_bunny_pair(*name.split("<-"))
+    target, source, R, t = load_uwa_pair(name)
+    return target / 1000.0, source / 1000.0, R, t / 1000.0  # millimetres -> metres
+
+
+def make_scan_scene(name, rng):
+    return scan_scene([_load_object(o) for o in SCAN_ROWS[name]], n_points=40000, clutter=0.2,
+                      static_patch=0.1, seed=rng)
 
 
 def make_rows():
@@ -95,15 +158,80 @@ def make_rows():
             return multi_motion_scene(rots, ts, sizes, n_outliers=_outliers(sizes.sum(), f), seed=rng)
         rows[f"shared axis+t f={int(100 * f)}%"] = shared_both
         rows[f"shared axis f={int(100 * f)}%"] = shared_axis
+    for pct in (1, 2, 4):
+        for k in (2, 3, 4):
+            def noisy(rng, k=k, pct=pct):
+                rots, ts = _random_motions(rng, k)
+                sizes = rng.integers(30, 61, k)
+                return multi_motion_scene(rots, ts, sizes, n_outliers=_outliers(sizes.sum(), 0.5),
+                                          noise=pct / 100.0 * RMS_RADIUS, seed=rng)
+            rows[f"noise={pct}% K={k} f=50%"] = noisy
 
     return rows
 
 
+def o3d_sequential(source, target, seed=0, max_motions=8):
+    """Sequential Open3D baseline: RANSAC on FPFH + point-to-plane ICP, peel the explained points, repeat.
+
+    Voxel 1/40 of the target's bounding-box diagonal (as benchmarks/scans.py);
+    a motion explains the source points within 3 target spacings of a target
+    point; it stops when a motion explains fewer than 5% of the remaining
+    source points or 500 points.  Returns ``(motions, source_labels)`` with
+    motions as ``(R, t)``.
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from gatv.candidates import median_spacing
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(int(seed))
+    voxel = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0))) / 40.0
+    gate = 3.0 * median_spacing(target)
+
+    def features(points):
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        down = pcd.voxel_down_sample(voxel)
+        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+        fpfh = reg.compute_fpfh_feature(down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        return pcd, down, fpfh
+
+    free_s = np.ones(len(source), bool)
+    free_t = np.ones(len(target), bool)
+    labels = np.full(len(source), -1)
+    motions = []
+    while len(motions) < max_motions and free_s.sum() > 100 and free_t.sum() > 100:
+        src, src_down, src_f = features(source[free_s])
+        tgt, tgt_down, tgt_f = features(target[free_t])
+        coarse = reg.registration_ransac_based_on_feature_matching(
+            src_down, tgt_down, src_f, tgt_f, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+            reg.RANSACConvergenceCriteria(100000, 0.999))
+        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+        fine = reg.registration_icp(src, tgt, 0.4 * voxel, coarse.transformation,
+                                    reg.TransformationEstimationPointToPlane())
+        T = np.asarray(fine.transformation)
+        R, t = T[:3, :3], T[:3, 3]
+        idx_s, idx_t = np.flatnonzero(free_s), np.flatnonzero(free_t)
+        d, _ = cKDTree(target[idx_t]).query(source[idx_s] @ R.T + t, distance_upper_bound=gate)
+        inl = idx_s[np.isfinite(d)]
+        if inl.size < max(500, 0.05 * idx_s.size):
+            break
+        d2, _ = cKDTree(source[inl] @ R.T + t).query(target[idx_t], distance_upper_bound=gate)
+        labels[inl] = len(motions)
+        free_s[inl] = False
+        free_t[idx_t[np.isfinite(d2)]] = False
+        motions.append((R, t))
+    return motions, labels
+
+
 METHODS = {
-    "graph": lambda s, t: segment(s, t),
+    "auto": lambda s, t: segment(s, t),
+    "graph": lambda s, t: segment(s, t, grouping="graph"),
     "greedy": lambda s, t: segment(s, t, grouping="greedy"),
     "ransac": lambda s, t: ransac_segment(s, t),
 }
+SCAN_METHODS = ("auto", "o3d-seq")
 
 
 def score(scene, seg) -> dict:
@@ -139,36 +267,112 @@ def score(scene, seg) -> dict:
     }
 
 
+def score_scans(scene, motions, labels) -> dict:
+    """Compare ``[(R, t)]`` and source labels with a scan scene's truth (metres; errors in degrees and mm)."""
+    K = scene.n_motions
+    cost = np.array([[rotation_error_deg(R, scene.rotations[k]) + 1000.0 * translation_error(t, scene.translations[k])
+                      for k in range(K)] for R, t in motions]).reshape(len(motions), K)
+    match = {}
+    if motions:
+        r, c = linear_sum_assignment(cost)
+        for a, b in zip(r, c):
+            R, t = motions[a]
+            if rotation_error_deg(R, scene.rotations[b]) < 5.0 and 1000 * translation_error(
+                    t, scene.translations[b]) < 10.0:
+                match[int(a)] = int(b)
+    rot = {b: rotation_error_deg(motions[a][0], scene.rotations[b]) for a, b in match.items()}
+    tr = {b: 1000.0 * translation_error(motions[a][1], scene.translations[b]) for a, b in match.items()}
+    objects = [k for k in range(K) if not (scene.static and k == K - 1)]
+    within = [k in match.values() and rot[k] < 1.0 and tr[k] < 3.0 for k in objects]
+    remap = np.full(len(motions) + 1, -1)
+    for a, b in match.items():
+        remap[a] = b
+    lab = remap[np.asarray(labels)]
+    static_ok = True
+    if scene.static:
+        on_patch = scene.source_labels == K - 1
+        static_ok = bool((K - 1) in match.values()) and float(np.mean(lab[on_patch] == K - 1)) > 0.9
+    return {
+        "exact_k": len(motions) == K, "n_found": len(motions), "spurious": len(motions) - len(match),
+        "objects_ok": float(np.mean(within)) if within else 0.0,
+        "rot_err_deg": max(rot.values()) if rot else float("nan"),
+        "trans_err": max(tr.values()) if tr else float("nan"),
+        "label_acc": float(np.mean(lab == scene.source_labels)), "static_ok": static_ok,
+        "precision": float("nan"), "recall": float("nan"), "f1": float("nan"),
+    }
+
+
+def _peak_rss_gb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB (Linux)
+
+
+def run_task(task: tuple) -> list[dict]:
+    """One trial of one row, every method on the same scene (module level: picklable for map_trials)."""
+    name, row_index, trial, seed, methods = task
+    seq = np.random.SeedSequence([seed, row_index, trial])
+    scans = name in SCAN_ROWS
+    try:
+        scene = make_scan_scene(name, np.random.default_rng(seq)) if scans else make_rows()[name](
+            np.random.default_rng(seq))
+    except FileNotFoundError as exc:  # DataNotFoundError: no real data here
+        return [{"row": name, "method": m, "trial": trial, "K": 0, "n_points": 0, "time_s": float("nan"),
+                 "error": f"no data: {exc}", "exact_k": False, "n_found": 0, "precision": 0.0, "recall": 0.0,
+                 "f1": 0.0, "rot_err_deg": float("nan"), "trans_err": float("nan"), "label_acc": 0.0,
+                 "spurious": 0, "objects_ok": 0.0, "static_ok": False, "peak_rss_gb": _peak_rss_gb()}
+                for m in methods]
+    out = []
+    for method in methods:
+        if scans != (method in SCAN_METHODS) and method != "auto":
+            continue
+        with Timer() as timer:
+            try:
+                if method == "o3d-seq":
+                    motions, labels = o3d_sequential(scene.source, scene.target, seed=trial)
+                    seg = None
+                else:
+                    seg = METHODS[method](scene.source, scene.target)
+                    motions = [(m.rotation, m.translation) for m in seg]
+                    labels = seg.source_labels
+                error = ""
+            except ImportError as exc:
+                seg, motions, labels, error = None, [], np.full(len(scene.source), -1), f"not installed: {exc}"
+            except Exception as exc:  # noqa: BLE001 - scored as a failure
+                seg, motions, labels, error = None, [], np.full(len(scene.source), -1), f"{type(exc).__name__}: {exc}"
+        rec = {"row": name, "method": method, "trial": trial, "K": scene.n_motions,
+               "n_points": len(scene.source), "time_s": timer.seconds, "error": error}
+        if scans:
+            rec.update(score_scans(scene, motions, labels))
+            rec["reason"] = seg.info.get("reason", "") if seg is not None else ""
+        elif seg is None:
+            rec.update(exact_k=False, n_found=0, precision=0.0, recall=0.0, f1=0.0,
+                       rot_err_deg=float("nan"), trans_err=float("nan"), label_acc=0.0)
+        else:
+            rec.update(score(scene, seg))
+        rec["peak_rss_gb"] = _peak_rss_gb()
+        out.append(rec)
+    print(f"  {name} trial {trial}: " + ", ".join(
+        f"{r['method']} {r['n_found']}/{r['K']} F1 {r['f1']:.3f} acc {r['label_acc']:.3f} {r['time_s']:.2f}s"
+        for r in out), file=sys.stderr, flush=True)
+    return out
+
+
 def run(args) -> list[dict]:
     rows = make_rows()
+    every = list(rows) + list(SCAN_ROWS)
     names = args.rows or list(rows)
-    unknown = [n for n in names if n not in rows]
+    unknown = [n for n in names if n not in every]
     if unknown:
-        raise SystemExit(f"unknown rows {unknown}; choose from {list(rows)}")
-    records = []
-    for ri, name in enumerate(names):
-        for trial in range(args.trials):
-            seq = np.random.SeedSequence([args.seed, list(rows).index(name), trial])
-            scene = rows[name](np.random.default_rng(seq))
-            for method in args.methods:
-                with Timer() as timer:
-                    try:
-                        seg = METHODS[method](scene.source, scene.target)
-                        error = ""
-                    except Exception as exc:  # scored as a failure
-                        seg, error = None, f"{type(exc).__name__}: {exc}"
-                rec = {"row": name, "method": method, "trial": trial, "K": scene.n_motions,
-                       "n_points": len(scene.source), "time_s": timer.seconds, "error": error}
-                if seg is None:
-                    rec.update(exact_k=False, n_found=0, precision=0.0, recall=0.0, f1=0.0,
-                               rot_err_deg=float("nan"), trans_err=float("nan"), label_acc=0.0)
-                else:
-                    rec.update(score(scene, seg))
-                records.append(rec)
-            print(f"  {name} trial {trial}: " + ", ".join(
-                f"{r['method']} {r['n_found']}/{r['K']} F1 {r['f1']:.3f} {r['time_s']:.2f}s"
-                for r in records[-len(args.methods):]), file=sys.stderr, flush=True)
-    return records
+        raise SystemExit(f"unknown rows {unknown}; choose from {every}")
+    tasks = [(name, every.index(name), trial, args.seed, tuple(args.methods))
+             for name in names for trial in range(args.trials)]
+    return [rec for recs in map_trials(run_task, tasks, scheduler=args.scheduler) for rec in recs]
+
+
+def _mean(values):
+    vals = [v for v in values if not np.isnan(v)]
+    return float(np.mean(vals)) if vals else float("nan")
 
 
 def summarise(records, names, methods):
@@ -184,14 +388,24 @@ def summarise(records, names, methods):
                 "exact_k_pct": 100.0 * np.mean([r["exact_k"] for r in rs]),
                 "rot_err_deg": median(r["rot_err_deg"] for r in rs),
                 "trans_err": median(r["trans_err"] for r in rs),
-                "precision": float(np.mean([r["precision"] for r in rs])),
-                "recall": float(np.mean([r["recall"] for r in rs])),
-                "f1": float(np.mean([r["f1"] for r in rs])),
+                "precision": _mean(r["precision"] for r in rs),
+                "recall": _mean(r["recall"] for r in rs),
+                "f1": _mean(r["f1"] for r in rs),
                 "label_acc": float(np.mean([r["label_acc"] for r in rs])),
+                "spurious": int(sum(r.get("spurious", 0) for r in rs)),
+                "objects_ok_pct": 100.0 * _mean(r.get("objects_ok", float("nan")) for r in rs),
+                "static_ok_pct": 100.0 * _mean(float(r["static_ok"]) if "static_ok" in r else float("nan")
+                                               for r in rs),
                 "time_s": median(r["time_s"] for r in rs),
+                "max_time_s": float(np.nanmax([r["time_s"] for r in rs])),
+                "peak_rss_gb": float(max(r.get("peak_rss_gb", 0.0) for r in rs)),
                 "errors": sum(bool(r["error"]) for r in rs),
             })
     return out
+
+
+def _pct(x):
+    return "–" if np.isnan(x) else (fmt(x, 0) if x % 1 else str(int(x)))
 
 
 def main(argv=None) -> int:
@@ -200,27 +414,45 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--rows", type=parse_list(str), default=None, metavar="R,R,...")
-    parser.add_argument("--methods", type=parse_list(str), default=list(METHODS), metavar="M,M,...")
+    parser.add_argument("--methods", type=parse_list(str), default=["auto", "graph", "greedy", "ransac"],
+                        metavar="M,M,...")
+    add_scheduler_argument(parser)
     args = parser.parse_args(argv)
-    bad = [m for m in args.methods if m not in METHODS]
+    bad = [m for m in args.methods if m not in METHODS and m not in SCAN_METHODS]
     if bad:
-        parser.error(f"unknown methods {bad}; choose from {list(METHODS)}")
+        parser.error(f"unknown methods {bad}; choose from {list(METHODS) + ['o3d-seq']}")
     records = run(args)
     names = list(dict.fromkeys(r["row"] for r in records))
     summary = summarise(records, names, args.methods)
-    headers = ["row", "method", "K", "points", "exact K %", "rot err (deg)", "t err", "precision",
-               "recall", "F1", "label acc", "median s"]
-    table = [[s["row"], s["method"], s["K"], s["points"], fmt(s["exact_k_pct"], 0) if s["exact_k_pct"] % 1
-              else str(int(s["exact_k_pct"])), fmt(s["rot_err_deg"], 2), fmt(s["trans_err"], 2),
-              fmt(s["precision"]), fmt(s["recall"]), fmt(s["f1"]), fmt(s["label_acc"]), fmt(s["time_s"], 2)]
-             for s in summary]
-    print(markdown_table(headers, table, align="ll" + "r" * (len(headers) - 2)))
-    print("\nrot/t err: median over trials of the worst matched motion; precision, recall, F1, label acc: "
-          "mean over trials.")
+    point_rows = [x for x in summary if x["row"] not in SCAN_ROWS]
+    scan_rows = [x for x in summary if x["row"] in SCAN_ROWS]
+    if point_rows:
+        headers = ["row", "method", "K", "points", "exact K %", "rot err (deg)", "t err", "precision",
+                   "recall", "F1", "label acc", "median s", "max s"]
+        table = [[x["row"], x["method"], x["K"], x["points"], _pct(x["exact_k_pct"]), fmt(x["rot_err_deg"], 2),
+                  fmt(x["trans_err"], 2), fmt(x["precision"]), fmt(x["recall"]), fmt(x["f1"]), fmt(x["label_acc"]),
+                  fmt(x["time_s"], 2), fmt(x["max_time_s"], 1)] for x in point_rows]
+        print(markdown_table(headers, table, align="ll" + "r" * (len(headers) - 2)))
+        print("\nrot/t err: median over trials of the worst matched motion; precision, recall, F1, label acc: "
+              "mean over trials.")
+    if scan_rows:
+        headers = ["scene", "method", "K", "points", "exact K %", "objects ok %", "worst rot (deg)",
+                   "worst t (mm)", "spurious", "static ok %", "label acc", "median s", "max s", "peak RSS GB"]
+        table = [[x["row"], x["method"], x["K"], x["points"], _pct(x["exact_k_pct"]), _pct(x["objects_ok_pct"]),
+                  fmt(x["rot_err_deg"], 3), fmt(x["trans_err"], 2), x["spurious"], _pct(x["static_ok_pct"]),
+                  fmt(x["label_acc"]), fmt(x["time_s"], 1), fmt(x["max_time_s"], 1), fmt(x["peak_rss_gb"], 2)]
+                 for x in scan_rows]
+        print()
+        print(markdown_table(headers, table, align="ll" + "r" * (len(headers) - 2)))
+        print("\nK counts the static patch; objects ok: within 1 deg and 3 mm; spurious: found motions matching "
+              "no true one within 5 deg and 10 mm (total over trials); peak RSS: of the benchmark process so far.")
+    errors = sorted({r["error"] for r in records if r["error"]})
+    for e in errors[:5]:
+        print(f"error: {e}")
     keys = list(summary[0]) if summary else []
-    write_csv(args.out / "motions.csv", keys, [[s[k] for k in keys] for s in summary])
-    tkeys = list(records[0]) if records else []
-    write_csv(args.out / "motions_trials.csv", tkeys, [[r[k] for k in tkeys] for r in records])
+    write_csv(args.out / "motions.csv", keys, [[x[k] for k in keys] for x in summary])
+    tkeys = sorted({k for r in records for k in r}, key=lambda k: (k not in records[0], k)) if records else []
+    write_csv(args.out / "motions_trials.csv", tkeys, [[r.get(k, "") for k in tkeys] for r in records])
     print(f"\nwrote {args.out / 'motions.csv'} and {args.out / 'motions_trials.csv'}")
     return 0
 

@@ -149,7 +149,7 @@ def _noisy_scene(seed, k, share, outliers=0.5):
         rots.append(Rotor.from_axis_angle(a / np.linalg.norm(a), np.radians(rng.uniform(20, 170))).as_matrix())
         ts.append(rng.uniform(-5, 5, 3))
     sizes = [40] * k
-    n_out = int(round(sum(sizes) * outliers / (1 - outliers)))
+    n_out = round(sum(sizes) * outliers / (1 - outliers))
     # noise as a share of each object's RMS radius (points uniform in a 10-cube: 5)
     return multi_motion_scene(rots, ts, sizes, n_outliers=n_out, noise=share * 5.0, seed=rng)
 

@@ -20,16 +20,16 @@ from .scenes import MotionScene, ScanScene, fig12_scene, multi_motion_scene, sca
 from .segmentation import Segmentation, joint_space_residuals, segment, segment_points
 
 __all__ = [
+    "MotionScene",
+    "ScanScene",
     "Segmentation",
+    "fig12_scene",
+    "joint_space_residuals",
+    "multi_motion_scene",
+    "peel",
+    "ransac_segment",
+    "scan_scene",
     "segment",
     "segment_points",
     "segment_scans",
-    "peel",
-    "joint_space_residuals",
-    "ransac_segment",
-    "MotionScene",
-    "multi_motion_scene",
-    "fig12_scene",
-    "ScanScene",
-    "scan_scene",
 ]

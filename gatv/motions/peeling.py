@@ -34,7 +34,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import stages
-from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
+from .._validation import (
+    as_rng,
+    check_fraction,
+    check_int,
+    check_positive,
+    check_progress,
+)
 from ..errors import InputError
 from ..stages import Fit, Problem
 from ..stats import samples_needed
@@ -177,11 +183,11 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         S = _subproblem(P, src, tgt)
         n_possible = _sample_space(model, src.size)
-        # A motion needs the chance level's support at the coarsest tolerance searched to be
+        # A motion needs the chance level's support at the finest tolerance searched to be
         # kept: smaller ones are not worth the samples that would find them.
         need_min = smallest
         if noisy:
-            need_min = max(smallest, float(S.chance(stages.gate(max(round_levels)), N_JUDGED)))
+            need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
         budget = samples_needed(min(1.0, need_min / src.size), confidence, k_pts)
         budget = int(min(budget, 3 * n_possible, max_triples))
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")

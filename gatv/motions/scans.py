@@ -47,8 +47,16 @@ from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from .segmentation import Segmentation
 
-__all__ = ["segment_scans", "chance_support", "thickness", "local_noise", "residual_noise", "SAMPLING_GATE",
-           "PLANE_THICKNESS", "NOISE_FACTOR"]
+__all__ = [
+    "NOISE_FACTOR",
+    "PLANE_THICKNESS",
+    "SAMPLING_GATE",
+    "chance_support",
+    "local_noise",
+    "residual_noise",
+    "segment_scans",
+    "thickness",
+]
 
 #: Gate of a scans motion's labels and correspondences, in target point
 #: spacings: two samplings of one surface put a point's partner within

@@ -10,7 +10,7 @@ from .._validation import frozen_array as _frozen
 from ..errors import InputError
 from ..ga import Rotor
 
-__all__ = ["MotionScene", "multi_motion_scene", "fig12_scene", "ScanScene", "scan_scene"]
+__all__ = ["MotionScene", "ScanScene", "fig12_scene", "multi_motion_scene", "scan_scene"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,7 +236,7 @@ def scan_scene(pairs, *, n_points: int = 40000, clutter: float = 0.2, static_pat
     out = []
     for parts, labs in ((src_parts, src_lab), (tgt_parts, tgt_lab)):
         pts, lab = np.vstack(parts), np.concatenate(labs)
-        n_clutter = int(round(clutter / (1.0 - clutter) * pts.shape[0]))
+        n_clutter = round(clutter / (1.0 - clutter) * pts.shape[0])
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         pts = np.vstack([pts, rng.uniform(lo, hi, (n_clutter, 3))])
         lab = np.concatenate([lab, np.full(n_clutter, -1)])

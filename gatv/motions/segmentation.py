@@ -55,18 +55,30 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import stages
-from .._validation import as_rng, check_fraction, check_int, check_positive, check_progress
+from .._validation import (
+    as_rng,
+    check_fraction,
+    check_int,
+    check_positive,
+    check_progress,
+)
 from .._validation import frozen_array as _frozen
 from ..candidates import one_to_one
 from ..congruent import n_triples_needed
 from ..errors import InputError
 from ..fitting import fit_rigid
-from ..ga import Rotor, eq41_length_residual, eq41_residual, joint_space_coordinates, joint_space_planes
+from ..ga import (
+    Rotor,
+    eq41_length_residual,
+    eq41_residual,
+    joint_space_coordinates,
+    joint_space_planes,
+)
 from ..models.base import homogeneous
 from ..motion import RigidMotion
 from ..stages import Fit, Problem
 
-__all__ = ["Segmentation", "segment", "segment_points", "joint_space_residuals"]
+__all__ = ["Segmentation", "joint_space_residuals", "segment", "segment_points"]
 
 GROUPINGS = ("graph", "greedy")
 
@@ -551,10 +563,10 @@ def segment(
         return out
     if scan_options:
         raise InputError("`scan_options` apply to the scans pipeline only; pass pipeline='scans'.")
-    common = dict(model=model, max_motions=max_motions, min_support=min_support, seed=seed,
-                  refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
-                  max_triples=max_triples, max_judged=max_judged, sigma=sigma, max_candidates=max_candidates,
-                  memory_budget=memory_budget, progress=progress)
+    common = {"model": model, "max_motions": max_motions, "min_support": min_support, "seed": seed,
+              "refine": refine, "min_inlier_share": min_inlier_share, "confidence": confidence,
+              "max_triples": max_triples, "max_judged": max_judged, "sigma": sigma,
+              "max_candidates": max_candidates, "memory_budget": memory_budget, "progress": progress}
     P = stages.prepare(source, target, model)
     if P.model.name != "rigid" or grouping in GROUPINGS or (grouping == "auto" and noise is not None):
         out = segment_points(source, target, noise=noise,

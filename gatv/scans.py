@@ -34,9 +34,17 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import stages
-from ._validation import as_points, check_fraction, check_int, check_positive, check_progress, seed_int
+from ._validation import (
+    as_points,
+    check_fraction,
+    check_int,
+    check_positive,
+    check_progress,
+    seed_int,
+)
 from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
+from .ga import rotation_angle_deg
 from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
@@ -164,31 +172,33 @@ def register_scans(source, target, **options) -> RigidMotion:
     return register(source, target, pipeline="scans", scan_options=options, **call)
 
 
-#: Rival motions judged within this share of the best support make the
-#: answer ambiguous (a symmetric or nearly planar object).
+#: Rival motions within this share of the best support make the answer
+#: ambiguous (a symmetric or nearly planar object).
 RIVAL_SHARE = 0.8
 
 
-def _ambiguity(best, others, voxel: float) -> dict:
-    """``info`` entries on rivals of the best judged trial: distinct motions nearly as well supported.
+def _rivals(best, others, voxel: float) -> list:
+    """Judged trials distinct from the best yet nearly as well supported.
 
     A rival differs from the best by more than 5° or more than 3 voxels of
-    translation and reaches :data:`RIVAL_SHARE` of its support; symmetric
-    objects and nearly planar surfaces give such rivals, and the answer
-    then is a guess between them, which ``info["ambiguous"]`` says.
+    translation and reaches :data:`RIVAL_SHARE` of its support among the
+    downsampled points; symmetric objects and nearly planar surfaces give
+    such rivals.  :func:`register_surfaces` polishes each as it does the
+    best and reports ``info["ambiguous"]`` only when one still reaches
+    :data:`RIVAL_SHARE` of the best's support at full resolution as a
+    different motion (and takes it when it does better).
     """
     from .ga import rotation_angle_deg
 
     R0, t0 = best.matrix[:3, :3], best.matrix[:3, 3]
+    out = []
     for fit in others:
         if fit.support < RIVAL_SHARE * best.support:
             break
         angle = rotation_angle_deg(fit.matrix[:3, :3] @ R0.T)
-        shift = float(np.linalg.norm(fit.matrix[:3, 3] - t0))
-        if angle > 5.0 or shift > 3.0 * voxel:
-            return {"ambiguous": True, "rival": {"support": int(fit.support), "best_support": int(best.support),
-                                                 "angle_deg": angle, "translation": shift}}
-    return {"ambiguous": False}
+        if angle > 5.0 or float(np.linalg.norm(fit.matrix[:3, 3] - t0)) > 3.0 * voxel:
+            out.append(fit)
+    return out
 
 
 def plane_noise(source, target, target_normals, pairs) -> float:
@@ -329,26 +339,47 @@ def register_surfaces(
     best = fits[0]
     R, t = best.matrix[:3, :3], best.matrix[:3, 3]
     info.update(judged_support=best.support, t_judge=time.perf_counter() - t0)
-    info.update(_ambiguity(best, fits[1:], voxel))
+    rivals = _rivals(best, fits[1:], voxel)
 
     # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
     # the tensor-voting normals of the target's surface points.
     report(0.85, "refine")
     fine = 3.0 * median_spacing(Ys)
-    g = gate
     tree = cKDTree(Ys)
-    if refine:
-        rng_sub = np.random.default_rng(seed)
-        sub = Xs if Xs.shape[0] <= 8000 else Xs[rng_sub.choice(Xs.shape[0], 8000, replace=False)]
-        while True:
-            R, t = refine_point_to_plane(sub, Ys, nys, R, t, g, tree=tree)
-            if g <= fine:
-                break
-            g = max(fine, g / 2.0)
-    dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-    ok = np.flatnonzero(np.isfinite(dist))
-    pairs = np.stack([ok, j[ok]], axis=1)
-    kept = pairs[stages.select_one_to_one(pairs, dist[ok])]
+    rng_sub = np.random.default_rng(seed)
+    sub = Xs if Xs.shape[0] <= 8000 else Xs[rng_sub.choice(Xs.shape[0], 8000, replace=False)]
+
+    def polish(R, t):
+        """Point-to-plane ICP with a gate shrinking from a voxel; the final pairs."""
+        g = gate
+        if refine:
+            while True:
+                R, t = refine_point_to_plane(sub, Ys, nys, R, t, g, tree=tree)
+                if g <= fine:
+                    break
+                g = max(fine, g / 2.0)
+        dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+        ok = np.flatnonzero(np.isfinite(dist))
+        pairs = np.stack([ok, j[ok]], axis=1)
+        # ok.size: source points on the target's surface (within the gate), a
+        # measure that does not favour a motion for landing on the very
+        # sample points (the one-to-one pairs do).
+        return R, t, g, pairs[stages.select_one_to_one(pairs, dist[ok])], int(ok.size)
+
+    R, t, g, kept, on = polish(R, t)
+    info["ambiguous"] = False
+    for rival in rivals:
+        # Judged nearly as well: polish it too and compare at full resolution.
+        Rr, tr, gr, kr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
+        if (rotation_angle_deg(Rr @ R.T) < 1.0
+                and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
+            continue  # polishing brought it onto the best motion
+        if on_r > on:
+            R, t, g, kept, on, Rr, on_r = Rr, tr, gr, kr, on_r, R, on
+        if on_r >= RIVAL_SHARE * on:
+            info["ambiguous"] = True
+            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
+            break
     noise = plane_noise(Xs @ R.T + t, Ys, nys, kept)
     # Correspondences index the input points.
     kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)

@@ -159,3 +159,20 @@ def test_real_scan_pair_registered_by_the_default_call():
     assert np.linalg.norm(m.translation - t) < 2e-3
     assert 0 < m.info["noise"] < 1e-3  # the scanner's noise is well below a millimetre
     assert gate(1.0) == 3.5
+
+
+def test_symmetric_object_reports_the_ambiguity():
+    """An ellipsoid matches itself after half-turns: info says ambiguous; a bumpy blob does not."""
+    rng = np.random.default_rng(2)
+    u = _sphere(4000, seed=2)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    pick = rng.permutation(4000)[:3000]
+    ellipsoid = u * [1.0, 0.7, 0.5]
+    m = register(ellipsoid, ellipsoid[pick] @ R.T + [0.2, 0.0, -0.1], seed=0)
+    assert m.info["pipeline"] == "scans" and m.info["ambiguous"]
+    assert m.info["rival"]["angle_deg"] > 90.0
+    radius = 1 + 0.3 * np.sin(3 * u[:, 0] + 1) * np.cos(2 * u[:, 1]) + 0.2 * u[:, 2] ** 3
+    blob = u * radius[:, None]
+    m = register(blob, blob[pick] @ R.T + [0.2, 0.0, -0.1], seed=0)
+    assert not m.info["ambiguous"]
+    assert rotation_error_deg(m.rotation, R) < 0.5

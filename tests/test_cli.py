@@ -382,3 +382,18 @@ def test_catadioptric_package_missing_is_one_line_exit_1(tmp_path, monkeypatch, 
     args = ["catadioptric", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--camera", str(tmp_path / "c.json")]
     assert cli.main(args) == 1
     _assert_one_error_line(capsys, "RuntimeError: the catadioptric package cannot be imported")
+
+
+def test_matrix_output_is_the_motion_as_4x4_text(tmp_path, monkeypatch):
+    """``--matrix`` writes the 4x4 homogeneous matrix that numpy.loadtxt reads back."""
+    src, tgt = tmp_path / "a.npy", tmp_path / "b.npy"
+    pts = np.random.default_rng(0).normal(size=(20, 3))
+    write_points(src, pts)
+    write_points(tgt, pts)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    motion = RigidMotion(R, np.array([1.0, 2.0, 3.0]), np.c_[np.arange(5), np.arange(5)])
+    monkeypatch.setattr(register_cmd, "load_register", lambda: (lambda s, t, **kw: motion))
+    out = tmp_path / "m.txt"
+    assert cli.main(["register", str(src), str(tgt), "--matrix", str(out), "-q"]) == 0
+    np.testing.assert_array_equal(np.loadtxt(out), motion.matrix)
+    assert cli.main(["register", str(src), str(tgt), "--matrix", str(tmp_path / "no" / "m.txt")]) == 2

@@ -128,7 +128,7 @@ def model_options(args) -> dict:
 
 # ------------------------------------------------------------ input checks
 _OUTPUT_KINDS = (("out", "the result", None), ("aligned", "aligned points", WRITE_EXTENSIONS),
-                 ("render", "a picture", IMAGE_EXTENSIONS))
+                 ("render", "a picture", IMAGE_EXTENSIONS), ("matrix", "the 4x4 matrix", None))
 
 
 def _check_output(path: Path | None, what: str, extensions: tuple[str, ...] | None) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 from ._common import (
     EXIT_FAILED,
@@ -72,6 +73,8 @@ def add_parser(subparsers):
 def add_run_options(p) -> None:
     """The outputs and options of a registration (``register`` and ``demo``)."""
     add_outputs(p, aligned=True)
+    p.add_argument("--matrix", type=Path, metavar="FILE",
+                   help="write the motion as a 4x4 matrix, four lines of text (numpy.loadtxt, Open3D)")
     add_seed(p, "the registration")
     p.add_argument(
         "--max-angle", type=float, metavar="DEG",
@@ -133,7 +136,7 @@ def _pipeline(args) -> str:
 
 def register_and_write(args, source, target, inputs: dict, extra: dict | None = None):
     """Register, print, and write every output atomically; return ``(status, motion)``."""
-    from ..io import write_json, write_points
+    from ..io import write_json, write_matrix, write_points
 
     check_point_counts((name, pts, inputs[name]) for name, pts in (("source", source), ("target", target)))
     pipeline = _pipeline(args)
@@ -168,6 +171,7 @@ def register_and_write(args, source, target, inputs: dict, extra: dict | None = 
         (args.out, lambda tmp: write_json(tmp, record)),
         (aligned, lambda tmp: write_points(tmp, motion.transform(source))),
         (args.render if ok else None, lambda tmp: render(source, target, motion, tmp)),
+        (getattr(args, "matrix", None) if ok else None, lambda tmp: write_matrix(tmp, motion.matrix)),
     ], quiet=args.quiet)
     return (EXIT_OK if ok else EXIT_FAILED), motion
 

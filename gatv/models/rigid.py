@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import as_points
+from .._validation import as_points, coordinates
 from ..errors import InputError
 from ..fitting import kabsch
 from ..ga import eq41_length_residual, eq41_residual
@@ -39,9 +39,7 @@ def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | 
 
 def check_dimension(points, name: str, dim: int, model: str) -> None:
     """A clear error for points of the wrong dimension for ``model``."""
-    if hasattr(points, "points") and not isinstance(points, np.ndarray):
-        points = points.points
-    shape = np.shape(points)
+    shape = np.shape(coordinates(points))  # PyVista, Open3D, trimesh containers alike
     if len(shape) == 2 and shape[1] != dim:
         other = "'affine2d'" if shape[1] == 2 else "'rigid' or 'similarity'"
         msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}; "

@@ -426,11 +426,14 @@ def eq41_residual(d_i, s_i, d_j, s_j, axis, *, normalize: str = "length") -> np.
     Parameters
     ----------
     normalize : {"length", "angle", "none"}, default: "length"
+        How the residual is scaled:
+
         * ``"length"``: ``|V × (A × Vs)| / |Vs|``, in the data's length unit,
           comparable with the noise level (the pair-distance change and the
           out-of-plane offset ``V·A``, mixed).
         * ``"angle"``: ``|V × (A × Vs)| / (|V| |Vs|)``, scale free, in [0, 1].
         * ``"none"``: ``|V × (A × Vs)|``.
+
         Pairs with ``|Vs| = 0`` (or ``|V| = 0`` for ``"angle"``) give 0.
 
     Returns

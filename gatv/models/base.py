@@ -162,8 +162,8 @@ class Motion:
     ``correspondences``, ``score``, ``rms`` and ``info``, and define
     :attr:`matrix` and :meth:`from_matrix`.
 
-    Attributes shared by every motion
-    ---------------------------------
+    Attributes
+    ----------
     matrix : (d + 1, d + 1) ndarray
         Homogeneous transform, ``target ≈ T @ [source, 1]``.
     correspondences : (K, 2) ndarray of int

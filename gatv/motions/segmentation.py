@@ -785,6 +785,10 @@ def segment_points(
         tgt_lab[kept[:, 1]] = new
         out.append(stages.make_result(P, fit, {"label": new}))
     info["time_s"] = time.perf_counter() - t_start
+    if max_motions is not None and len(motions) > max_motions:
+        info.setdefault("reason", "max_motions reached")
+    info.setdefault("reason", "the trial search drew, since its last new motion, enough triples to find a motion "
+                              "of min_inlier_share of the points (the RANSAC bound); no further trial beat chance")
     report(1.0, f"found {len(out)} motions")
     return Segmentation(tuple(out), src_lab, tgt_lab, tokens, labels, info)
 

@@ -67,7 +67,7 @@ from .errors import InputError
 from .models import Motion, get_model
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
-__all__ = ["register", "choose_pipeline", "surface_likeness", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
+__all__ = ["register", "choose_pipeline", "surface_likeness", "reject_exact_options", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
 
 #: Matches scored per source triple in the rigid search (the chance level
 #: counts them as tests).  Exact data rarely has more than a few; under noise
@@ -194,6 +194,16 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
             return "scans", (f"{n1} and {n2} points on surfaces (local planarity {flat:.3g} < "
                              f"{SURFACE_PLANARITY})")
     return "exact", f"{n1} and {n2} points, not dense surfaces"
+
+
+def reject_exact_options(options: dict, why: str) -> None:
+    """An error naming the exact-pipeline ``options`` given (not None) when the data took the scans one."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        msg = (f"{', '.join('`' + g + '`' for g in given)} apply to the exact pipeline, but the data "
+               f"took the scans pipeline ({why}); pass pipeline='exact' to force the exact one, or drop "
+               "the option.")
+        raise InputError(msg)
 
 
 def _check_exact_memory(target, memory_budget) -> None:
@@ -349,14 +359,9 @@ def register(
     t_start = time.perf_counter()
     chosen, why = _pipeline(source, target, model, pipeline, memory_budget)
     if chosen == "scans":
-        exact_only = {"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
-                      "sigma": sigma, "min_inlier_share": None if min_inlier_share == 0.04 else min_inlier_share}
-        given = [name for name, value in exact_only.items() if value is not None]
-        if given:
-            msg = (f"{', '.join('`' + g + '`' for g in given)} apply to the exact pipeline, but the data "
-                   f"took the scans pipeline ({why}); pass pipeline='exact' to force the exact one, or drop "
-                   "the option.")
-            raise InputError(msg)
+        reject_exact_options({"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
+                              "sigma": sigma,
+                              "min_inlier_share": None if min_inlier_share == 0.04 else min_inlier_share}, why)
         from .scans import register_surfaces
 
         out = register_surfaces(source, target, seed=seed, confidence=confidence, max_triples=max_triples,

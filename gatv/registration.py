@@ -67,7 +67,7 @@ from .errors import InputError
 from .models import Motion, get_model
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
-__all__ = ["register", "choose_pipeline", "surface_likeness", "reject_exact_options", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
+__all__ = ["register", "choose_pipeline", "resolve_pipeline", "surface_likeness", "reject_exact_options", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
 
 #: Matches scored per source triple in the rigid search (the chance level
 #: counts them as tests).  Exact data rarely has more than a few; under noise
@@ -220,7 +220,14 @@ def _check_exact_memory(target, memory_budget) -> None:
         raise InputError(msg)
 
 
-def _pipeline(source, target, model, pipeline, memory_budget) -> tuple[str, str]:
+def resolve_pipeline(source, target, model, pipeline: str = "auto", memory_budget=None) -> tuple[str, str]:
+    """``(pipeline, reason)`` for ``register``'s (and ``segment``'s) ``pipeline=`` argument.
+
+    ``"exact"`` and ``"scans"`` are taken as given (the scans pipeline is for
+    rigid motions only); ``"auto"`` is :func:`choose_pipeline` for the rigid
+    model and ``"exact"`` for the others.  The model's own point checks run
+    first, so their errors name the model's dimension.
+    """
     if pipeline not in ("auto", "exact", "scans"):
         raise InputError(f"Expected `pipeline` 'auto', 'exact' or 'scans', got {pipeline!r}.")
     model = get_model(model)
@@ -357,7 +364,7 @@ def register(
     (40, 150.0)
     """
     t_start = time.perf_counter()
-    chosen, why = _pipeline(source, target, model, pipeline, memory_budget)
+    chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
     if chosen == "scans":
         reject_exact_options({"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
                               "sigma": sigma,

@@ -73,7 +73,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (  # noqa: E402
+from _common import (
     add_common_arguments,
     add_scheduler_argument,
     fmt,
@@ -123,7 +123,7 @@ class Trial:
 def _plane_pair(case: Case, rng):
     from gatv.nonrigid import deformations as D
 
-    total = int(round(case.n / 0.8)) if case.sampled else case.n
+    total = round(case.n / 0.8) if case.sampled else case.n
     x = D.sample_plane(total, 10.0, seed=rng)
     if case.warp == "twist90":
         y = D.twist(x, 90.0)
@@ -144,7 +144,7 @@ def _subsets(x, y, rng, sampled: bool, share: float = 0.8):
     if not sampled:
         rows = np.arange(n)
         return rows, rows
-    k = int(round(share * n))
+    k = round(share * n)
     return np.sort(rng.choice(n, k, replace=False)), np.sort(rng.choice(n, k, replace=False))
 
 
@@ -196,7 +196,7 @@ def make_trial(case: Case, f: float, rng) -> Trial:
     tgt = np.vstack([Y, rng.uniform(Y.min(0), Y.max(0), (n_out, 3))])
     ps, pt = rng.permutation(src.shape[0]), rng.permutation(tgt.shape[0])
     inv_s, inv_t = np.argsort(ps), np.argsort(pt)
-    common, ix, iy = np.intersect1d(xr, yr, return_indices=True)
+    _, ix, iy = np.intersect1d(xr, yr, return_indices=True)
     pairs = np.column_stack([inv_s[ix], inv_t[iy]])
     pairs = pairs[np.argsort(pairs[:, 0])]
     inl = inv_s[: X.shape[0]]
@@ -269,11 +269,15 @@ RUNNERS = {"gatv": run_gatv, "cpd": run_cpd, "bcpd": run_bcpd, "filterreg": run_
 
 def peer_bytes(method, n_source, n_target) -> float:
     """Dense-matrix bytes of a peer: pycpd and probreg's BCPD hold M×N posteriors (and
-    temporaries of that size) and the M×M kernel of the source; FilterReg is O(N).
+    temporaries of that size) and the M×M kernel of the source.
     Measured: pycpd's deformable CPD peaked at 4.8 GB RSS for 8,171 × 8,171 points
-    (about 9 float64 arrays of M×N), hence 6 M×N + 3 M×M float64."""
+    (about 9 float64 arrays of M×N), hence 6 M×N + 3 M×M float64.  probreg's FilterReg
+    peaked at 2.4 GB for 23,728 × 23,728 points and 8.7 GB for 47,456 × 47,456: about
+    4 bytes per point pair."""
     if method in ("cpd", "bcpd"):
         return 8.0 * (6.0 * n_source * n_target + 3.0 * n_source * n_source)
+    if method == "filterreg":
+        return 4.0 * n_source * n_target
     return 0.0
 
 
@@ -289,7 +293,7 @@ def child_main(path_in: str, path_out: str) -> int:
         pairs, moved, info = RUNNERS[meta["method"]](data["source"], data["target"], meta["f"],
                                                       meta["spacing"], meta["kind"])
         out["info"] = info
-    except Exception as exc:  # scored as a failure, reported in the table
+    except Exception as exc:  # noqa: BLE001 - scored as a failure, reported in the table
         pairs, moved = np.empty((0, 2), np.int64), np.asarray(data["source"]).copy()
         out["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())[:160]}"
     out["time_s"] = time.perf_counter() - t0
@@ -308,7 +312,7 @@ def run_isolated(method, trial: Trial, f, kind, timeout):
         t0 = time.perf_counter()
         try:
             proc = subprocess.run([sys.executable, __file__, "--child", pin, pout], timeout=timeout,
-                                  capture_output=True, text=True)
+                                  capture_output=True, text=True, check=False)
         except subprocess.TimeoutExpired:
             return None, None, time.perf_counter() - t0, float("nan"), f"did not finish in {timeout:.0f} s", {}
         if proc.returncode != 0 or not os.path.exists(pout):

@@ -39,16 +39,16 @@ from ..candidates import median_spacing, one_to_one
 from ..fitting import kabsch
 
 __all__ = [
-    "REFINE_LEVELS",
     "MLS_NEIGHBOURS",
-    "grid_subsample",
-    "dense_rows",
+    "REFINE_LEVELS",
     "LocalAffineWarp",
+    "Refined",
+    "dense_rows",
+    "grid_subsample",
+    "local_eq41_pairs",
     "loo_affine_residuals",
     "memory_estimate",
-    "Refined",
     "refine",
-    "local_eq41_pairs",
 ]
 
 #: Gates of the full-resolution levels, in coarse spacings (then down to the sampling gate).
@@ -430,21 +430,21 @@ def moment_prealign(X, Y, *, iterations: int = 30, max_points: int = 3000, seed:
     """Similarity pre-alignment from principal axes, refined by trimmed similarity ICP.
 
     The scale is the ratio of the RMS radii about the centroids, the
-    rotation one of the four proper sign choices of the principal axes
-    (the one with the smallest median nearest-target distance), then
-    ``iterations`` rounds of Umeyama's fit on the nearest-target pairs of
-    the closest 80% of at most ``max_points`` seeded source points.  For a
+    rotation one of the four proper sign choices of the principal axes;
+    each start is refined by ``iterations`` rounds of Umeyama's fit on the
+    nearest-target pairs of the closest 70% of at most ``max_points``
+    seeded source points, and the one with the smallest trimmed median
+    distance is kept (a clustered blob of outliers biases the moments, not
+    the trimmed fit).  For a
     deformation on top of a large rotation and scale change, when the
     similarity model's search on the coarse sets finds nothing (differently
     sampled sets have no exact triples).  Works for bodies whose principal
     axes are distinct; returns the 4×4 matrix ``[[s R, t], [0, 1]]``.
     """
-    from ..fitting import umeyama
-
     rng = np.random.default_rng(seed)
     xs = X if X.shape[0] <= max_points else X[rng.choice(X.shape[0], max_points, replace=False)]
     cx, cy = X.mean(axis=0), Y.mean(axis=0)
-    s = float(np.sqrt(np.mean(np.sum((Y - cy) ** 2, axis=1)) / np.mean(np.sum((X - cx) ** 2, axis=1))))
+    s0 = float(np.sqrt(np.mean(np.sum((Y - cy) ** 2, axis=1)) / np.mean(np.sum((X - cx) ** 2, axis=1))))
     _, ux = np.linalg.eigh(np.cov((X - cx).T))
     _, uy = np.linalg.eigh(np.cov((Y - cy).T))
     tree = cKDTree(Y)
@@ -454,16 +454,22 @@ def moment_prealign(X, Y, *, iterations: int = 30, max_points: int = 3000, seed:
         R = uy @ D @ ux.T
         if np.linalg.det(R) < 0:
             R = uy @ (D * np.diag([1.0, 1.0, -1.0])) @ ux.T
-        t = cy - s * R @ cx
-        d = tree.query(s * xs @ R.T + t, k=1)[0]
-        if best is None or np.median(d) < best[0]:
-            best = (float(np.median(d)), s, R, t)
+        fit = _trimmed_icp(xs, Y, tree, s0, R, cy - s0 * R @ cx, iterations)
+        if best is None or fit[0] < best[0]:
+            best = fit
     _, s, R, t = best
-    for _ in range(iterations):
-        moved = s * xs @ R.T + t
-        d, j = tree.query(moved, k=1)
-        keep = d <= np.percentile(d, 80)
-        s, R, t = umeyama(xs[keep], Y[j[keep]])
     A = np.eye(4)
     A[:3, :3], A[:3, 3] = s * R, t
     return A
+
+
+def _trimmed_icp(xs, Y, tree, s, R, t, iterations: int, keep_share: float = 0.7):
+    """Trimmed similarity ICP; returns (median distance of the kept share, s, R, t)."""
+    from ..fitting import umeyama
+
+    for _ in range(iterations):
+        d, j = tree.query(s * xs @ R.T + t, k=1)
+        keep = d <= np.percentile(d, 100 * keep_share)
+        s, R, t = umeyama(xs[keep], Y[j[keep]])
+    d = tree.query(s * xs @ R.T + t, k=1)[0]
+    return float(np.median(np.sort(d)[: max(1, int(keep_share * d.size))])), s, R, t

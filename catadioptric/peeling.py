@@ -26,7 +26,8 @@ from catadioptric.constants import (
     PEEL_OVERLAP,
     REACH_SPACINGS,
 )
-from catadioptric.plane import decompose_homography, plane_stage
+from catadioptric.plane import apply_homography, decompose_homography, plane_stage
+from catadioptric.rotation import gated_pairs
 from gatv._validation import frozen_array as _frozen
 from gatv.fitting import kabsch
 from gatv.motion import rotation_angle_deg
@@ -175,6 +176,51 @@ def fits_motion(pairs, earlier, r1, r2, s1, s2, neighbours=6):
     return near & (np.linalg.norm(r2[pairs[:, 1]] - pred, axis=1) <= 2.0 * GATE_SIGMAS * sig)
 
 
+def reclaim(motions, H, pairs, r1, r2, s1, s2, index1, index2, info):
+    """The rays on the plane that earlier motions took: given back to the plane.
+
+    A dominant motion grown locally (or a chance pair of a rigid one) may
+    take corners of the moved plane where the two motions meet. An earlier
+    pair whose view-1 ray lies on the plane (within 1.5 of its matches'
+    median spacing of one of them) and which the plane's homography also
+    explains (a view-2 ray within the noise gate of ``H x``) is dropped from
+    the earlier motion; the plane is then matched again on the rays left
+    free. Returns the updated ``motions`` and the plane's pairs.
+    """
+    xs = r1[pairs[:, 0]]
+    tree = cKDTree(xs)
+    spacing = float(np.median(tree.query(xs, k=2)[0][:, 1]))
+    tree2 = cKDTree(r2)
+    moved = apply_homography(H, r1)
+    on_plane = tree.query(r1)[0] <= 1.5 * spacing
+    explained = np.zeros(r1.shape[0], bool)
+    hit = gated_pairs(moved, r2, tree2, s1, s2, 1.0)
+    explained[hit[:, 0]] = True
+    out, dropped = [], 0
+    for motion, p in motions:
+        bad = on_plane[p[:, 0]] & explained[p[:, 0]]
+        if bad.any():
+            dropped += int(bad.sum())
+            keep = p[~bad]
+            c = np.column_stack([index1[keep[:, 0]], index2[keep[:, 1]]])
+            motion = SphereMotion(c, motion.strategy, motion.rotation, motion.translation, motion.homography,
+                                  motion.info)
+            p = keep
+        out.append((motion, p))
+    info["reclaimed_from_earlier"] = dropped
+    if not dropped:
+        return motions, pairs
+    used1 = np.zeros(r1.shape[0], bool)
+    used2 = np.zeros(r2.shape[0], bool)
+    for _, p in out:
+        used1[p[:, 0]] = True
+        used2[p[:, 1]] = True
+    free2 = np.flatnonzero(~used2)
+    moved[used1] = np.inf
+    sub = gated_pairs(moved, r2[free2], cKDTree(r2[free2]), s1, s2[free2], 1.0)
+    return out, np.column_stack([sub[:, 0], free2[sub[:, 1]]])
+
+
 def make_plane_motion(H, pairs, r1, r2, index1, index2, info) -> SphereMotion:
     """A :class:`SphereMotion` of a plane's homography and pairs (full ray rows)."""
     sols = plane_solutions(H, r1[pairs[:, 0]], r2[pairs[:, 1]])
@@ -223,6 +269,8 @@ def peel(motions, r1, r2, s1, s2, index1, index2, noise, rng, *, max_motions, pr
                 info["peel_reason"] = (f"the next plane's {pairs.shape[0]} pairs are {share:.0%} an "
                                        f"earlier motion's")
                 return motions
+            updated, pairs = reclaim(motions, H, pairs, r1, r2, s1, s2, index1, index2, pinfo)
+            motions[:] = updated
         motions.append((make_plane_motion(H, pairs, r1, r2, index1, index2, pinfo), pairs))
     info["peel_reason"] = f"max_motions = {max_motions} reached"
     return motions

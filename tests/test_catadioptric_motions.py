@@ -112,7 +112,7 @@ def test_sign_test_is_the_binomial_tail():
 
 
 # ------------------------------------------------------------ repeated pattern
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_whole_pattern_beats_the_shifted_rival(seed):
     """The board alone, wholly visible in both views: the true mapping explains all its
     corners, a shift by one period (or a half-turn) leaves at least 5 unexplained, and
@@ -184,6 +184,7 @@ def test_same_seed_same_motions():
         assert np.array_equal(x.correspondences, y.correspondences) and x.strategy == y.strategy
 
 
+@pytest.mark.slow
 def test_max_motions_one_reports_the_dominant_motion_only():
     p1, p2, static, _ = two_motion_scene(2)
     m = match(p1, p2, CAMERA, max_motions=1)

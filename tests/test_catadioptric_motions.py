@@ -238,3 +238,24 @@ def test_voting_chart_is_equidistant():
     assert np.allclose(np.hypot(uv[:, 0], uv[:, 1]), theta, atol=1e-12)
     near = cKDTree(uv).query(uv, k=2)[0][:, 1]
     assert np.all(near > 0)
+
+
+def test_reclaim_gives_the_plane_its_corners_back():
+    """An earlier motion that took board corners (wrong partners) gives them back to the plane."""
+    from catadioptric.peeling import reclaim
+
+    p1, p2, static, board = two_motion_scene(0)
+    r1, r2 = CAMERA.lift(p1), CAMERA.lift(p2)
+    s1, s2 = sphere_noise(CAMERA, p1), sphere_noise(CAMERA, p2)
+    H = fit_homography(r1[board[:, 0]], r2[board[:, 1]])
+    wrong = np.column_stack([board[:5, 0], np.roll(board[:5, 1], 1)])
+    earlier = np.vstack([static, wrong])
+    rows1, rows2 = np.arange(len(p1)), np.arange(len(p2))
+    info = {}
+    out, plane = reclaim([(SphereMotion(earlier, "local"), earlier)], H, board[5:], r1, r2, s1, s2,
+                         rows1, rows2, info)
+    assert info["reclaimed_from_earlier"] == 5
+    assert set(map(tuple, out[0][1].tolist())) == set(map(tuple, static.tolist()))
+    assert out[0][0].support == len(static)
+    precision, recall = correspondence_stats(plane, board)
+    assert recall == 1.0 and precision >= 0.95  # at most a chance pair of the free rays

@@ -440,26 +440,6 @@ PROBE_TRIPLES = 20000
 NOISY_FROM = 0.04
 
 
-def _choose(source, target, model, pipeline, memory_budget) -> tuple[str, str]:
-    """``(pipeline, reason)`` as :func:`gatv.register` chooses it."""
-    from ..models import get_model
-    from ..registration import choose_pipeline
-
-    if pipeline not in ("auto", "exact", "scans"):
-        raise InputError(f"Expected `pipeline` 'auto', 'exact' or 'scans', got {pipeline!r}.")
-    m = get_model(model)
-    if pipeline == "exact":
-        return "exact", "pipeline='exact' given"
-    if m.name != "rigid":
-        if pipeline == "scans":
-            raise InputError(f"The scans pipeline segments rigid motions; got model={m.name!r}.")
-        return "exact", f"the {m.name!r} model has the exact pipeline only"
-    X, Y = m.check_points(source, "source"), m.check_points(target, "target")
-    if pipeline == "scans":
-        return "scans", "pipeline='scans' given"
-    return choose_pipeline(X, Y, memory_budget=memory_budget)
-
-
 def segment(
     source,
     target,
@@ -541,19 +521,15 @@ def segment(
     >>> len(seg), sorted(m.support for m in seg)
     (3, [40, 40, 40])
     """
-    chosen, why = _choose(source, target, model, pipeline, memory_budget)
+    from ..registration import reject_exact_options, resolve_pipeline
+
+    chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
     if grouping not in GROUPINGS + ("auto", "peel"):
         raise InputError(f"Expected `grouping` to be one of {('auto',) + GROUPINGS + ('peel',)}, "
                          f"got {grouping!r}.")
     if chosen == "scans":
-        exact_only = {"noise": noise, "sigma": sigma, "min_support": min_support,
-                      "grouping": None if grouping == "auto" else grouping}
-        given = [name for name, value in exact_only.items() if value is not None]
-        if given:
-            msg = (f"{', '.join('`' + g + '`' for g in given)} apply to the exact pipeline, but the data took "
-                   f"the scans pipeline ({why}); pass pipeline='exact' to force the exact one, or drop the "
-                   "option.")
-            raise InputError(msg)
+        reject_exact_options({"noise": noise, "sigma": sigma, "min_support": min_support,
+                              "grouping": None if grouping == "auto" else grouping}, why)
         from .scans import segment_scans
 
         out = segment_scans(source, target, max_motions=max_motions, seed=seed, confidence=confidence,

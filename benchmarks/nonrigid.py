@@ -472,6 +472,8 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", type=parse_list(int), default=None, metavar="N,...",
                         help="points per set of the synthetic size rows (default: 2000,10000,25000; "
                              "add 100000 for the 100k rows)")
+    parser.add_argument("--only", default=None, metavar="TEXT",
+                        help="keep only the rows whose name contains TEXT (e.g. 'sampled')")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per method and trial (default: 600)")
     parser.add_argument("--peer-memory-gb", type=float, default=4.0,
                         help="do not run a peer whose dense matrices would need more (default: 4)")
@@ -487,6 +489,8 @@ def main(argv=None) -> int:
         parser.error(f"unknown case groups {sorted(bad)}; choose from {', '.join(GROUPS)}")
     sizes = args.sizes if args.sizes is not None else list(DEFAULT_SIZES)
     chosen = cases(groups, sizes)
+    if args.only:
+        chosen = [c for c in chosen if args.only in c.name]
     if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
         print(f"data not found in {DATA}: face and bunny rows left out")
         chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny")]

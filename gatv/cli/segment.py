@@ -29,8 +29,15 @@ from ._common import (
     write_outputs,
 )
 
-__all__ = ["NAME", "add_parser", "load_segment", "render_segmentation", "write_labelled", "run",
-           "LABELLED_EXTENSIONS"]
+__all__ = [
+    "LABELLED_EXTENSIONS",
+    "NAME",
+    "add_parser",
+    "load_segment",
+    "render_segmentation",
+    "run",
+    "write_labelled",
+]
 
 #: Files ``--labelled`` writes: PLY (binary, float32 x y z and an int32
 #: ``motion`` property per vertex), or VTK PolyData through PyVista.

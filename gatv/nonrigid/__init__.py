@@ -17,5 +17,11 @@ from .motion import Diagnostics, NonRigidMotion
 from .registration import register
 from .segment import NonRigidSegmentation, segment
 
-__all__ = ["register", "segment", "NonRigidMotion", "NonRigidSegmentation", "Diagnostics",
-           "deformations"]
+__all__ = [
+           "Diagnostics",
+           "NonRigidMotion",
+           "NonRigidSegmentation",
+           "deformations",
+           "register",
+           "segment",
+]

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._validation import as_points
-from ..ga import Rotor
 from .._validation import frozen_array as _frozen
+from ..ga import Rotor
 
-__all__ = ["NonRigidMotion", "Diagnostics", "ThinPlateWarp"]
+__all__ = ["Diagnostics", "NonRigidMotion", "ThinPlateWarp"]
 
 #: Beyond this many correspondences the warp is the moving-least-squares local affine fit
 #: of the matches (:class:`gatv.nonrigid.multiscale.LocalAffineWarp`, O(K) memory) instead of

@@ -264,8 +264,8 @@ def register(
         model=model,
     )
     report = check_progress(progress)
-    options = dict(coarse_points=check_int(coarse_points, "coarse_points", 50),
-                   window_points=check_int(window_points, "window_points", 20))
+    options = {"coarse_points": check_int(coarse_points, "coarse_points", 50),
+               "window_points": check_int(window_points, "window_points", 20)}
     if multiscale not in (True, False, "auto"):
         raise InputError(f"Expected `multiscale` to be True, False or 'auto', got {multiscale!r}.")
     if multiscale is True or (multiscale == "auto" and wants_multiscale(X, Y, settings)):
@@ -367,8 +367,8 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     """
     from dataclasses import replace
 
-    from ..candidates import median_spacing
     from .._validation import check_memory
+    from ..candidates import median_spacing
     from . import multiscale as ms
 
     n1, n2 = X.shape[0], Y.shape[0]

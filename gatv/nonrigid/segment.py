@@ -29,7 +29,7 @@ from ..candidates import median_spacing
 from .motion import NonRigidMotion
 from .registration import register
 
-__all__ = ["NonRigidSegmentation", "segment", "motion_parts"]
+__all__ = ["NonRigidSegmentation", "motion_parts", "segment"]
 
 
 @dataclass(frozen=True, eq=False)

@@ -159,43 +159,27 @@ def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
 
 
 @njit(cache=True)
-def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, need=0):
+def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, need=0,
+                  visit=np.zeros(0, np.int64), n_pre=0, pre_need=0):
     """Number of source points whose moved position has a target within ``radius``.
 
     Gives up (returning a count below ``need``) as soon as ``need`` can no
-    longer be reached.
+    longer be reached.  The source is visited in the order ``visit`` (a
+    permutation; empty: index order); with ``n_pre > 0`` it also stops after
+    the first ``n_pre`` points when fewer than ``pre_need`` of them matched
+    (a cheap pre-test of a wrong motion).  The count so far is returned
+    whenever it stops early.
     """
     n = 0
     p = np.empty(3)
+    ordered = visit.shape[0] == source.shape[0]
     m = source.shape[0]
-    for i in range(m):
-        if n + (m - i) < need:
-            return n
-        for r in range(3):
-            p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
-        if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
-            n += 1
-    return n
-
-
-@njit(cache=True)
-def count_visited(R, t, source, visit, target, start, order, origin, cell, dims, radius, need, n_pre,
-                  pre_need):
-    """:func:`count_inliers` visiting the source in the order ``visit``, with a pre-test.
-
-    Stops after the first ``n_pre`` points when fewer than ``pre_need`` of
-    them matched, and as soon as ``need`` can no longer be reached; the
-    count so far is returned either way (a full count otherwise).
-    """
-    n = 0
-    p = np.empty(3)
-    m = visit.shape[0]
     for v in range(m):
         if v == n_pre and n < pre_need:
             return n
         if n + (m - v) < need:
             return n
-        i = visit[v]
+        i = visit[v] if ordered else v
         for r in range(3):
             p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
         if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
@@ -337,7 +321,7 @@ def triple_hypotheses(
     With ``n_pre > 0`` the source points are visited in the order ``visit``
     (a permutation) and a motion bringing fewer than ``pre_need`` of the
     first ``n_pre`` onto the target is dropped there, its count so far
-    returned (:func:`count_visited`): a cheap pre-test of the many wrong
+    returned (:func:`count_inliers`): a cheap pre-test of the many wrong
     motions a noisy triple yields.
 
     Returns ``(score, R, t, n_matches, n_listed)`` per triple (``n_matches``
@@ -368,12 +352,8 @@ def triple_hypotheses(
         for v in pick:
             gather_rows(dst, target, ks[v], ls[v], ms[v])
             R, t = kabsch3(src, dst)
-            if prescreen:
-                sc = count_visited(R, t, source, visit, target, start, order, origin, cell, dims, radius,
-                                   scores[q] + 1, n_pre, pre_need)
-            else:
-                sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius,
-                                   scores[q] + 1)
+            sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, scores[q] + 1,
+                               visit, n_pre if prescreen else 0, pre_need)
             if sc > scores[q]:
                 scores[q] = sc
                 rots[q] = R

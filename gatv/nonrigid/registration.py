@@ -411,47 +411,41 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         if prior is not None:
             X = X @ prior[:3, :3].T + prior[:3, 3]
 
-    # 2. coarse solve
-    report(0.05, f"coarse solve on {si.size} x {ti.size} points")
-    t0 = time.perf_counter()
-    sampling = 0.5 * coarse_spacing / 3.5
-    coarse_settings = replace(settings, noise=float(np.hypot(settings.noise or 0.0, sampling)),
-                              gate=None, smoothing=None,
-                              prealign=False if prior is not None else settings.prealign)
-    coarse = _register_direct(X[si], Y[ti], coarse_settings, lambda *a: None, time.perf_counter())
-    info.update(coarse_points=(int(si.size), int(ti.size)), coarse_spacing=coarse_spacing,
-                coarse_hypothesis=coarse.info.get("hypothesis"), coarse_support=coarse.support,
-                time_coarse_s=time.perf_counter() - t0)
-    warp = coarse.warp if coarse else (lambda p: np.array(p, dtype=float))
-    margin = 3.0 * coarse_spacing + floor
-
-    # 3. windows at full resolution: the direct mode's seeds
+    # 2.–3. placement of the full-resolution windows: first the identity (after any
+    # pre-alignment), and the coarse solve only when no identity-placed window beats chance
     tree_x = cKDTree(X)
-    k = min(n1, window_points)
-    order = _window_order(X, coarse, si, window_points)
-    seeds, tried = None, []
-    for c in order[:MAX_WINDOWS]:
-        radius = float(tree_x.query(X[c], k=k)[0][-1])
-        src, tgt = ms.window(X, Y, tree_x, tree_y, X[c], warp, radius, margin)
-        report(0.2 + 0.1 * len(tried), f"window {len(tried) + 1}: {src.size} x {tgt.size} points")
-        if src.size < 4 or tgt.size < 4:
-            tried.append({"source": int(src.size), "target": int(tgt.size), "support": 0})
-            continue
-        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
-                                 lambda *a: None, time.perf_counter())
-        tried.append({"source": int(src.size), "target": int(tgt.size), "support": local.support,
-                      "hypothesis": local.info.get("hypothesis"),
-                      "hypotheses": local.info.get("hypotheses")})
-        if local and local.support >= MIN_WINDOW_SHARE * min(src.size, tgt.size):
-            seeds = np.column_stack([src[local.correspondences[:, 0]], tgt[local.correspondences[:, 1]]])
-            info["hypothesis"] = local.info.get("hypothesis")
-            break
-    info["windows"] = tried
+    margin = 3.0 * coarse_spacing + floor
+    identity = _identity
+    tried: list = []
+    by_identity = _window_order(X, None, si, MAX_WINDOWS)
+    seeds, local = _seed_windows(X, Y, tree_x, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
+                                 settings, window_points, report, tried, "identity")
+    coarse = None
+    if seeds is None:
+        report(0.1, f"coarse solve on {si.size} x {ti.size} points")
+        t0 = time.perf_counter()
+        sampling = 0.5 * coarse_spacing / 3.5
+        coarse_settings = replace(settings, noise=float(np.hypot(settings.noise or 0.0, sampling)),
+                                  gate=None, smoothing=None,
+                                  prealign=False if prior is not None else settings.prealign)
+        coarse = _register_direct(X[si], Y[ti], coarse_settings, lambda *a: None, time.perf_counter())
+        info.update(coarse_hypothesis=coarse.info.get("hypothesis"), coarse_support=coarse.support,
+                    time_coarse_s=time.perf_counter() - t0)
+        if coarse:  # identity windows already failed: place by the coarse warp
+            order = _window_order(X, X[si[coarse.correspondences[:, 0]]], si, MAX_WINDOWS)
+            seeds, local = _seed_windows(X, Y, tree_x, tree_y, order, coarse.warp, margin, settings,
+                                         window_points, report, tried, "coarse")
+        else:  # nothing to place by: the identity's other windows
+            seeds, local = _seed_windows(X, Y, tree_x, tree_y, by_identity[IDENTITY_WINDOWS:], identity,
+                                         margin, settings, window_points, report, tried, "identity")
+    info.update(coarse_points=(int(si.size), int(ti.size)), coarse_spacing=coarse_spacing,
+                windows=tried, placement=tried[-1]["placement"] if seeds is not None else None)
     if seeds is None:
         info["time_s"] = time.perf_counter() - t_start
         report(1.0, "done: no window beats chance")
         return _failure("no full-resolution window has more locally consistent matches than chance",
                         info)
+    info["hypothesis"] = local.info.get("hypothesis")
 
     # 4. growth, polish, final local matching within the sampling gate, local eq. 41
     gate = 0.5 * spacing + floor
@@ -481,25 +475,65 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         _, R, t = ms.local_eq41_pairs(X0, Y, pairs, settings.strain, gate)
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
-    return NonRigidMotion(pairs, X0[pairs[:, 0]], Y[pairs[:, 1]], R, t, 0.0, coarse.diagnostics, info)
+    return NonRigidMotion(pairs, X0[pairs[:, 0]], Y[pairs[:, 1]], R, t, 0.0,
+                          local.diagnostics, info)
 
 
-#: Full-resolution windows tried before the multi-resolution path gives up.
+#: Full-resolution windows tried with the coarse solve's placement before the path gives up.
 MAX_WINDOWS = 4
+#: Identity-placed windows tried before the coarse solve (the centre of the structure, then
+#: the farthest point from it): a near-identity warp (faces, small strains) needs no coarse solve.
+IDENTITY_WINDOWS = 2
 #: A window's direct solve gives the seeds when it matches this share of its smaller set.
 MIN_WINDOW_SHARE = 0.15
 
 
-def _window_order(X, coarse, si, window_points: int) -> np.ndarray:
-    """Window centres: source points at the coarse matches' centroid first, then spread out
-    (farthest points of the coarse subsample), so a failed window is followed by a distant one."""
+def _identity(p):
+    return np.array(p, dtype=float)
+
+
+def _seed_windows(X, Y, tree_x, tree_y, centres, warp, margin: float, settings, window_points: int,
+                  report, tried: list, placement: str):
+    """The direct mode of section 5.1 on full-resolution windows at ``centres``, in order; the first
+    whose result beats chance and matches ``MIN_WINDOW_SHARE`` of its smaller set gives the seeds.
+
+    Returns ``(seeds, local)``: seeds as (K, 2) rows of ``X``, ``Y`` and the window's
+    :class:`NonRigidMotion`, or ``(None, None)``.  Appends one record per window to ``tried``.
+    """
+    from dataclasses import replace
+
+    from . import multiscale as ms
+
+    k = min(X.shape[0], window_points)
+    for c in centres:
+        t0 = time.perf_counter()
+        radius = float(tree_x.query(X[c], k=k)[0][-1])
+        src, tgt = ms.window(X, Y, tree_x, tree_y, X[c], warp, radius, margin)
+        report(0.05 + 0.05 * len(tried), f"window {len(tried) + 1} ({placement}): {src.size} x {tgt.size} points")
+        record = {"placement": placement, "source": int(src.size), "target": int(tgt.size), "support": 0}
+        tried.append(record)
+        if src.size < 4 or tgt.size < 4:
+            continue
+        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
+                                 lambda *a: None, time.perf_counter())
+        record.update(support=local.support, hypothesis=local.info.get("hypothesis"),
+                      hypotheses=local.info.get("hypotheses"), time_s=time.perf_counter() - t0)
+        if local and local.support >= MIN_WINDOW_SHARE * min(src.size, tgt.size):
+            return np.column_stack([src[local.correspondences[:, 0]], tgt[local.correspondences[:, 1]]]), local
+    return None, None
+
+
+def _window_order(X, matched, si, n: int) -> np.ndarray:
+    """``n`` window centres among the coarse subsample ``X[si]``: the one nearest the centroid of
+    ``matched`` (the coarse matches; the whole subsample when None) first, then spread out (farthest
+    points), so a failed window is followed by a distant one."""
     from .hypotheses import farthest_points
 
-    base = X[si[coarse.correspondences[:, 0]]] if coarse.support >= 4 else X[si]
+    base = X[si] if matched is None or len(matched) < 4 else matched
     centre = base.mean(axis=0)
     first = int(np.argmin(np.sum((X[si] - centre) ** 2, axis=1)))
     sub = X[si]
     sub = np.vstack([sub[first:first + 1], np.delete(sub, first, axis=0)])
     idx = np.r_[first, np.delete(np.arange(si.size), first)]
-    spread = idx[farthest_points(sub, MAX_WINDOWS)]
+    spread = idx[farthest_points(sub, min(n, si.size))]
     return si[spread]

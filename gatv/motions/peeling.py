@@ -46,7 +46,7 @@ from ..stages import Fit, Problem
 from ..stats import samples_needed
 from .segmentation import Segmentation
 
-__all__ = ["peel"]
+__all__ = ["peel", "search_budget"]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
@@ -64,6 +64,52 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
     """The points not yet explained, with the full problem's scale facts."""
     Y = P.target[tgt]
     return Problem(P.source[src], Y, P.model, cKDTree(Y), P.spacing, P.extent, P.volume)
+
+
+def search_budget(problem: Problem, levels, smallest: float, confidence: float, cap: int,
+                  max_matches: int, *, memory_budget: float | None = None) -> tuple[int, float]:
+    """Samples a round draws, for the smallest motion its search can find; and that motion's size.
+
+    A motion of ``m`` of the ``n`` source points is hit by an all-inlier
+    sample with ``confidence`` after :func:`gatv.stats.samples_needed`
+    ``(m / n)`` draws (the RANSAC bound).  But :func:`gatv.stages.search`
+    judges only trials whose support reaches its density test's chance
+    level, ``model.chance(n, n2, volume, gate, budget · max_matches)`` at the
+    level most lenient of ``levels``: a smaller motion is never judged,
+    however many samples hit it, so drawing samples for it is wasted work.
+    The smallest motion a round can find is therefore the larger of
+    ``smallest`` and that level, which itself grows (slowly, as a log) with
+    the budget; the budget returned is the least ``b`` (bisection) that is
+    enough for the smallest motion findable with ``b`` draws, so it covers
+    every motion the search could find with any budget up to ``cap``.
+    """
+    model = problem.model
+    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    n, n2 = problem.source.shape[0], problem.target.shape[0]
+    index = model.index(problem.target, stages.gate(min(levels)), memory_budget=memory_budget)
+    volumes = []
+    for tol in levels:
+        index.set_radius(stages.gate(tol))
+        volumes.append((index.volume, index.radius))
+
+    def findable(b: int) -> float:
+        accept = min(model.chance(n, n2, v, r, b * max_matches) for v, r in volumes)
+        return max(float(smallest), float(accept))
+
+    def needed(m: float) -> int:
+        return int(min(samples_needed(min(1.0, m / n), confidence, k_pts), cap))
+
+    hi = max(needed(float(smallest)), 1)
+    if needed(findable(hi)) >= hi:
+        return hi, findable(hi)
+    lo = 1  # needed(findable(b)) is non-increasing in b: the least b with b >= needed(findable(b))
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if mid >= needed(findable(mid)):
+            hi = mid
+        else:
+            lo = mid + 1
+    return hi, findable(hi)
 
 
 def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
@@ -188,8 +234,10 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         need_min = smallest
         if noisy:
             need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
-        budget = samples_needed(min(1.0, need_min / src.size), confidence, k_pts)
-        budget = int(min(budget, 3 * n_possible, max_triples))
+        cap = int(min(3 * n_possible, max_triples))
+        budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
+                                         search_options.get("max_matches", stages.MAX_MATCHES),
+                                         memory_budget=memory_budget)
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
         tried: list = []
         t_round = time.perf_counter()
@@ -198,7 +246,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                               threshold_tests=N_JUDGED, min_support=min_support,
                               memory_budget=memory_budget, tried=tried, **search_options)
         if found is None:
-            log.append({"levels": tried, "time_s": time.perf_counter() - t_round})
+            log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
+                        "smallest": need_min, "points": (int(src.size), int(tgt.size))})
             stopped = any("stopped" in rec for rec in tried)
             reason = ("the work bound (`max_work`) ran out before a trial motion beat the chance level"
                       if stopped else "no trial motion beat the chance level")
@@ -210,7 +259,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             # One sensor: the next rounds search at the noise measured here, not the
             # whole schedule.
             round_levels = [max(tol, levels[0])]
-        log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
+        log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
+                    "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
                     "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
                     "sigma": found.judged.sigma})
         kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])

@@ -35,14 +35,18 @@ found"):
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import stages
-from .._validation import check_int, check_progress, seed_int
+from .._validation import check_fraction, check_int, check_positive, check_progress, seed_int
 from ..candidates import median_spacing
+from ..congruent import TargetIndex, n_triples_needed, trial_motions
+from ..errors import InputError
 from ..fitting import fit_rigid
+from ..ga import rotation_angle_deg
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from .segmentation import Segmentation
@@ -51,9 +55,12 @@ __all__ = [
     "NOISE_FACTOR",
     "PLANE_THICKNESS",
     "SAMPLING_GATE",
+    "ScanSurfaces",
     "chance_support",
     "local_noise",
+    "register_part",
     "residual_noise",
+    "scan_surfaces",
     "segment_scans",
     "thickness",
 ]
@@ -78,6 +85,11 @@ NOISE_FACTOR = 2.5
 NOISE_SAMPLE = 2000
 #: Source points the chance level is measured on (counts are scaled up).
 CHANCE_SAMPLE = 4000
+#: Source points every polished chance draw is first screened on; the
+#: :data:`N_CHANCE_FINAL` best-ranked draws are then polished and counted on
+#: :data:`CHANCE_SAMPLE` points, from their own starts.
+CHANCE_SCREEN = 1000
+N_CHANCE_FINAL = 8
 
 
 def thickness(points: np.ndarray) -> float:
@@ -142,7 +154,11 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
     source points landing within ``gate`` of a target point (counted on at
     most ``sample`` source points and scaled up): where the surfaces touch
     or cross, plus clutter, as for a wrong motion.  A plane that slides on
-    itself reaches its full support.  Same seed, same level.
+    itself reaches its full support.  Polished draws are ranked first on
+    :data:`CHANCE_SCREEN` points; the :data:`N_CHANCE_FINAL` best are polished
+    and counted on the whole sample from their own starts, so the level is
+    that of all draws whenever the screen ranks the best one among them.
+    Same seed, same level.
     """
     X = np.asarray(source, dtype=np.float64)
     Y = np.asarray(target, dtype=np.float64)
@@ -167,9 +183,16 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
             rots.append(spin @ _aligning(a, b))
     else:
         rots = _random_rotations(rng, n_draws)
+    starts = [(R, q - R @ p) for R, p, q in zip(rots, X[ia], Y[ib])]
+    if polish and len(starts) > N_CHANCE_FINAL and sub.shape[0] > CHANCE_SCREEN:
+        # Screen every draw on a smaller sample; only the best-ranked few are polished
+        # and counted on the whole sample (the maximum is decided among them).
+        screen = sub[rng.choice(sub.shape[0], CHANCE_SCREEN, replace=False)]
+        ranks = [np.count_nonzero(_support(screen, tree, *_icp(screen, Y, tree, R, t, gate, polish), gate))
+                 for R, t in starts]
+        starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:N_CHANCE_FINAL]]
     best = 0
-    for R, p, q in zip(rots, X[ia], Y[ib]):
-        t = q - R @ p
+    for R, t in starts:
         if polish:
             R, t = _icp(sub, Y, tree, R, t, gate, polish)
         best = max(best, int(np.count_nonzero(_support(sub, tree, R, t, gate))))
@@ -251,6 +274,162 @@ def regions(points: np.ndarray, link: float, *, min_points: int = 1) -> list[np.
     return [np.sort(by_comp[starts[c]:starts[c + 1]]) for c in order if counts[c] >= min_points]
 
 
+@dataclass(frozen=True, eq=False)
+class ScanSurfaces:
+    """A scan's points on salient surfaces and their normals, voted once for every round.
+
+    Attributes
+    ----------
+    mask : (N,) ndarray of bool
+        Which rows of the scan lie on a salient surface (:func:`gatv.scans.surface_points`).
+    normals : (N, 3) ndarray
+        Their unit normals (rows off the surfaces: zero).
+    """
+
+    mask: np.ndarray
+    normals: np.ndarray
+
+
+def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
+                  memory_budget: float | None = None) -> ScanSurfaces:
+    """Tensor voting on a whole scan once (section 3.3): its surface points and their normals.
+
+    Every round of :func:`segment_scans` registers a subset of the scans (the
+    points no motion explains yet); the surfaces and normals of the whole scan
+    serve them all, so the voting is not repeated on each subset.  With
+    ``clutter=False`` every point is kept, with the normals of one ball pass.
+    """
+    from ..scans import surface_points
+    from ..voting import vote
+
+    n = points.shape[0]
+    mask = np.zeros(n, bool)
+    normals = np.zeros((n, 3))
+    if clutter:
+        idx, nrm = surface_points(points, seed=seed, memory_budget=memory_budget)
+    else:
+        idx, nrm = np.arange(n), np.asarray(vote(points).normals)
+    mask[idx] = True
+    normals[idx] = nrm
+    return ScanSurfaces(mask, normals)
+
+
+def _voxel_for(points: np.ndarray, n_points: int) -> float:
+    """Voxel size leaving about ``n_points`` occupied cells (bisection in log scale, as :mod:`gatv.scans`)."""
+    ext = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    lo, hi = ext / 2000.0, ext / 2.0
+    for _ in range(24):
+        mid = np.sqrt(lo * hi)
+        if len(np.unique(np.floor(points / mid).astype(np.int64), axis=0)) > n_points:
+            lo = mid
+        else:
+            hi = mid
+        if hi / lo < 1.05:
+            break
+    return float(np.sqrt(lo * hi))
+
+
+#: Options of :func:`register_part` a user may set through ``scan_options``.
+PART_OPTIONS = ("n_points", "voxel", "min_overlap", "feature_tol", "clutter")
+#: Source points of the coarse levels of the point-to-plane polish: they only
+#: bring the motion within the next, halved gate; the finest level uses
+#: :data:`FINE_SAMPLE` points, as :func:`gatv.scans.register_surfaces` does.
+COARSE_SAMPLE = 2000
+FINE_SAMPLE = 8000
+
+
+def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray, surf_x: ScanSurfaces,
+                  surf_y: ScanSurfaces, *, seed: int = 0, confidence: float = 0.999,
+                  max_triples: int | None = None, n_judged: int = 4, refine: bool = True,
+                  memory_budget: float | None = None, n_points: int = 600, voxel: float | None = None,
+                  min_overlap: float = 0.4, feature_tol: float = 0.15, clutter: bool = True):
+    """The surface registration of :func:`gatv.scans.register_surfaces` for rows ``src`` of ``X`` onto rows ``tgt`` of ``Y``.
+
+    The same stages (voxel grid of about ``n_points`` target cells, congruent
+    triples pruned by the normals, tensor voting judges the best
+    ``n_judged``, rivals polished and compared, point-to-plane ICP with a
+    gate shrinking from a voxel to three point spacings), on the surface
+    points and normals voted once on each whole scan (:func:`scan_surfaces`)
+    instead of on every subset again.  The polish's coarse levels use
+    :data:`COARSE_SAMPLE` source points, its finest :data:`FINE_SAMPLE`.
+
+    Returns ``(R, t, info)`` with ``target ≈ R x + t``, or ``None`` with a
+    reason in ``info`` when no trial motion is found.
+    """
+    from ..scans import RIVAL_SHARE, refine_point_to_plane, voxel_downsample
+    from ..voting import vote
+
+    info: dict = {}
+    if clutter:
+        src = src[surf_x.mask[src]]
+        tgt = tgt[surf_y.mask[tgt]]
+    if src.size < 10 or tgt.size < 10:
+        return None, {"reason": "too few surface points"}
+    Xs, Ys, nys = X[src], Y[tgt], surf_y.normals[tgt]
+    if voxel is None:
+        voxel = _voxel_for(Ys, int(n_points))
+    Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
+    if Xd.shape[0] < 3 or Yd.shape[0] < 3:
+        return None, {"reason": "too few voxels", "voxel": voxel}
+    nx, ny = np.asarray(vote(Xd).normals), np.asarray(vote(Yd).normals)
+    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
+    index = TargetIndex(Yd, voxel, memory_budget=memory_budget)
+    diameter = float(np.linalg.norm(Xd.max(axis=0) - Xd.min(axis=0)))
+    budget = n_triples_needed(float(min_overlap), confidence)
+    if max_triples is not None:
+        budget = min(budget, max_triples)
+    trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=np.random.default_rng(seed),
+                           keep=n_judged, min_side=0.25 * diameter, max_matches=256, accept=0,
+                           source_normals=nx, target_normals=ny, feature_tol=feature_tol)
+    info.update(triples=trials.n_triples, congruent=trials.n_congruent)
+    if not len(trials):
+        return None, dict(info, reason="no congruent triples")
+    P = stages.prepare(Xd, Yd, RIGID)
+    fits = [j.fit for j in (stages.judge(P, m, voxel / 3.5, max_candidates=4) for m in trials.matrices)
+            if j is not None]
+    if not fits:
+        return None, dict(info, reason="tensor voting found no consistent plane")
+    fits.sort(key=lambda f: -f.support)
+    best = fits[0]
+    R0, t0 = best.matrix[:3, :3], best.matrix[:3, 3]
+    rivals = [f for f in fits[1:] if f.support >= RIVAL_SHARE * best.support
+              and (rotation_angle_deg(f.matrix[:3, :3] @ R0.T) > 5.0
+                   or float(np.linalg.norm(f.matrix[:3, 3] - t0)) > 3.0 * voxel)]
+
+    fine = 3.0 * median_spacing(Ys)
+    tree = cKDTree(Ys)
+    rng = np.random.default_rng(seed)
+    sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
+    coarse = sub if sub.shape[0] <= COARSE_SAMPLE else sub[rng.choice(sub.shape[0], COARSE_SAMPLE, replace=False)]
+
+    def polish(R, t):
+        g = voxel
+        if refine:
+            while True:
+                R, t = refine_point_to_plane(sub if g <= fine else coarse, Ys, nys, R, t, g, tree=tree)
+                if g <= fine:
+                    break
+                g = max(fine, g / 2.0)
+        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
+
+    R, t, g, on = polish(R0, t0)
+    info["ambiguous"] = False
+    for rival in rivals:
+        Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
+        if (rotation_angle_deg(Rr @ R.T) < 1.0
+                and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
+            continue
+        if on_r > on:
+            R, t, g, on, Rr, on_r = Rr, tr, gr, on_r, R, on
+        if on_r >= RIVAL_SHARE * on:
+            info["ambiguous"] = True
+            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
+            break
+    info.update(final_gate=g, on_surface=on)
+    return (R, t), info
+
+
 def segment_scans(source, target, *, max_motions: int | None = None, seed=0, confidence: float = 0.999,
                   max_triples: int | None = None, n_judged: int = 4, refine: bool = True,
                   memory_budget: float | None = None, scan_options: dict | None = None,
@@ -282,8 +461,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         lists plane-like parts set aside; ``info["rounds"]`` each round's
         support against its chance level.
     """
-    from ..registration import register
-
     t_start = time.perf_counter()
     X = RIGID.check_points(source, "source")
     Y = RIGID.check_points(target, "target")
@@ -292,10 +469,24 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     report = check_progress(progress)
     seed = seed_int(seed)
     options = dict(scan_options or {})
+    unknown = sorted(set(options) - set(PART_OPTIONS))
+    if unknown:
+        raise InputError(f"Unknown `scan_options` {unknown} for segment on scans; choose from {list(PART_OPTIONS)}.")
+    if "n_points" in options:
+        options["n_points"] = check_int(options["n_points"], "scan_options['n_points']", 10)
+    if options.get("voxel") is not None:
+        options["voxel"] = check_positive(options["voxel"], "scan_options['voxel']")
+    if "min_overlap" in options:
+        check_fraction(options["min_overlap"], "scan_options['min_overlap']")
+    if "feature_tol" in options:
+        options["feature_tol"] = check_positive(options["feature_tol"], "scan_options['feature_tol']")
     n1, n2 = X.shape[0], Y.shape[0]
     spacing = median_spacing(Y)
     gate = SAMPLING_GATE * spacing
     tree_x, tree_y = cKDTree(X), cKDTree(Y)
+    clutter = bool(options.get("clutter", True))
+    surf_x = scan_surfaces(X, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    surf_y = scan_surfaces(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
     free_s = np.ones(n1, bool)
     free_t = np.ones(n2, bool)
     rounds, degenerate = [], []
@@ -375,16 +566,16 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         part = parts[0]
         report(float(1.0 - open_s.size / n1), f"round {len(rounds)}: part of {part.size} points, "
                                               f"{open_s.size} source points left")
-        found = register(X[part], Y[tgt], pipeline="scans", seed=seed + len(rounds), confidence=confidence,
-                         max_triples=max_triples, n_judged=n_judged, refine=refine,
-                         memory_budget=memory_budget, scan_options=options)
-        if not found:
+        found, found_info = register_part(X, Y, part, tgt, surf_x, surf_y, seed=seed + len(rounds),
+                                          confidence=confidence, max_triples=max_triples, n_judged=n_judged,
+                                          refine=refine, memory_budget=memory_budget, **options)
+        if found is None:
             rounds.append({"kind": "search", "part": int(part.size), "verdict": "none",
-                           "reason": found.info.get("reason", "")})
+                           "reason": found_info.get("reason", "")})
             tried[part] = True
             continue
-        extra = {"part": int(part.size), "ambiguous": found.info.get("ambiguous"), "voxel": found.info.get("voxel")}
-        if judge(found.rotation, found.translation, "search", part, extra) in ("chance", "noise"):
+        extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
+        if judge(*found, "search", part, extra) in ("chance", "noise"):
             tried[part] = True
 
     # Labels: each point to the kept motion that brings it closest to the other scan.

@@ -39,6 +39,7 @@ from ..candidates import median_spacing, one_to_one
 from ..fitting import kabsch
 
 __all__ = [
+    "GROW_STEP",
     "MLS_NEIGHBOURS",
     "REFINE_LEVELS",
     "LocalAffineWarp",
@@ -55,6 +56,9 @@ __all__ = [
 REFINE_LEVELS = (1.0, 0.5, 0.25)
 #: Matches in each moving-least-squares affine fit (the local patch).
 MLS_NEIGHBOURS = 12
+#: Reach of one growth ring, in source spacings: the immediate neighbours of the last ring
+#: (nearest-neighbour distances of an irregular sample reach about 1.5 median spacings).
+GROW_STEP = 1.5
 #: Rows per block when evaluating k-nearest-neighbour fits (bounds temporaries).
 _BLOCK = 20_000
 
@@ -178,14 +182,19 @@ class LocalAffineWarp:
     displacements : (K, 3) ndarray
         Their displacements ``target − source``.
     k : int, default: :data:`MLS_NEIGHBOURS`
+    spacing : float, optional
+        Sampling spacing of the control points (scales the ridge); default their median spacing.
     """
 
-    def __init__(self, points, displacements, k: int = MLS_NEIGHBOURS):
+    def __init__(self, points, displacements, k: int = MLS_NEIGHBOURS, spacing: float | None = None):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.displacements = np.ascontiguousarray(displacements, dtype=np.float64)
         self.k = int(min(k, self.points.shape[0]))
         self.tree = cKDTree(self.points) if self.points.shape[0] else None
-        h = median_spacing(self.points) if self.points.shape[0] >= 2 else 1.0
+        if spacing is not None:
+            h = float(spacing)
+        else:
+            h = median_spacing(self.points) if self.points.shape[0] >= 2 else 1.0
         self.ridge = 1e-6 * (h * h) * max(self.k, 1)
 
     def __call__(self, query) -> np.ndarray:
@@ -373,33 +382,48 @@ def local_eq41_pairs(X, Y, pairs, strain: float, gate: float, k: int = MLS_NEIGH
 
 
 # ------------------------------------------------------------------ growth at full resolution
-def grow(X, Y, tree_y, seeds, gate: float, *, max_rounds: int = 10_000, report=None) -> np.ndarray:
+def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree_x=None,
+         max_rounds: int = 10_000, report=None) -> np.ndarray:
     """Grow matches ring by ring at full resolution with the local affine warp of the matched region.
 
-    The vectorised form of :func:`gatv.nonrigid.hypotheses.grow_rings`: the
-    unmatched source points within 3 matched spacings of a matched one (the
-    next ring) are moved by the :class:`LocalAffineWarp` of the matches and
-    matched to the nearest unused target within ``gate``, one-to-one
-    (closest first).  Stops when a ring adds nothing.  O(N k) memory.
+    The vectorised form of :func:`gatv.nonrigid.hypotheses.grow_rings`.
+    Each round takes the *next ring*: the unmatched source points within
+    ``GROW_STEP`` source spacings of a match added in the previous round
+    (the seeds at first), moves them by the :class:`LocalAffineWarp` of all
+    matches, and matches them to the nearest unused target within ``gate``,
+    one-to-one (closest first).  Stops when a ring adds nothing.  Taking one
+    ring at a time keeps the affine extrapolation short: a locally affine
+    warp extrapolated over several spacings drifts where the warp bends,
+    and a drift of one sample along a uniformly sampled surface is locally
+    consistent, so nothing downstream would catch it.  O(N k) memory.
+
+    Parameters
+    ----------
+    spacing : float, optional
+        Source sampling spacing; default :func:`gatv.candidates.median_spacing` of ``X``.
+    tree_x : cKDTree, optional
+        Of ``X`` (built when not given).
     """
     pairs = np.asarray(seeds, np.int64).reshape(-1, 2)
+    if tree_x is None:
+        tree_x = cKDTree(X)
+    h = float(spacing) if spacing is not None else median_spacing(X)
+    step = GROW_STEP * h
     used_s = np.zeros(X.shape[0], bool)
     used_t = np.zeros(Y.shape[0], bool)
     used_s[pairs[:, 0]] = True
     used_t[pairs[:, 1]] = True
+    frontier = pairs[:, 0]
     for r in range(max_rounds):
-        if pairs.shape[0] < 4:
+        if pairs.shape[0] < 4 or frontier.size == 0:
+            break
+        near = tree_x.query_ball_point(X[frontier], step)
+        free = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near])) if len(near) else frontier[:0]
+        free = free[~used_s[free]]
+        if free.size == 0:
             break
         xs = X[pairs[:, 0]]
-        warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs)
-        step = 3.0 * float(np.median(warp.tree.query(xs, k=2)[0][:, 1]))
-        free = np.flatnonzero(~used_s)
-        if free.size == 0:
-            break
-        dist, _ = warp.tree.query(X[free], k=1, distance_upper_bound=step)
-        free = free[np.isfinite(dist)]
-        if free.size == 0:
-            break
+        warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs, spacing=h)
         d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
         ok = np.isfinite(d)
         ok[ok] = ~used_t[j[ok]]
@@ -411,6 +435,7 @@ def grow(X, Y, tree_y, seeds, gate: float, *, max_rounds: int = 10_000, report=N
         pairs = np.vstack([pairs, new])
         used_s[new[:, 0]] = True
         used_t[new[:, 1]] = True
+        frontier = new[:, 0]
         if report is not None and r % 10 == 0:
             report(min(1.0, pairs.shape[0] / X.shape[0]), f"growth: {pairs.shape[0]} matches")
     return pairs[np.argsort(pairs[:, 0], kind="stable")]

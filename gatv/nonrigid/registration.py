@@ -451,7 +451,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     gate = 0.5 * spacing + floor
     report(0.5, f"growth from {seeds.shape[0]} seeds")
     t0 = time.perf_counter()
-    pairs = ms.grow(X, Y, tree_y, seeds, gate,
+    pairs = ms.grow(X, Y, tree_y, seeds, gate, spacing=median_spacing(X[dx]), tree_x=tree_x,
                     report=lambda f, m: report(0.5 + 0.3 * f, m))
     info.update(n_seeds=int(seeds.shape[0]), n_grown=int(pairs.shape[0]),
                 time_growth_s=time.perf_counter() - t0)

@@ -10,7 +10,7 @@ from gatv import stages
 from gatv.errors import InputError
 from gatv.models import get_model
 from gatv.motions import Segmentation, multi_motion_scene, segment
-from gatv.motions.peeling import peel
+from gatv.motions.peeling import peel, pool_noise, search_budget
 from gatv.stats import samples_needed
 
 
@@ -93,3 +93,57 @@ def test_samples_needed_is_the_ransac_bound():
     assert samples_needed(1.0, 0.999, 4) == 1
     n = samples_needed(0.5, 0.99, 4)
     assert (1 - 0.5**4) ** n <= 0.01 < (1 - 0.5**4) ** (n - 1)
+
+
+def _noisy_two_motions(seed, noise):
+    rng = np.random.default_rng(seed)
+    rots = Rotation.random(2, random_state=seed).as_matrix()
+    return multi_motion_scene(rots, rng.uniform(-5, 5, (2, 3)), [50, 40], n_outliers=90, noise=noise, seed=rng)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_search_budget_covers_the_smallest_motion_the_search_can_judge(seed):
+    """The budget is the RANSAC bound of the larger of the asked size and the density test's level at it."""
+    scene = _noisy_two_motions(seed, 0.05)
+    P = stages.prepare(scene.source, scene.target)
+    levels = [0.05 * P.spacing, 0.12 * P.spacing]
+    n, n2 = P.source.shape[0], P.target.shape[0]
+    index = P.model.index(P.target, stages.gate(min(levels)))
+
+    def level(b):
+        accept = []
+        for tol in levels:
+            index.set_radius(stages.gate(tol))
+            accept.append(P.model.chance(n, n2, index.volume, index.radius, b * 512))
+        return min(accept)
+
+    for smallest in (4.0, 10.0, 40.0):
+        budget, findable = search_budget(P, levels, smallest, 0.999, 10**7, 512)
+        assert findable == max(smallest, level(budget))
+        assert budget >= samples_needed(findable / n, 0.999, 3)  # enough for what it can find
+        assert budget <= samples_needed(smallest / n, 0.999, 3)  # never more than asked
+        if budget > 1:  # the least such budget: one draw fewer is too few for what it could find
+            assert budget - 1 < samples_needed(max(smallest, level(budget - 1)) / n, 0.999, 3)
+
+
+def test_pool_noise_regates_every_motion_one_to_one():
+    """Low per-motion noise estimates drop true pairs; the pooled gate brings them back, one-to-one overall."""
+    scene = _noisy_two_motions(3, 0.1)
+    P = stages.prepare(scene.source, scene.target)
+    fits = []
+    for R, t, truth in zip(scene.rotations, scene.translations, scene.true_pairs):
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, t
+        fits.append(stages.regate(P, stages.Fit(M, truth), stages.FINAL_GATE * 0.05))  # half the noise
+    out, sigma = pool_noise(P, fits, [0.05, 0.1])
+    n = np.array([f.support for f in fits], float)
+    assert sigma == pytest.approx(np.sqrt((n[0] * 0.05**2 + n[1] * 0.1**2) / n.sum()))
+    both = np.vstack([f.correspondences for f in out])
+    assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
+    right = sum(len({tuple(p) for p in f.correspondences} & {tuple(p) for p in truth})
+                for f, truth in zip(out, scene.true_pairs))
+    right_before = sum(len({tuple(p) for p in f.correspondences} & {tuple(p) for p in truth})
+                       for f, truth in zip(fits, scene.true_pairs))
+    assert right > right_before
+    for f, g in zip(out, fits):
+        assert np.array_equal(f.matrix, g.matrix)  # poses unchanged

@@ -46,7 +46,7 @@ from ..stages import Fit, Problem
 from ..stats import samples_needed
 from .segmentation import Segmentation
 
-__all__ = ["peel", "search_budget"]
+__all__ = ["peel", "pool_noise", "search_budget"]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
@@ -110,6 +110,47 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
         else:
             lo = mid + 1
     return hi, findable(hi)
+
+
+def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[list[Fit], float]:
+    """Every motion's correspondences re-gated at the noise of the one sensor, measured on them all.
+
+    Each motion's noise was measured on its own few dozen residuals
+    (:func:`gatv.stages.settle_noise`), an estimate good to some 10-15%; a
+    gate of :data:`gatv.stages.FINAL_GATE` times an estimate that is low
+    drops true pairs.  Both scans come from one sensor, so the noise is
+    pooled, ``σ² = Σ n_k σ_k² / Σ n_k`` over the motions' supports ``n_k``,
+    and every motion's one-to-one nearest pairs are taken again within
+    ``FINAL_GATE σ``; a point two motions claim goes to the one with the
+    smaller residual (one-to-one over all motions).  A motion's wider gate
+    is used only when it brings in more pairs than random points would
+    collect there (as :func:`gatv.stages.settle_noise`).  Poses are unchanged.
+    """
+    from ..stats import chance_count
+
+    P = problem
+    n = np.array([f.support for f in fits], dtype=np.float64)
+    sigma = float(np.sqrt(np.sum(n * np.square(noises)) / np.sum(n)))
+    g = stages.FINAL_GATE * sigma
+    gain = chance_count(P.source.shape[0], P.target.shape[0], P.volume, g, dim=P.dim, alpha=1e-3)
+    pairs, cost, owner = [], [], []
+    for k, (fit, own) in enumerate(zip(fits, noises)):
+        wider = stages.regate(P, fit, g)
+        if g > stages.FINAL_GATE * own and wider.support - fit.support <= max(1.0, gain):
+            wider = fit
+        c = wider.correspondences
+        pairs.append(c)
+        cost.append(P.residuals(fit.matrix, c))
+        owner.append(np.full(c.shape[0], k))
+    pairs, cost, owner = np.vstack(pairs), np.concatenate(cost), np.concatenate(owner)
+    keep = stages.select_one_to_one(pairs, cost)
+    out = []
+    for k, fit in enumerate(fits):
+        mine = keep[owner[keep] == k]
+        c = pairs[mine]
+        out.append(Fit(fit.matrix, c[np.argsort(c[:, 0], kind="stable")]) if c.shape[0] >= P.model.sample_size
+                   else fit)
+    return out, sigma
 
 
 def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
@@ -269,6 +310,10 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         used_s[kept[:, 0]] = True
         used_t[kept[:, 1]] = True
 
+    pooled = None
+    if noisy and noise is None and len(fits) > 1:
+        fits, pooled = pool_noise(P, fits, tolerances)
+        tolerances = [pooled] * len(fits)
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(n2, -1, np.int64)
@@ -284,7 +329,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
     info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "noisy": noisy, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),

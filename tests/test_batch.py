@@ -169,9 +169,17 @@ def test_killed_worker_loses_no_row(tmp_path, pair_files, client):
     assert sorted(p.name for p in (tmp_path / "out").glob("*.json")) == sorted(f"r{k}.json" for k in range(8))
     client.wait_for_workers(2, timeout=60)
     assert killed[0] not in client.run(os.getpid).values() and killed[0] in before.values()
+    # the nanny starts the new worker with the local cluster's settings (no profiler)
+    assert set(client.run(_profiler_enabled).values()) == {False}
     serial = batch.run(table, tmp_path / "serial", scheduler="serial")
     for a, b in zip(serial.rows, result.rows):
         assert _record_without_times(a.record) == _record_without_times(b.record)
+
+
+def _profiler_enabled() -> bool:
+    import dask
+
+    return dask.config.get("distributed.worker.profile.enabled")
 
 
 # ----------------------------------------------------------------- bad input
@@ -308,3 +316,55 @@ def test_segment_rows_take_their_options(tmp_path, pair_files):
         (line,) = list(csv.DictReader(fh))
     assert int(line["support"]) == record["motions"][0]["support"] >= 20
     assert not (tmp_path / "seg" / "row-00000.txt").exists()  # a segmentation has no single matrix
+
+
+# ------------------------------------------------------------- rows per task
+def _gatv_tasks(stream) -> list[str]:
+    return sorted({t["key"] for t in stream.data if str(t["key"]).startswith("gatv-")})
+
+
+@pytest.mark.parametrize("chunk", [3, None])
+def test_rows_grouped_into_tasks_equal_serial(tmp_path, pair_files, client, chunk):
+    """Many short rows: a fixed chunk makes ceil(n / chunk) tasks; the automatic size groups rows
+    once the first tasks timed them; either way every row lands once, equal to the serial record."""
+    folder, _, rows = pair_files
+    n = 16
+    many = [{**rows[k % N_ROWS], "name": f"g{k}", "seed": str(k)} for k in range(n)]
+    table = _write_csv(folder / f"grouped-{chunk}.csv", many, columns=("name", "source", "target", "seed"))
+    with distributed.get_task_stream(client) as stream:
+        result = batch.run(table, tmp_path / "dask", scheduler=client, chunk=chunk)
+    keys = _gatv_tasks(stream)
+    sizes = sorted(int(k.split("-")[-3]) for k in keys)  # gatv-<command>-<first row>-<rows>-<stamp>
+    assert sum(sizes) == n
+    if chunk:
+        assert sizes == [1, 3, 3, 3, 3, 3]
+    else:  # the first 2 x threads tasks are single rows; rows of ~10 ms are then grouped
+        assert sizes.count(1) >= 4 and max(sizes) > 1 and len(keys) < n
+    serial = batch.run(table, tmp_path / "serial", scheduler="serial")
+    assert sorted(p.name for p in (tmp_path / "dask").glob("*.json")) == sorted(f"g{k}.json" for k in range(n))
+    for a, b in zip(serial.rows, result.rows):
+        assert (a.name, a.status) == (b.name, b.status)
+        assert _record_without_times(json.loads(a.path.read_text())) == \
+            _record_without_times(json.loads(b.path.read_text()))
+
+
+def test_bad_chunk_names_the_argument(tmp_path, pair_files, capsys):
+    folder, _, rows = pair_files
+    table = _write_csv(folder / "pairs.csv", rows)
+    with pytest.raises(InputError, match="`chunk`"):
+        batch.run(table, tmp_path / "o", scheduler="serial", chunk=0)
+    assert not (tmp_path / "o").exists()
+    assert cli.main(["batch", str(table), "--out", str(tmp_path / "o"), "--chunk", "0"]) == 2
+    _one_error(capsys, "--chunk")
+    assert not (tmp_path / "o").exists()
+
+
+def test_local_workers_run_without_the_profiler(client):
+    """The local cluster's workers skip the dashboard's sampling profiler and the 20 ms tick."""
+    import dask
+
+    def settings():
+        return dask.config.get("distributed.worker.profile.enabled"), dask.config.get("distributed.admin.tick.interval")
+
+    assert set(client.run(settings).values()) == {(False, "200ms")}
+    assert dask.config.get("distributed.worker.profile.enabled") is True  # this process's config is left alone

@@ -34,7 +34,7 @@ NAME = "batch"
 
 def add_parser(subparsers):
     """Add the ``batch`` subcommand to an ``argparse`` subparsers object."""
-    from ..batch import COMMANDS, ROW_OPTIONS
+    from ..batch import COMMANDS, ROW_OPTIONS, TASK_SECONDS
 
     columns = "; ".join(f"{c}: {', '.join(o)}" for c, o in ROW_OPTIONS.items())
     p = subparsers.add_parser(
@@ -65,6 +65,9 @@ def add_parser(subparsers):
     p.add_argument("--retries", type=int, default=1, metavar="N",
                    help="re-runs of a task that raised on a worker (default: 1); a killed "
                         "worker's task is re-run regardless")
+    p.add_argument("--chunk", type=int, metavar="N",
+                   help="rows per Dask task (default: sized as the batch runs, so that a task takes "
+                        f"about {TASK_SECONDS:g} s: short rows are grouped, long ones run alone)")
     p.add_argument("--connect-timeout", type=float, default=10.0, metavar="SECONDS",
                    help="how long to wait for a --scheduler address (default: 10)")
     add_verbosity(p)
@@ -93,6 +96,8 @@ def run(args) -> int:
         raise UsageError(f"expected --workers >= 1, got {args.workers}.")
     if not args.connect_timeout > 0:
         raise UsageError(f"expected --connect-timeout > 0, got {args.connect_timeout}.")
+    if args.chunk is not None and args.chunk < 1:
+        raise UsageError(f"expected --chunk >= 1, got {args.chunk}.")
     if args.retries < 0:
         raise UsageError(f"expected --retries >= 0, got {args.retries}.")
     if args.seed < 0:
@@ -103,7 +108,8 @@ def run(args) -> int:
     try:
         result = run_batch(args.pairs, args.out, command=args.batch_command, scheduler=args.scheduler,
                            workers=args.workers, seed=args.seed, defaults=settings,
-                           retries=args.retries, progress=progress, timeout=args.connect_timeout)
+                           retries=args.retries, progress=progress, timeout=args.connect_timeout,
+                           chunk=args.chunk)
     finally:
         if progress is not None:
             progress.close()

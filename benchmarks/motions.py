@@ -60,7 +60,9 @@ Prints a markdown table; writes ``motions.csv`` and ``motions_trials.csv``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -319,7 +321,7 @@ def run_task(task: tuple) -> list[dict]:
         scene = make_scan_scene(name, np.random.default_rng(seq)) if scans else make_rows()[name](
             np.random.default_rng(seq))
     except FileNotFoundError as exc:  # DataNotFoundError: no real data here
-        return [{"row": name, "method": m, "trial": trial, "K": 0, "n_points": 0, "time_s": float("nan"),
+        return [{"row": name, "method": m, "trial": trial, "K": 0, "n_points": 0, "time_s": float("nan"), "cpu_s": float("nan"), "load": float("nan"),
                  "error": f"no data: {exc}", "exact_k": False, "n_found": 0, "precision": 0.0, "recall": 0.0,
                  "f1": 0.0, "rot_err_deg": float("nan"), "trans_err": float("nan"), "label_acc": 0.0,
                  "spurious": 0, "objects_ok": 0.0, "static_ok": False, "peak_rss_gb": _peak_rss_gb()}
@@ -328,6 +330,7 @@ def run_task(task: tuple) -> list[dict]:
     for method in methods:
         if scans != (method in SCAN_METHODS) and method != "auto":
             continue
+        cpu0 = time.process_time()
         with Timer() as timer:
             try:
                 if method == "o3d-seq":
@@ -343,7 +346,8 @@ def run_task(task: tuple) -> list[dict]:
             except Exception as exc:  # noqa: BLE001 - scored as a failure
                 seg, motions, labels, error = None, [], np.full(len(scene.source), -1), f"{type(exc).__name__}: {exc}"
         rec = {"row": name, "method": method, "trial": trial, "K": scene.n_motions,
-               "n_points": len(scene.source), "time_s": timer.seconds, "error": error}
+               "n_points": len(scene.source), "time_s": timer.seconds, "cpu_s": time.process_time() - cpu0,
+               "load": os.getloadavg()[0], "error": error}
         if scans:
             rec.update(score_scans(scene, motions, labels))
             rec["reason"] = seg.info.get("reason", "") if seg is not None else ""
@@ -355,7 +359,8 @@ def run_task(task: tuple) -> list[dict]:
         rec["peak_rss_gb"] = _peak_rss_gb()
         out.append(rec)
     print(f"  {name} trial {trial}: " + ", ".join(
-        f"{r['method']} {r['n_found']}/{r['K']} F1 {r['f1']:.3f} acc {r['label_acc']:.3f} {r['time_s']:.2f}s"
+        f"{r['method']} {r['n_found']}/{r['K']} F1 {r['f1']:.3f} acc {r['label_acc']:.3f} {r['time_s']:.2f}s "
+        f"(cpu {r['cpu_s']:.2f}s, load {r['load']:.1f})"
         for r in out), file=sys.stderr, flush=True)
     return out
 
@@ -400,6 +405,9 @@ def summarise(records, names, methods):
                                                for r in rs),
                 "time_s": median(r["time_s"] for r in rs),
                 "max_time_s": float(np.nanmax([r["time_s"] for r in rs])),
+                "cpu_s": median(r["cpu_s"] for r in rs),
+                "max_cpu_s": float(np.nanmax([r["cpu_s"] for r in rs])),
+                "load": float(np.mean([r["load"] for r in rs])),
                 "peak_rss_gb": float(max(r.get("peak_rss_gb", 0.0) for r in rs)),
                 "errors": sum(bool(r["error"]) for r in rs),
             })
@@ -430,24 +438,29 @@ def main(argv=None) -> int:
     scan_rows = [x for x in summary if x["row"] in SCAN_ROWS]
     if point_rows:
         headers = ["row", "method", "K", "points", "exact K %", "rot err (deg)", "t err", "precision",
-                   "recall", "F1", "label acc", "median s", "max s"]
+                   "recall", "F1", "label acc", "median s", "max s", "median cpu s", "max cpu s", "load"]
         table = [[x["row"], x["method"], x["K"], x["points"], _pct(x["exact_k_pct"]), fmt(x["rot_err_deg"], 2),
                   fmt(x["trans_err"], 2), fmt(x["precision"]), fmt(x["recall"]), fmt(x["f1"]), fmt(x["label_acc"]),
-                  fmt(x["time_s"], 2), fmt(x["max_time_s"], 1)] for x in point_rows]
+                  fmt(x["time_s"], 2), fmt(x["max_time_s"], 1), fmt(x["cpu_s"], 2), fmt(x["max_cpu_s"], 1),
+                  fmt(x["load"], 1)] for x in point_rows]
         print(markdown_table(headers, table, align="ll" + "r" * (len(headers) - 2)))
         print("\nrot/t err: median over trials of the worst matched motion; precision, recall, F1, label acc: "
-              "mean over trials.")
+              "mean over trials; cpu s: process CPU time (all threads); load: mean 1-minute load average at the "
+              "end of each trial.")
     if scan_rows:
         headers = ["scene", "method", "K", "points", "exact K %", "objects ok %", "worst rot (deg)",
-                   "worst t (mm)", "spurious", "static ok %", "label acc", "median s", "max s", "peak RSS GB"]
+                   "worst t (mm)", "spurious", "static ok %", "label acc", "median s", "max s", "median cpu s",
+                   "max cpu s", "load", "peak RSS GB"]
         table = [[x["row"], x["method"], x["K"], x["points"], _pct(x["exact_k_pct"]), _pct(x["objects_ok_pct"]),
                   fmt(x["rot_err_deg"], 3), fmt(x["trans_err"], 2), x["spurious"], _pct(x["static_ok_pct"]),
-                  fmt(x["label_acc"]), fmt(x["time_s"], 1), fmt(x["max_time_s"], 1), fmt(x["peak_rss_gb"], 2)]
+                  fmt(x["label_acc"]), fmt(x["time_s"], 1), fmt(x["max_time_s"], 1), fmt(x["cpu_s"], 1),
+                  fmt(x["max_cpu_s"], 1), fmt(x["load"], 1), fmt(x["peak_rss_gb"], 2)]
                  for x in scan_rows]
         print()
         print(markdown_table(headers, table, align="ll" + "r" * (len(headers) - 2)))
         print("\nK counts the static patch; objects ok: within 1 deg and 3 mm; spurious: found motions matching "
-              "no true one within 5 deg and 10 mm (total over trials); peak RSS: of the benchmark process so far.")
+              "no true one within 5 deg and 10 mm (total over trials); peak RSS: of the benchmark process so far; "
+              "cpu s: process CPU time (all threads); load: mean 1-minute load average at the end of each trial.")
     errors = sorted({r["error"] for r in records if r["error"]})
     for e in errors[:5]:
         print(f"error: {e}")

@@ -39,7 +39,7 @@ from ..candidates import median_spacing, one_to_one
 from ..fitting import kabsch
 
 __all__ = [
-    "GROW_STEP",
+    "GROW_NEIGHBOURS",
     "MLS_NEIGHBOURS",
     "REFINE_LEVELS",
     "LocalAffineWarp",
@@ -56,9 +56,10 @@ __all__ = [
 REFINE_LEVELS = (1.0, 0.5, 0.25)
 #: Matches in each moving-least-squares affine fit (the local patch).
 MLS_NEIGHBOURS = 12
-#: Reach of one growth ring, in source spacings: the immediate neighbours of the last ring
-#: (nearest-neighbour distances of an irregular sample reach about 1.5 median spacings).
-GROW_STEP = 1.5
+#: One growth ring: the nearest source points of each match of the last ring (on a uniform
+#: sample, within about 2 spacings; on an anisotropic one, e.g. a strip sampled 3x closer across
+#: than along, still the next row along it).
+GROW_NEIGHBOURS = 12
 #: Rows per block when evaluating k-nearest-neighbour fits (bounds temporaries).
 _BLOCK = 20_000
 
@@ -387,9 +388,9 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     """Grow matches ring by ring at full resolution with the local affine warp of the matched region.
 
     The vectorised form of :func:`gatv.nonrigid.hypotheses.grow_rings`.
-    Each round takes the *next ring*: the unmatched source points within
-    ``GROW_STEP`` source spacings of a match added in the previous round
-    (the seeds at first), moves them by the :class:`LocalAffineWarp` of all
+    Each round takes the *next ring*: the unmatched source points among the
+    ``GROW_NEIGHBOURS`` nearest of a match added in the previous round (the
+    seeds at first), moves them by the :class:`LocalAffineWarp` of all
     matches, and matches them to the nearest unused target within ``gate``,
     one-to-one (closest first).  Stops when a ring adds nothing.  Taking one
     ring at a time keeps the affine extrapolation short: a locally affine
@@ -400,7 +401,7 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     Parameters
     ----------
     spacing : float, optional
-        Source sampling spacing; default :func:`gatv.candidates.median_spacing` of ``X``.
+        Source sampling spacing (the warp's ridge); default :func:`gatv.candidates.median_spacing` of ``X``.
     tree_x : cKDTree, optional
         Of ``X`` (built when not given).
     """
@@ -408,7 +409,7 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     if tree_x is None:
         tree_x = cKDTree(X)
     h = float(spacing) if spacing is not None else median_spacing(X)
-    step = GROW_STEP * h
+    kn = min(GROW_NEIGHBOURS, X.shape[0])
     used_s = np.zeros(X.shape[0], bool)
     used_t = np.zeros(Y.shape[0], bool)
     used_s[pairs[:, 0]] = True
@@ -417,8 +418,8 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     for r in range(max_rounds):
         if pairs.shape[0] < 4 or frontier.size == 0:
             break
-        near = tree_x.query_ball_point(X[frontier], step)
-        free = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near])) if len(near) else frontier[:0]
+        near = tree_x.query(X[frontier], k=kn)[1]
+        free = np.unique(near.reshape(-1))
         free = free[~used_s[free]]
         if free.size == 0:
             break

@@ -446,6 +446,15 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         return _failure("no full-resolution window has more locally consistent matches than chance",
                         info)
     info["hypothesis"] = local.info.get("hypothesis")
+    # one non-rigid motion is continuous: grow from the seeds' largest part that is connected in
+    # the source and moves continuously (segment.motion_parts); a few wrong seeds apart from it
+    # would otherwise grow a locally consistent wrong region (a slide along the surface)
+    if seeds.shape[0] >= 4:
+        from .segment import motion_parts
+
+        parts = motion_parts(X[seeds[:, 0]], Y[seeds[:, 1]], settings.strain, 0.5 * spacing + floor)
+        info["n_seeds_off_part"] = int(np.sum(parts != 0))
+        seeds = seeds[parts == 0]
 
     # 4. growth, polish, final local matching within the sampling gate, local eq. 41
     gate = 0.5 * spacing + floor

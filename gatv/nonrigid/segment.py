@@ -194,7 +194,9 @@ def segment(
                 reason = f"the remaining points have no structure ({exc})"
                 break
             raise
-        record = {"support": m.support, "hypothesis": m.info.get("hypothesis")}
+        record = {"support": m.support, "hypothesis": m.info.get("hypothesis"),
+                  "hypotheses": m.info.get("hypotheses"), "prealign": m.info.get("prealign"),
+                  "windows": m.info.get("windows"), "coarse": m.info.get("coarse_hypothesis")}
         rounds.append(record)
         if m.support < least:
             reason = m.info.get("reason", "no motion beats chance among the remaining points")

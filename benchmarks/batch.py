@@ -5,8 +5,8 @@ seeds from ``--seed``, written as ``.npy`` files and a ``pairs.csv``):
 
 * the issue's: ``--pairs`` noise-free pairs (default 100; ~50 ms each);
 * ``--noisy-pairs`` of the same seeds with Gaussian noise ``--noise`` (default
-  40 pairs at 1% of the extent; ~1 s each), where a registration costs enough
-  for the batch's fixed costs to vanish (0 skips it).
+  30 pairs at 1% of the extent; 1-2 s of CPU each), where a registration
+  costs enough for the batch's fixed costs to vanish (0 skips it).
 
 Each workload runs through ``gatv.batch.run`` as: ``serial`` (this process,
 numba on every core: the baseline), ``serial, numba 1 thread`` (what each
@@ -23,11 +23,12 @@ before and after each run, found pairs, and whether every record equals the
 serial one apart from times), then where the Dask time goes (cluster start,
 worker imports and numba cache, Dask's cost per task, measured with no-op
 tasks) and the bound on the ratio that the single-thread CPU time sets.
-Writes ``batch.csv`` to ``--out``.  About 2-3 minutes on 2 idle cores.
+Writes ``batch.csv`` to ``--out``.  On 2 idle cores it should take 2-4
+minutes (estimated from the runs' CPU seconds), several times that on a loaded machine.
 
 Usage::
 
-    python benchmarks/batch.py [--pairs 100] [--noisy-pairs 40] [--noise 0.01] [--fraction 0.75]
+    python benchmarks/batch.py [--pairs 100] [--noisy-pairs 30] [--noise 0.01] [--fraction 0.75]
                                [--workers 2] [--seed 0] [--out benchmarks/results]
 """
 
@@ -151,8 +152,8 @@ def same_records(runs: list[dict]) -> int:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pairs", type=int, default=100, help="noise-free Table-2 pairs (default: 100)")
-    parser.add_argument("--noisy-pairs", type=int, default=40,
-                        help="noisy Table-2 pairs, the same seeds (default: 40; 0 skips them)")
+    parser.add_argument("--noisy-pairs", type=int, default=30,
+                        help="noisy Table-2 pairs, the same seeds (default: 30; 0 skips them)")
     parser.add_argument("--noise", type=float, default=0.01,
                         help="noise of the noisy pairs, fraction of the extent (default: 0.01)")
     parser.add_argument("--fraction", type=float, default=0.75, help="outlier fraction (default: 0.75)")

@@ -19,6 +19,9 @@ Where the work runs (``scheduler``):
 * a :class:`dask.distributed.Client` — used as it is and not closed;
 * ``"serial"`` — in this process, one row after the other (no Dask).
 
+On Dask, rows that take less than about :data:`TASK_SECONDS` are grouped
+into one task (``chunk``), so that Dask's own cost per task stays small.
+
 Guarantees:
 
 * A row's result does not depend on where it ran: the task is the same pure

@@ -43,8 +43,8 @@ def add_parser(subparsers):
         description=(
             "Run a command on every row of PAIRS (a CSV with the columns source and target; "
             "relative paths are relative to the CSV's folder; optional columns: name, and the "
-            f"command's options — {columns}). Each row is a Dask task: a local cluster by "
-            "default, an existing scheduler with --scheduler. Writes DIR/<name>.json per row "
+            f"command's options — {columns}). Rows run as Dask tasks (short rows grouped, "
+            "see --chunk): a local cluster by default, an existing scheduler with --scheduler. Writes DIR/<name>.json per row "
             "(the schema of `gatv register --out`) and DIR/summary.csv; rows already done are "
             "skipped on a second run."
         ),

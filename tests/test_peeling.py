@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from gatv import stages
 from gatv.errors import InputError
 from gatv.models import get_model
 from gatv.motions import Segmentation, multi_motion_scene, segment
-from gatv.motions.peeling import peel, pool_noise, search_budget
+from gatv.motions.peeling import likelihood_gate, peel, pool_noise, search_budget
 from gatv.stats import samples_needed
 
 
@@ -147,3 +149,16 @@ def test_pool_noise_regates_every_motion_one_to_one():
     assert right > right_before
     for f, g in zip(out, fits):
         assert np.array_equal(f.matrix, g.matrix)  # poses unchanged
+
+
+@settings(max_examples=50, deadline=None)
+@given(sigma=st.floats(1e-3, 1.0), density=st.floats(1e-6, 1e3), dim=st.sampled_from([2, 3]))
+def test_likelihood_gate_is_where_a_true_partner_and_a_random_point_are_equally_likely(sigma, density, dim):
+    r = likelihood_gate(sigma, density, dim)
+    s2 = 2.0 * sigma**2
+    peak = (2.0 * np.pi * s2) ** (-dim / 2.0)
+    if peak <= density:
+        assert r == 0.0
+    else:
+        assert peak * np.exp(-r * r / (2.0 * s2)) == pytest.approx(density, rel=1e-6)
+        assert likelihood_gate(sigma, density / 10.0, dim) > r  # sparser targets, wider gate

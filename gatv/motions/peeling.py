@@ -46,7 +46,7 @@ from ..stages import Fit, Problem
 from ..stats import samples_needed
 from .segmentation import Segmentation
 
-__all__ = ["peel", "pool_noise", "search_budget"]
+__all__ = ["likelihood_gate", "peel", "pool_noise", "search_budget"]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
@@ -112,6 +112,21 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
     return hi, findable(hi)
 
 
+def likelihood_gate(sigma: float, density: float, dim: int = 3) -> float:
+    """Residual radius beyond which a random target point is likelier than a true partner.
+
+    A true pair's residual is an isotropic Gaussian of per-axis standard
+    deviation ``s = sqrt(2) σ`` (both points noisy), of density
+    ``(2π s²)^(-dim/2) exp(-r² / 2 s²)`` at residual ``r``; random target
+    points lie at ``density`` per unit measure.  The two are equal at
+    ``r² = 2 s² log((2π s²)^(-dim/2) / density)`` (0 when the target is so
+    dense that a random point is always as likely).
+    """
+    s2 = 2.0 * float(sigma) ** 2
+    ratio = (2.0 * np.pi * s2) ** (-dim / 2.0) / max(float(density), 1e-300)
+    return float(np.sqrt(2.0 * s2 * np.log(ratio))) if ratio > 1.0 else 0.0
+
+
 def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[list[Fit], float]:
     """Every motion's correspondences re-gated at the noise of the one sensor, measured on them all.
 
@@ -122,21 +137,27 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     pooled, ``σ² = Σ n_k σ_k² / Σ n_k`` over the motions' supports ``n_k``,
     and every motion's one-to-one nearest pairs are taken again within
     ``FINAL_GATE σ``; a point two motions claim goes to the one with the
-    smaller residual (one-to-one over all motions).  A motion's wider gate
+    smaller residual (one-to-one over all motions); where the target is
+    sparse the gate reaches out to :func:`likelihood_gate`, where a true
+    pair stops being likelier than a random target point.  A motion's wider gate
     is used only when it brings in more pairs than random points would
-    collect there (as :func:`gatv.stages.settle_noise`).  Poses are unchanged.
+    collect in the added shell (their expected number).  Poses are unchanged.
     """
-    from ..stats import chance_count
+    from math import gamma
 
     P = problem
     n = np.array([f.support for f in fits], dtype=np.float64)
     sigma = float(np.sqrt(np.sum(n * np.square(noises)) / np.sum(n)))
-    g = stages.FINAL_GATE * sigma
-    gain = chance_count(P.source.shape[0], P.target.shape[0], P.volume, g, dim=P.dim, alpha=1e-3)
+    g = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
+    n1, density = P.source.shape[0], P.target.shape[0] / P.volume
+    ball = np.pi ** (P.dim / 2.0) / gamma(P.dim / 2.0 + 1.0)
     pairs, cost, owner = [], [], []
     for k, (fit, own) in enumerate(zip(fits, noises)):
         wider = stages.regate(P, fit, g)
-        if g > stages.FINAL_GATE * own and wider.support - fit.support <= max(1.0, gain):
+        g_own = stages.FINAL_GATE * own
+        # random pairs expected in the added shell, had every source point a random target there
+        shell = n1 * density * ball * max(g**P.dim - g_own**P.dim, 0.0)
+        if g > g_own and wider.support - fit.support <= shell:
             wider = fit
         c = wider.correspondences
         pairs.append(c)

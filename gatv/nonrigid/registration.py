@@ -65,6 +65,7 @@ from ..errors import InputError
 from ..models.rigid import check_spread
 from .motion import Diagnostics, NonRigidMotion
 from .stages import (
+    ANNEAL_PREFERENCE,
     AUTO_RIGID_TRIPLES,
     Problem,
     Settings,
@@ -315,14 +316,24 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
     voted = voting_hypothesis(problem, seeds, settings)
     if voted is not None:
         hypotheses["voting"] = voted
+    verdict = None
     if settings.grow:
         hypotheses["coarse"] = coarse_hypothesis(problem)
-        t0 = time.perf_counter()
-        hypotheses["anneal"] = anneal_hypothesis(problem, settings.seed)
-        info["time_anneal_s"] = time.perf_counter() - t0
+        # the annealed hypothesis wins only with ANNEAL_PREFERENCE times the best other counted
+        # support, and its support is at most the smaller set: skip it when it cannot win
+        verdict = choose_hypothesis(problem, hypotheses)
+        best = verdict.scores[verdict.best].support if verdict.best is not None else 0
+        if ANNEAL_PREFERENCE * best <= problem.n_smaller:
+            t0 = time.perf_counter()
+            hypotheses["anneal"] = anneal_hypothesis(problem, settings.seed)
+            info["time_anneal_s"] = time.perf_counter() - t0
+            verdict = None
+        else:
+            info["anneal_skipped"] = "cannot win"
 
     report(0.75, "verification against chance")
-    verdict = choose_hypothesis(problem, hypotheses)
+    if verdict is None:
+        verdict = choose_hypothesis(problem, hypotheses)
     info["hypotheses"] = verdict.summary()
     if wants_rigid_start(settings, verdict.best):
         report(0.8, "rigid prealignment")
@@ -526,6 +537,7 @@ def _seed_windows(X, Y, tree_x, tree_y, centres, warp, margin: float, settings, 
         local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
                                  lambda *a: None, time.perf_counter())
         record.update(support=local.support, hypothesis=local.info.get("hypothesis"),
+                      time_voting_s=local.info.get("time_voting_s"), time_anneal_s=local.info.get("time_anneal_s"),
                       hypotheses=local.info.get("hypotheses"), time_s=time.perf_counter() - t0)
         if local and local.support >= MIN_WINDOW_SHARE * min(src.size, tgt.size):
             return np.column_stack([src[local.correspondences[:, 0]], tgt[local.correspondences[:, 1]]]), local

@@ -524,7 +524,7 @@ def _import_distributed():
 #: (a sample of every worker's stack each 10 ms) and the event-loop tick
 #: measurement, every 200 ms instead of 20 ms (it only feeds the "event loop
 #: unresponsive" warning, whose threshold is seconds).  Measured on an idle
-#: cluster of 2 workers: 12% of a core with Dask's defaults, 4.4% with these.
+#: cluster of 2 workers: 12% of a core with Dask's defaults, 3% with these.
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "200ms"}
 
 #: Seconds of work one Dask task aims at when ``chunk`` is automatic: rows that

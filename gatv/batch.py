@@ -522,9 +522,10 @@ def _import_distributed():
 #: diagnostics that cost CPU all the time a worker lives, taken from the cores
 #: the rows run on: the statistical profiler of the dashboard's "Profile" page
 #: (a sample of every worker's stack each 10 ms) and the event-loop tick
-#: measurement, every 200 ms instead of 20 ms (it only feeds the "event loop
-#: unresponsive" warning, whose threshold is seconds).  Measured on an idle
-#: cluster of 2 workers: 12% of a core with Dask's defaults, 3% with these.
+#: measurement, every 200 ms instead of 20 ms (it feeds the "event loop
+#: unresponsive" warning, whose threshold is seconds, and a dashboard
+#: metric).  Dask's own test utilities run with the same two settings; the
+#: measurements are in docs/design-notes.md.
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "200ms"}
 
 #: Seconds of work one Dask task aims at when ``chunk`` is automatic: rows that

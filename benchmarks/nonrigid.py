@@ -20,6 +20,10 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
 * ``small``: the 400-point planes and the 600-row faces of the first
   non-rigid benchmark (twist 30/60/90°, bend, elastic, hinge).
 
+Each row also reports the child's CPU time (``time.process_time``) and the
+1-minute load average when it ended: the machine is shared, and wall time
+alone drifts with the load.
+
 Methods: ``gatv`` (``gatv.nonrigid.register`` defaults; ``segment`` on the
 two-motion rows), ``cpd`` (pycpd ``DeformableRegistration``, w = the outlier
 share, 150 iterations), ``bcpd`` (probreg ``registration_bcpd``, 50
@@ -235,7 +239,7 @@ def run_gatv(src, tgt, f, spacing, kind):
 
     options = {"prealign": True, "model": "similarity"} if kind == "bunny" else {}
     m = register(src, tgt, **options)
-    info = {k: m.info.get(k) for k in ("hypothesis", "coarse_hypothesis", "n_eq41_rejected", "reason")
+    info = {k: m.info.get(k) for k in ("hypothesis", "placement", "coarse_hypothesis", "n_eq41_rejected", "reason")
             if k in m.info}
     return m.correspondences, m.warp(src), info
 
@@ -288,7 +292,7 @@ def child_main(path_in: str, path_out: str) -> int:
     data = np.load(path_in, allow_pickle=False)
     meta = json.loads(str(data["meta"]))
     out = {"error": "", "info": {}}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         pairs, moved, info = RUNNERS[meta["method"]](data["source"], data["target"], meta["f"],
                                                       meta["spacing"], meta["kind"])
@@ -297,6 +301,7 @@ def child_main(path_in: str, path_out: str) -> int:
         pairs, moved = np.empty((0, 2), np.int64), np.asarray(data["source"]).copy()
         out["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())[:160]}"
     out["time_s"] = time.perf_counter() - t0
+    out["cpu_s"] = time.process_time() - c0
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 ** 2
     np.savez(path_out, pairs=np.asarray(pairs, np.int64).reshape(-1, 2), moved=np.asarray(moved, float),
              meta=json.dumps(out))
@@ -304,7 +309,7 @@ def child_main(path_in: str, path_out: str) -> int:
 
 
 def run_isolated(method, trial: Trial, f, kind, timeout):
-    """Run ``method`` in a child process; returns (pairs, moved, time, peak RSS GB, error, info)."""
+    """Run ``method`` in a child process; returns (pairs, moved, time, CPU time, peak RSS GB, error, info)."""
     with tempfile.TemporaryDirectory() as tmp:
         pin, pout = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         meta = json.dumps({"method": method, "f": f, "spacing": trial.spacing, "kind": kind})
@@ -314,15 +319,16 @@ def run_isolated(method, trial: Trial, f, kind, timeout):
             proc = subprocess.run([sys.executable, __file__, "--child", pin, pout], timeout=timeout,
                                   capture_output=True, text=True, check=False)
         except subprocess.TimeoutExpired:
-            return None, None, time.perf_counter() - t0, float("nan"), f"did not finish in {timeout:.0f} s", {}
+            return (None, None, time.perf_counter() - t0, float("nan"), float("nan"),
+                    f"did not finish in {timeout:.0f} s", {})
         if proc.returncode != 0 or not os.path.exists(pout):
             tail = " ".join((proc.stderr or "").split()[-20:])
             killed = proc.returncode in (-9, 137)
             why = "killed (out of memory?)" if killed else f"child failed (rc {proc.returncode}): {tail}"
-            return None, None, time.perf_counter() - t0, float("nan"), why[:200], {}
+            return None, None, time.perf_counter() - t0, float("nan"), float("nan"), why[:200], {}
         res = np.load(pout, allow_pickle=False)
         meta = json.loads(str(res["meta"]))
-        return (res["pairs"], res["moved"], meta["time_s"], meta["peak_rss_gb"], meta["error"],
+        return (res["pairs"], res["moved"], meta["time_s"], meta["cpu_s"], meta["peak_rss_gb"], meta["error"],
                 meta["info"])
 
 
@@ -387,19 +393,19 @@ def run_task(task) -> list:
             try:
                 __import__(PEER_MODULE[method])
             except ImportError:
-                rows.append(base + [np.nan] * 7 + [f"not installed ({PEER_MODULE[method]})", ""])
+                rows.append(base + [np.nan] * 9 + [f"not installed ({PEER_MODULE[method]})", ""])
                 continue
             need = peer_bytes(method, trial.source.shape[0], trial.target.shape[0])
             if need > peer_gb * 1024 ** 3:
-                rows.append(base + [np.nan] * 7 + [f"would need {need / 1024 ** 3:.1f} GB (over {peer_gb:g} GB)", ""])
+                rows.append(base + [np.nan] * 9 + [f"would need {need / 1024 ** 3:.1f} GB (over {peer_gb:g} GB)", ""])
                 continue
-        pairs, moved, seconds, rss, error, info = run_isolated(method, trial, f, case.kind, timeout)
+        pairs, moved, seconds, cpu, rss, error, info = run_isolated(method, trial, f, case.kind, timeout)
         p, r, w, rw, we = score(trial, pairs, moved)
         note = two_motion_scores(trial, info) if case.kind == "two" and method == "gatv" else ""
         if info:
             extra = {kk: v for kk, v in info.items() if kk != "motions"}
             note = (note + " " + json.dumps(extra)).strip() if extra else note
-        rows.append(base + [p, r, w, rw, we, seconds, rss, error, note])
+        rows.append(base + [p, r, w, rw, we, seconds, cpu, os.getloadavg()[0], rss, error, note])
     return rows
 
 
@@ -428,9 +434,10 @@ def cases(groups, sizes):
 
 
 HEADERS = ["case", "outliers", "method", "N", "exact P", "exact R", "≤1 sp", "R ≤1 sp",
-           "warp err / sp", "time (s)", "peak RSS (GB)", "status / notes"]
+           "warp err / sp", "time (s)", "CPU (s)", "load", "peak RSS (GB)", "status / notes"]
 CSV_HEADERS = ["case", "f", "method", "trial", "n_source", "n_target", "precision", "recall",
-               "within_one_spacing", "recall_within", "warp_error_spacings", "time_s", "peak_rss_gb",
+               "within_one_spacing", "recall_within", "warp_error_spacings", "time_s", "cpu_s", "load_1min",
+               "peak_rss_gb",
                "error", "notes"]
 
 
@@ -440,18 +447,19 @@ def summary_rows(csv_rows):
         groups.setdefault((r[0], r[1], r[2]), []).append(r)
     rows = []
     for (name, f, method), rs in groups.items():
-        errs = sorted({r[13] for r in rs if r[13]})
-        notes = sorted({r[14] for r in rs if r[14]})
+        errs = sorted({r[15] for r in rs if r[15]})
+        notes = sorted({r[16] for r in rs if r[16]})
         status = "; ".join(errs + notes)[:300]
         rows.append([name, f"{100 * f:.0f}%", method, rs[0][4],
                      *(fmt(median(r[c] for r in rs), 3) for c in (6, 7, 8, 9)),
                      fmt(median(r[10] for r in rs), 3), fmt(median(r[11] for r in rs), 1),
-                     fmt(median(r[12] for r in rs), 2), status])
+                     fmt(median(r[12] for r in rs), 1), fmt(median(r[13] for r in rs), 1),
+                     fmt(median(r[14] for r in rs), 2), status])
     return rows
 
 
 def _write(args, argv, csv_rows):
-    table = markdown_table(HEADERS, summary_rows(csv_rows), "lllrrrrrrrrl")
+    table = markdown_table(HEADERS, summary_rows(csv_rows), "lllrrrrrrrrrrl")
     args.out.mkdir(parents=True, exist_ok=True)
     command = shlex.join(argv if argv is not None else sys.argv[1:])
     (args.out / "nonrigid.md").write_text(

@@ -150,8 +150,10 @@ def test_second_run_skips_finished_rows(tmp_path, pair_files):
     assert json.loads(third.rows[2].path.read_text())["seed"] == 7
 
 
-def test_killed_worker_loses_no_row(tmp_path, pair_files, client):
-    """Kill a worker process while the batch runs: its task is re-run elsewhere and every row lands."""
+@pytest.mark.parametrize("chunk", [None, 2])
+def test_killed_worker_loses_no_row(tmp_path, pair_files, client, chunk):
+    """Kill a worker process while the batch runs: its task (one row, or a chunk of rows) is re-run
+    elsewhere and every row lands."""
     folder, _, rows = pair_files
     many = [{**rows[k % N_ROWS], "name": f"r{k}", "seed": str(k)} for k in range(8)]
     table = _write_csv(folder / "many.csv", many, columns=("name", "source", "target", "seed"))
@@ -164,7 +166,7 @@ def test_killed_worker_loses_no_row(tmp_path, pair_files, client):
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
 
-    result = batch.run(table, tmp_path / "out", scheduler=client, progress=kill_one)
+    result = batch.run(table, tmp_path / "out", scheduler=client, progress=kill_one, chunk=chunk)
     assert killed and result.counts()["found"] == 8 and result
     assert sorted(p.name for p in (tmp_path / "out").glob("*.json")) == sorted(f"r{k}.json" for k in range(8))
     client.wait_for_workers(2, timeout=60)

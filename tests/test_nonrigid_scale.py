@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gatv.candidates import median_spacing
 from gatv.datasets import correspondence_stats
 from gatv.errors import InputError
 from gatv.nonrigid import NonRigidSegmentation, register, segment
@@ -148,6 +149,60 @@ def test_multiscale_equals_the_direct_solve_where_both_run(twisted_multi):
     direct = register(trial.source, trial.target, multiscale=False)
     common = _pairs(m) & _pairs(direct)
     assert len(common) >= 0.97 * max(m.support, direct.support)
+
+
+def test_multiscale_places_the_window_by_the_identity_and_skips_the_coarse_solve(twisted_multi):
+    trial, m = twisted_multi
+    assert m.info["placement"] == "identity"
+    assert "time_coarse_s" not in m.info  # the identity-placed window beat chance: no coarse solve
+    assert m.info["windows"][-1]["support"] > 0
+
+
+def test_multiscale_falls_back_to_the_coarse_placement_when_the_identity_window_cannot_hold_the_partners():
+    x = deform.sample_plane(200, 10.0, seed=3)
+    y = deform.twist(x, 30.0) + [25.0, 0.0, 0.0]  # a shift of ~35 spacings: no identity window holds it
+    trial = deform.nonrigid_trial(x, y, 0.0, seed=4)
+    m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
+    assert m.info["placement"] == "coarse"
+    assert [w["placement"] for w in m.info["windows"]][:2] == ["identity", "identity"]
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.98 and recall >= 0.9
+
+
+@settings(max_examples=6, deadline=None)
+@given(stretch=st.floats(1.0, 4.0), seed=st.integers(0, 10_000))
+def test_grow_reaches_the_whole_of_an_anisotropic_strip_from_a_few_seeds(stretch, seed):
+    # a strip sampled `stretch` times closer across than along, bent: the next row along it is
+    # farther than 1.5 median spacings, and the growth still reaches every point, all correct
+    x = deform.sample_plane(400, 10.0, seed=seed) * [1.0, 1.0 / stretch, 1.0]
+    y = deform.bend(x, 60.0, axis=(0, 1, 0))
+    perm = np.random.default_rng(seed).permutation(x.shape[0])
+    Y = y[perm]
+    truth = np.argsort(perm)  # row i of x is row truth[i] of Y
+    centre = np.argsort(np.linalg.norm(x, axis=1))[:12]
+    seeds = np.column_stack([centre, truth[centre]])
+    from scipy.spatial import cKDTree
+
+    gate = 0.5 * median_spacing(Y)
+    pairs = ms.grow(x, Y, cKDTree(Y), seeds, gate)
+    assert pairs.shape[0] == x.shape[0]
+    assert np.array_equal(pairs[:, 1], truth[pairs[:, 0]])
+
+
+def test_direct_solve_skips_the_annealed_hypothesis_only_when_it_cannot_win(monkeypatch):
+    from gatv.nonrigid import registration as reg
+
+    x = deform.sample_plane(150, 10.0, seed=5)
+    trial = deform.nonrigid_trial(x, deform.twist(x, 45.0), 0.0, seed=6)
+    m = register(trial.source, trial.target)
+    assert m.info.get("anneal_skipped") == "cannot win" and "anneal" not in m.info["hypotheses"]
+    best = max(v["support"] for v in m.info["hypotheses"].values())
+    assert reg.ANNEAL_PREFERENCE * best > min(len(trial.source), len(trial.target))
+    # forcing the annealed hypothesis changes nothing
+    monkeypatch.setattr(reg, "ANNEAL_PREFERENCE", 0.0)
+    forced = register(trial.source, trial.target)
+    assert "anneal" in forced.info["hypotheses"] and "anneal_skipped" not in forced.info
+    assert np.array_equal(forced.correspondences, m.correspondences)
 
 
 @pytest.mark.slow

@@ -91,6 +91,16 @@ def test_same_seed_same_result(static_plane):
     assert [m.correspondences.tolist() for m in a] == [m.correspondences.tolist() for m in b]
 
 
+def test_scans_pipeline_names_bad_scan_options(static_plane):
+    source, target = static_plane
+    with pytest.raises(InputError, match="bogus"):
+        segment(source, target, scan_options={"bogus": 1})
+    with pytest.raises(InputError, match="n_points"):
+        segment(source, target, scan_options={"n_points": 2})
+    with pytest.raises(InputError, match="min_overlap"):
+        segment(source, target, scan_options={"min_overlap": 1.5})
+
+
 def test_scans_pipeline_rejects_exact_only_options(static_plane):
     source, target = static_plane
     with pytest.raises(InputError, match="`noise`.*scans pipeline"):

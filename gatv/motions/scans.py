@@ -11,7 +11,9 @@ found"):
 1. **The identity first.** A static part of the scene (background, a
    table) is a motion like any other; it is tried explicitly, since a
    search draws its trials from the moving parts as readily as from it.
-2. **Peel.** ``register(pipeline="scans")`` on the unexplained points; its
+2. **Peel.** The surface registration of ``register(pipeline="scans")``
+   (:func:`register_part`) on the unexplained points, with each scan's
+   surface points and normals voted once (:func:`scan_surfaces`); its
    motion labels every unexplained source point that lands within the
    sampling gate (a few point spacings) of an unexplained target point, at
    full input resolution; the one-to-one nearest pairs are its

@@ -105,6 +105,13 @@ def _strip_times(record: dict) -> dict:
     return out
 
 
+def sources_stamp() -> float:
+    """Newest modification time of gatv's sources: the serial runs import them before the workers do."""
+    import gatv
+
+    return max(f.stat().st_mtime for f in Path(gatv.__file__).parent.rglob("*.py"))
+
+
 def load() -> float:
     return os.getloadavg()[0]
 
@@ -168,6 +175,7 @@ def main(argv=None) -> int:
     if args.noisy_pairs:
         workloads.append((f"noise {args.noise:g}", args.noisy_pairs, args.noise))
     runs, fixed = {}, {}
+    stamp = sources_stamp()
     with tempfile.TemporaryDirectory(prefix="gatv-batch-bench-") as tmp:
         folder = Path(tmp)
         tables = {name: make_pairs(folder / f"w{k}", n, args.fraction, args.seed, noise)
@@ -255,6 +263,9 @@ def main(argv=None) -> int:
     out = write_csv(args.out / "batch.csv",
                     ["pairs", "n", "fraction", "workers", "run", "wall_s", "speedup", "cpu_s", "workers_cpu_s",
                      "client_cpu_s", "tasks", "busy", "load_before", "load_after", "found", "records_equal"], csv_rows)
+    if sources_stamp() != stamp:
+        print("\nWARNING: gatv's source files changed during this run; the workers may have imported other "
+              "code than the serial runs, so records can differ for that reason alone.")
     print(f"\nwrote {out}")
     return 0
 

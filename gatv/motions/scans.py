@@ -55,6 +55,7 @@ from .segmentation import Segmentation
 
 __all__ = [
     "NOISE_FACTOR",
+    "PART_OPTIONS",
     "PLANE_THICKNESS",
     "SAMPLING_GATE",
     "ScanSurfaces",
@@ -449,7 +450,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     confidence, max_triples, n_judged, refine, memory_budget
         As :func:`gatv.register` (scans pipeline).
     scan_options : dict, optional
-        Options of :func:`gatv.scans.register_surfaces` for every round.
+        Options of every round's surface registration (:func:`register_part`,
+        as in :func:`gatv.scans.register_surfaces`): :data:`PART_OPTIONS`.
     progress : callable, optional
         ``progress(fraction, message)``.
 

@@ -494,7 +494,10 @@ def segment(
         noise-free data and ``"graph"``, none mean noise and ``"peel"``
         (given ``noise=``: ``"graph"`` at that noise).
     scan_options : dict, optional
-        Options of :func:`gatv.scans.register_surfaces` (scans pipeline).
+        Options of each round's surface registration on scans
+        (:data:`gatv.motions.scans.PART_OPTIONS`: ``n_points``, ``voxel``,
+        ``min_overlap``, ``feature_tol``, ``clutter``, as in
+        :func:`gatv.scans.register_surfaces`).
 
     Other parameters are those of the exact pipeline's graph grouping
     (:func:`segment_points`); ``max_motions``, ``seed``, ``confidence``,

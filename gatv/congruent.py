@@ -253,7 +253,10 @@ def trial_motions(
         a triple match many target triples, about as many as its side
         lengths have target pairs within ``eps``, and long, rare sides cut
         that work without changing which points are drawn when inliers and
-        outliers are spread alike.
+        outliers are spread alike.  Only triangles at least
+        :func:`_min_height` tall compete (the tallest of the ``wide`` when
+        none is): the fewest matches alone favour short sides and thin
+        triangles, whose noisy pose misses the gate away from the triangle.
     max_enumerated : int, default: 0
         Congruent matches listed per triple, of which the ``max_matches``
         tightest (smallest side-length discrepancy) are scored; ``0`` lists
@@ -271,6 +274,7 @@ def trial_motions(
     sn = no_normals if source_normals is None else np.ascontiguousarray(source_normals, np.float64)
     tn = no_normals if target_normals is None else np.ascontiguousarray(target_normals, np.float64)
     pool = TrialPool(keep, 3)
+    min_height = _min_height(source) if wide > 1 else 0.0
     drawn = 0
     n_congruent = 0
     n_listed = 0
@@ -280,7 +284,11 @@ def trial_motions(
         if wide > 1:
             pool_tri = sample_triples(n, m * int(wide), rng).reshape(m, int(wide), 3)
             cost = expected_matches(source, pool_tri.reshape(-1, 3), index, eps).reshape(m, int(wide))
-            tri = pool_tri[np.arange(m), np.argmin(cost, axis=1)]
+            height = triangle_heights(source, pool_tri.reshape(-1, 3)).reshape(m, int(wide))
+            best = np.argmin(np.where(height >= min_height, cost, np.inf), axis=1)
+            thin = ~np.any(height >= min_height, axis=1)
+            best[thin] = np.argmax(height[thin], axis=1)
+            tri = pool_tri[np.arange(m), best]
         else:
             tri = sample_triples(n, m * 2 if min_side > 0 else m, rng)
         if min_side > 0:
@@ -308,6 +316,29 @@ def trial_motions(
             break
     trials = pool.trials(index.radius, threshold, drawn, n_congruent)
     return dataclasses.replace(trials, n_listed=n_listed)
+
+
+def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:
+    """Smallest height of each triangle ``points[triples]``: twice its area over its longest side."""
+    a, b, c = (points[triples[:, q]] for q in range(3))
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    longest = np.maximum(np.maximum(np.linalg.norm(b - a, axis=1), np.linalg.norm(c - a, axis=1)),
+                         np.linalg.norm(c - b, axis=1))
+    return area2 / np.maximum(longest, np.finfo(np.float64).tiny)
+
+
+def _min_height(source: np.ndarray) -> float:
+    """Smallest triangle height whose noisy pose still carries the scoring gate.
+
+    A triple matched at tolerance ``τ`` (point noise up to ``τ``) has its
+    rotation about its longest side wrong by about ``sqrt(2) τ / h`` (``h``
+    the triangle's smallest height); at the source's RMS radius ``ρ`` that
+    moves a point by ``sqrt(2) τ ρ / h``, which stays inside the scoring
+    gate ``3.5 τ`` (:func:`gatv.stages.gate`) when ``h >= sqrt(2) ρ / 3.5``.
+    """
+    centred = source - source.mean(axis=0)
+    rho = float(np.sqrt(np.mean(np.sum(centred**2, axis=1))))
+    return np.sqrt(2.0) * rho / 3.5
 
 
 #: Source points of the pre-test of :func:`trial_motions` (``prescreen=True``).

@@ -83,10 +83,13 @@ WIDE = 32
 #: Options of the rigid model's trial motions in :func:`register` (see
 #: :func:`gatv.congruent.trial_motions`).
 RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "prescreen": True}
-#: Default work bound of a search, in the search's work units (about a
-#: microsecond each on one core): a call fails with a reason instead of
-#: running on.
+#: Default work bound of a search, in the search's work units (a few
+#: microseconds each on one core): a call fails with a reason instead of
+#: running on.  Deterministic: the same seed stops at the same point.
 MAX_WORK = 2.5e7
+#: Default wall-clock bound of a call's search, seconds: on a slow or busy
+#: machine the work bound alone can take minutes.
+TIME_LIMIT = 60.0
 
 
 def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memory_budget, info):
@@ -266,6 +269,7 @@ def register(
     max_candidates: int = 8,
     memory_budget: float | None = None,
     max_work: float | None = MAX_WORK,
+    time_limit: float | None = TIME_LIMIT,
     scan_options: dict | None = None,
     progress=None,
 ) -> Motion:
@@ -331,6 +335,11 @@ def register(
         Bound on the exact search's work (units of about a microsecond of
         one core); past it the call returns a falsy result whose
         ``info["reason"]`` says so.  ``None``: no bound.
+    time_limit : float or None, default: :data:`TIME_LIMIT`
+        Seconds of wall-clock time the exact search may take; past it the
+        call returns a falsy result whose ``info["reason"]`` says so.
+        Unlike ``max_work`` it depends on the machine's speed and load, so
+        a run stopped by it may not repeat exactly.  ``None``: no limit.
     scan_options : dict, optional
         Options of the scans pipeline only (``n_points``, ``voxel``,
         ``min_overlap``, ``feature_tol``, ``clutter``; see
@@ -393,6 +402,7 @@ def register(
     max_candidates = check_int(max_candidates, "max_candidates", 1)
     n_judged = check_int(n_judged, "n_judged", 1)
     max_triples = check_int(max_triples, "max_triples", 1, allow_none=True)
+    time_limit = check_positive(time_limit, "time_limit", allow_none=True)
     rng = as_rng(seed)
     report = check_progress(progress)
     schedule = NOISY_SCHEDULE if P.model.name == "rigid" else NOISE_SCHEDULE
@@ -427,12 +437,18 @@ def register(
                           max_candidates=max_candidates, polish=refine, grow=noise is None and not rigid,
                           memory_budget=memory_budget, progress=report, tried=tried,
                           max_matches=NOISY_MAX_MATCHES if rigid else stages.MAX_MATCHES,
-                          max_work=max_work, trial_options=RIGID_TRIALS if rigid else None)
+                          max_work=max_work, trial_options=RIGID_TRIALS if rigid else None,
+                          deadline=None if time_limit is None else t_start + time_limit)
     if found is None:
         info.update(trials=tried, time_s=time.perf_counter() - t_start)
-        stopped = any("stopped" in rec for rec in tried)
-        reason = ("the work bound (`max_work`) ran out before a trial motion beat the chance level"
-                  if stopped else "no trial motion beat the chance level")
+        stopped = {rec["stopped"] for rec in tried if "stopped" in rec}
+        if "time limit" in stopped:
+            reason = (f"the time limit (`time_limit`, {time_limit:g} s) ran out before a trial motion beat "
+                      "the chance level")
+        elif stopped:
+            reason = "the work bound (`max_work`) ran out before a trial motion beat the chance level"
+        else:
+            reason = "no trial motion beat the chance level"
         return stages.failure(P.model, reason, info)
     fit, tolerance = found.fit, found.tolerance
     if noise is None and rigid:

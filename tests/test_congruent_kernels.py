@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import _congruent_kernels as k
-from gatv.congruent import TargetIndex, sample_triples, trial_motions
+from gatv.congruent import TargetIndex, sample_triples, trial_motions, triangle_heights
 from gatv.fitting import kabsch
 from gatv.ga import Rotor
 
@@ -114,3 +114,24 @@ def test_trial_motions_recover_the_motion_and_rank_it_first():
     assert len(trials) >= 1 and trials.support[0] == 30
     assert np.allclose(trials.matrices[0][:3, :3], R, atol=1e-8)
     assert np.allclose(trials.matrices[0][:3, 3], [3.0, 0.0, -1.0], atol=1e-8)
+
+
+def test_triangle_height_of_a_3_4_5_triangle():
+    pts = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0], [1.0, 1.0, 0.0]])
+    h = triangle_heights(pts, np.array([[0, 1, 2], [0, 1, 1], [0, 3, 1]]))
+    assert np.allclose(h, [12.0 / 5.0, 0.0, 1.0 * 3.0 / 3.0])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10**6), scale=st.floats(0.01, 100.0))
+def test_triangle_heights_are_rigid_invariant_and_scale_linearly(seed, scale):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(12, 3))
+    tri = sample_triples(12, 20, rng)
+    R = Rotor.from_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi)).as_matrix()
+    moved = scale * pts @ R.T + rng.normal(size=3)
+    h = triangle_heights(pts, tri)
+    assert np.allclose(triangle_heights(moved, tri), scale * h, rtol=1e-9, atol=1e-12 * scale)
+    # The smallest height is at most every side (it is one triangle's height over its longest side).
+    sides = np.linalg.norm(pts[tri[:, [0, 0, 1]]] - pts[tri[:, [1, 2, 2]]], axis=2)
+    assert np.all(h <= sides.min(axis=1) + 1e-12)

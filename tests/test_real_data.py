@@ -30,14 +30,25 @@ def _sphere(n, seed=0):
 @settings(max_examples=30, deadline=None)
 @given(sigma=st.floats(1e-3, 10.0), cut=st.floats(2.0, 6.0), seed=st.integers(0, 2**31 - 1))
 def test_noise_from_truncated_residuals_is_unbiased(sigma, cut, seed):
-    """Residual norms of pairs noisy in both sets, seen only within a gate: σ comes back within 10%."""
+    """Residual norms of pairs noisy in both sets, seen only within a gate: no bias in σ.
+
+    Over 16 replicate sets the mean estimate is σ within 3 standard errors
+    (plus 2%); a tight gate leaves few residuals and a nearly uniform ball,
+    so one estimate alone may be off by more than 10% there.
+    """
     rng = np.random.default_rng(seed)
-    r = np.linalg.norm(rng.normal(0.0, np.sqrt(2.0) * sigma, (4000, 3)), axis=1)
-    est = noise_from_residuals(r, cut * sigma)
-    if cut * sigma < 0.5 ** (1 / 3) * np.median(r):  # the gate hides more than half: unidentifiable
+    if cut < 0.5 ** (1 / 3) * 1.54 * np.sqrt(2.0):  # the gate hides more than half: unidentifiable
         return
-    assert est is not None
-    assert abs(est / sigma - 1.0) < 0.1
+    ests = []
+    for _ in range(16):
+        r = np.linalg.norm(rng.normal(0.0, np.sqrt(2.0) * sigma, (2000, 3)), axis=1)
+        est = noise_from_residuals(r, cut * sigma)
+        assert est is not None
+        ests.append(est / sigma)
+    ests = np.array(ests)
+    assert abs(ests.mean() - 1.0) < 3.0 * ests.std(ddof=1) / 4.0 + 0.02
+    if cut >= 3.5:  # the search's gate and wider: each estimate within 10%
+        assert np.all(np.abs(ests - 1.0) < 0.1)
 
 
 def test_noise_from_residuals_asks_for_a_wider_gate():
@@ -88,6 +99,22 @@ def test_trial_motions_stay_under_their_bound_as_noise_grows(noise, seed):
     assert scored * per_match + triples <= max_work + len(levels) * one_chunk
     if not m:
         assert "reason" in m.info
+
+
+def test_time_limit_stops_the_search_with_a_reason():
+    trial = table2_trial(0.9, noise=0.02, seed=3)
+    m = register(trial.source, trial.target, seed=0, time_limit=1e-3)
+    assert not m
+    assert "time_limit" in m.info["reason"]
+    assert {"stopped": "time limit"}.items() <= m.info["trials"][-1].items()
+    assert m.info["time_s"] < 30.0
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), "60"])
+def test_time_limit_is_checked(bad):
+    trial = table2_trial(0.5, seed=0)
+    with pytest.raises(ValueError, match="time_limit"):
+        register(trial.source, trial.target, time_limit=bad)
 
 
 # -------------------------------------------------------------- pipelines

@@ -85,6 +85,10 @@ def add_run_options(p) -> None:
         help="bound on |t| in data units (with --max-angle)",
     )
     add_noise(p)
+    p.add_argument(
+        "--time-limit", type=float, metavar="SECONDS",
+        help="wall-clock bound on the exact search (default: 60); past it the call fails with its reason",
+    )
     add_verbosity(p)
 
 
@@ -118,7 +122,7 @@ def summary(motion, seconds: float) -> list[str]:
 
 
 def _options(args) -> dict:
-    names = ("max_angle", "max_translation", "noise")
+    names = ("max_angle", "max_translation", "noise", "time_limit")
     opts = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     opts.update(model_options(args))
     return opts

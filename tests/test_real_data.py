@@ -203,3 +203,29 @@ def test_symmetric_object_reports_the_ambiguity():
     m = register(blob, blob[pick] @ R.T + [0.2, 0.0, -0.1], seed=0)
     assert not m.info["ambiguous"]
     assert rotation_error_deg(m.rotation, R) < 0.5
+
+
+@pytest.mark.slow
+def test_partial_overlap_with_clutter_on_real_scans():
+    """Target cropped so that 40% of the source lies on it, 30% clutter in both: the right motion."""
+    from scipy.spatial import cKDTree
+
+    try:
+        target, source, R, t = load_bunny_pair("bun000", "bun315")
+    except DataNotFoundError:
+        pytest.skip("shared bunny scans not available")
+    rng = np.random.default_rng(1)
+    on_target = source @ R.T + t
+    near = cKDTree(target).query(on_target)[0] < 5e-3
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    h = on_target @ u
+    order = np.argsort(h)
+    cut = h[order[np.searchsorted(np.cumsum(near[order]) / len(source), 0.4)]]
+    target = target[target @ u <= cut]
+    assert np.mean(cKDTree(target).query(on_target)[0] < 5e-3) < 0.5
+    clutter = [rng.uniform(p.min(0), p.max(0), (int(0.43 * len(p)), 3)) for p in (source, target)]
+    m = register(np.vstack([source, clutter[0]]), np.vstack([target, clutter[1]]), seed=1)
+    assert m.info["pipeline"] == "scans"
+    assert rotation_error_deg(m.rotation, R) < 1.0
+    assert np.linalg.norm((source.mean(0) @ m.rotation.T + m.translation) - (source.mean(0) @ R.T + t)) < 2e-3

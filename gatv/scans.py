@@ -29,6 +29,7 @@ dense scans) makes the problem fit the method again:
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -49,8 +50,8 @@ from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
-__all__ = ["register_scans", "register_surfaces", "voxel_downsample", "surface_points",
-           "refine_point_to_plane", "plane_noise"]
+__all__ = ["register_scans", "register_surfaces", "match_surfaces", "SurfaceMatch", "voxel_downsample",
+           "surface_points", "refine_point_to_plane", "plane_noise"]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -292,8 +293,9 @@ def register_surfaces(
     check_fraction(confidence, "confidence", open_high=True)
     max_triples = check_int(max_triples, "max_triples", 1, allow_none=True)
     n_judged = check_int(n_judged, "n_judged", 1)
+    if voxel is not None:
+        voxel = check_positive(voxel, "voxel")
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
-    info: dict = {"mode": "scans"}
 
     report(0.0, "surface tokens")
     if clutter:
@@ -305,14 +307,83 @@ def register_surfaces(
     Xs, Ys = X[ix], Y[iy]
     if nys is None:
         nys = _normals(Ys)
-    info["surface_points"] = (int(Xs.shape[0]), int(Ys.shape[0]))
+    prepared = time.perf_counter() - t0
+    match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
+                           confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
+                           n_judged=n_judged, refine=refine, memory_budget=memory_budget,
+                           progress=lambda f, m: report(0.05 + 0.95 * f, m))
+    info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
+    info.update(match.info)
+    # Stage timings from the start of the call.
+    for key in ("t_prepare", "t_trials", "t_judge"):
+        if key in info:
+            info[key] += prepared
+    if not match:
+        return stages.failure(RIGID, info["reason"], info)
+    noise = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
+    # Correspondences index the input points.
+    kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
+    info.update(noise=noise, time_s=time.perf_counter() - t0)
+    report(1.0, f"{kept.shape[0]} correspondences")
+    return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceMatch:
+    """What :func:`match_surfaces` found: the motion, its final pairs and support.
+
+    Falsy, with ``rotation`` and ``translation`` ``None`` and
+    ``info["reason"]``, when no trial motion survived.
+    """
+
+    rotation: np.ndarray | None
+    translation: np.ndarray | None
+    gate: float
+    pairs: np.ndarray  # (K, 2) one-to-one (source row, target row) within ``gate``
+    on_surface: int  # source points within ``gate`` of the target's surface points
+    info: dict
+
+    def __bool__(self) -> bool:
+        return self.rotation is not None
+
+
+#: Source points of the point-to-plane polish (a random subsample of larger scans).
+FINE_SAMPLE = 8000
+
+
+def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float | None = None, seed: int = 0,
+                   min_overlap: float = MIN_OVERLAP, confidence: float = 0.999, max_triples: int | None = None,
+                   feature_tol: float = 0.15, n_judged: int = 4, refine: bool = True,
+                   memory_budget: float | None = None, coarse_points: int = FINE_SAMPLE,
+                   progress=None) -> SurfaceMatch:
+    """Stages 2–5 of :func:`register_surfaces` on points already kept as surface.
+
+    ``Xs``, ``Ys`` are the two scans' surface points (for example rows of
+    :func:`surface_points`) and ``target_normals`` the target's unit normals
+    there, so that a caller registering many subsets of two scans (motion
+    segmentation) votes on each scan once.  Downsampling on one voxel grid
+    of about ``n_points`` target cells, normal-pruned congruent triples
+    (drawn for the share ``min_overlap`` of overlapping points with
+    ``confidence``), tensor voting judging the ``n_judged`` best trials,
+    rivals polished and compared (:data:`RIVAL_SHARE`), point-to-plane ICP
+    with a gate shrinking from a voxel to three point spacings.  Options as
+    in :func:`register_surfaces`; they are not checked again here.  The
+    polish runs on :data:`FINE_SAMPLE` source points, its levels above the
+    finest on ``coarse_points`` of them (fewer: faster, but rivals a degree
+    or two apart may stay apart and be reported as ambiguous).
+    """
+    t0 = time.perf_counter()
+    report = progress if progress is not None else (lambda fraction, message="": None)
+    info: dict = {}
+    none = np.empty((0, 2), np.int64)
     if voxel is None:
         voxel = _voxel_for(Ys, int(n_points))
-    voxel = check_positive(voxel, "voxel")
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
+    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
+    if Xd.shape[0] < 3 or Yd.shape[0] < 3:
+        return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="too few voxels"))
     nx, ny = _normals(Xd), _normals(Yd)
-    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])),
-                t_prepare=time.perf_counter() - t0)
+    info["t_prepare"] = time.perf_counter() - t0
 
     # Trial motions: voxel-sized tolerances; long sides for a stable rotation.
     report(0.1, "trial motions")
@@ -327,70 +398,66 @@ def register_surfaces(
                            min_side=0.25 * diameter, max_matches=256, accept=0,
                            source_normals=nx, target_normals=ny, feature_tol=feature_tol,
                            progress=lambda f, m: report(0.1 + 0.6 * f, m))
-    info.update(triples=trials.n_triples, congruent=trials.n_congruent,
-                t_trials=time.perf_counter() - t0)
+    info.update(triples=trials.n_triples, congruent=trials.n_congruent, t_trials=time.perf_counter() - t0)
     if not len(trials):
-        return stages.failure(RIGID, "no congruent triples", info)
+        return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="no congruent triples"))
 
     # Tensor voting judges the best trials on the downsampled sets.
     report(0.7, "tensor voting")
     P = stages.prepare(Xd, Yd, RIGID)
     tol = gate / 3.5  # so that the judge's gate is one voxel
-    fits = []
-    for matrix in trials.matrices:
-        judged = stages.judge(P, matrix, tol, max_candidates=4)
-        if judged is not None:
-            fits.append(judged.fit)
+    fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices) if j is not None]
     if not fits:
-        return stages.failure(RIGID, "tensor voting found no consistent plane", info)
+        return SurfaceMatch(None, None, voxel, none, 0,
+                            dict(info, reason="tensor voting found no consistent plane"))
     fits.sort(key=lambda f: -f.support)
     best = fits[0]
-    R, t = best.matrix[:3, :3], best.matrix[:3, 3]
     info.update(judged_support=best.support, t_judge=time.perf_counter() - t0)
     rivals = _rivals(best, fits[1:], voxel)
 
-    # Polish: point-to-plane ICP on a subsample with a shrinking gate, using
-    # the tensor-voting normals of the target's surface points.
+    # Polish: point-to-plane ICP with a shrinking gate, using the target's
+    # normals.
     report(0.85, "refine")
     fine = 3.0 * median_spacing(Ys)
     tree = cKDTree(Ys)
     rng_sub = np.random.default_rng(seed)
-    sub = Xs if Xs.shape[0] <= 8000 else Xs[rng_sub.choice(Xs.shape[0], 8000, replace=False)]
+    sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
+    coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
+                                                                          replace=False)]
 
     def polish(R, t):
-        """Point-to-plane ICP with a gate shrinking from a voxel; the final pairs."""
+        """Point-to-plane ICP with a gate shrinking from a voxel; the points brought onto the surface."""
         g = gate
         if refine:
             while True:
-                R, t = refine_point_to_plane(sub, Ys, nys, R, t, g, tree=tree)
+                R, t = refine_point_to_plane(sub if g <= fine else coarse, Ys, target_normals, R, t, g,
+                                             tree=tree)
                 if g <= fine:
                     break
                 g = max(fine, g / 2.0)
-        dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-        ok = np.flatnonzero(np.isfinite(dist))
-        pairs = np.stack([ok, j[ok]], axis=1)
-        # ok.size: source points on the target's surface (within the gate), a
-        # measure that does not favour a motion for landing on the very
-        # sample points (the one-to-one pairs do).
-        return R, t, g, pairs[stages.select_one_to_one(pairs, dist[ok])], int(ok.size)
+        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+        # Source points on the target's surface (within the gate): a measure
+        # that does not favour a motion for landing on the very sample
+        # points (the one-to-one pairs do).
+        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
 
-    R, t, g, kept, on = polish(R, t)
+    R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3])
     info["ambiguous"] = False
     for rival in rivals:
         # Judged nearly as well: polish it too and compare at full resolution.
-        Rr, tr, gr, kr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
+        Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
         if (rotation_angle_deg(Rr @ R.T) < 1.0
                 and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
             continue  # polishing brought it onto the best motion
         if on_r > on:
-            R, t, g, kept, on, Rr, on_r = Rr, tr, gr, kr, on_r, R, on
+            R, t, g, on, Rr, on_r = Rr, tr, gr, on_r, R, on
         if on_r >= RIVAL_SHARE * on:
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
-    noise = plane_noise(Xs @ R.T + t, Ys, nys, kept)
-    # Correspondences index the input points.
-    kept = np.stack([ix[kept[:, 0]], iy[kept[:, 1]]], axis=1)
-    info.update(final_gate=g, noise=noise, time_s=time.perf_counter() - t0)
-    report(1.0, f"{kept.shape[0]} correspondences")
-    return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(R, t), kept), info)
+    dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+    ok = np.flatnonzero(np.isfinite(dist))
+    pairs = np.stack([ok, j[ok]], axis=1)
+    pairs = pairs[stages.select_one_to_one(pairs, dist[ok])]
+    info.update(final_gate=g, on_surface=on)
+    return SurfaceMatch(R, t, g, pairs, on, info)

@@ -45,10 +45,8 @@ from scipy.spatial import cKDTree
 from .. import stages
 from .._validation import check_fraction, check_int, check_positive, check_progress, seed_int
 from ..candidates import median_spacing
-from ..congruent import TargetIndex, n_triples_needed, trial_motions
 from ..errors import InputError
 from ..fitting import fit_rigid
-from ..ga import rotation_angle_deg
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from .segmentation import Segmentation
@@ -317,28 +315,12 @@ def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     return ScanSurfaces(mask, normals)
 
 
-def _voxel_for(points: np.ndarray, n_points: int) -> float:
-    """Voxel size leaving about ``n_points`` occupied cells (bisection in log scale, as :mod:`gatv.scans`)."""
-    ext = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    lo, hi = ext / 2000.0, ext / 2.0
-    for _ in range(24):
-        mid = np.sqrt(lo * hi)
-        if len(np.unique(np.floor(points / mid).astype(np.int64), axis=0)) > n_points:
-            lo = mid
-        else:
-            hi = mid
-        if hi / lo < 1.05:
-            break
-    return float(np.sqrt(lo * hi))
-
-
 #: Options of :func:`register_part` a user may set through ``scan_options``.
 PART_OPTIONS = ("n_points", "voxel", "min_overlap", "feature_tol", "clutter")
-#: Source points of the coarse levels of the point-to-plane polish: they only
-#: bring the motion within the next, halved gate; the finest level uses
-#: :data:`FINE_SAMPLE` points, as :func:`gatv.scans.register_surfaces` does.
+#: Source points of the coarse levels of each round's point-to-plane polish
+#: (:func:`gatv.scans.match_surfaces`' ``coarse_points``): they only bring the
+#: motion within the next, halved gate, and a round's motion is judged again.
 COARSE_SAMPLE = 2000
-FINE_SAMPLE = 8000
 
 
 def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray, surf_x: ScanSurfaces,
@@ -348,89 +330,33 @@ def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray
                   min_overlap: float = 0.4, feature_tol: float = 0.15, clutter: bool = True):
     """The surface registration of :func:`gatv.scans.register_surfaces` for rows ``src`` of ``X`` onto rows ``tgt`` of ``Y``.
 
-    The same stages (voxel grid of about ``n_points`` target cells, congruent
-    triples pruned by the normals, tensor voting judges the best
-    ``n_judged``, rivals polished and compared, point-to-plane ICP with a
-    gate shrinking from a voxel to three point spacings), on the surface
-    points and normals voted once on each whole scan (:func:`scan_surfaces`)
-    instead of on every subset again.  The polish's coarse levels use
-    :data:`COARSE_SAMPLE` source points, its finest :data:`FINE_SAMPLE`.
+    :func:`gatv.scans.match_surfaces` (voxel grid of about ``n_points``
+    target cells, congruent triples pruned by the normals, tensor voting
+    judges the best ``n_judged``, rivals polished and compared,
+    point-to-plane ICP with a gate shrinking from a voxel to three point
+    spacings) on the surface points and normals voted once on each whole
+    scan (:func:`scan_surfaces`) instead of on every subset again.  A part
+    is one object's share of the scene, so the triples are drawn for an
+    overlap of ``min_overlap`` = 0.4 of it by default.
 
     Returns ``(R, t, info)`` with ``target ≈ R x + t``, or ``None`` with a
     reason in ``info`` when no trial motion is found.
     """
-    from ..scans import RIVAL_SHARE, refine_point_to_plane, voxel_downsample
-    from ..voting import vote
+    from ..scans import match_surfaces
 
-    info: dict = {}
     if clutter:
         src = src[surf_x.mask[src]]
         tgt = tgt[surf_y.mask[tgt]]
     if src.size < 10 or tgt.size < 10:
         return None, {"reason": "too few surface points"}
-    Xs, Ys, nys = X[src], Y[tgt], surf_y.normals[tgt]
-    if voxel is None:
-        voxel = _voxel_for(Ys, int(n_points))
-    Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
-    if Xd.shape[0] < 3 or Yd.shape[0] < 3:
-        return None, {"reason": "too few voxels", "voxel": voxel}
-    nx, ny = np.asarray(vote(Xd).normals), np.asarray(vote(Yd).normals)
-    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
-    index = TargetIndex(Yd, voxel, memory_budget=memory_budget)
-    diameter = float(np.linalg.norm(Xd.max(axis=0) - Xd.min(axis=0)))
-    budget = n_triples_needed(float(min_overlap), confidence)
-    if max_triples is not None:
-        budget = min(budget, max_triples)
-    trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=np.random.default_rng(seed),
-                           keep=n_judged, min_side=0.25 * diameter, max_matches=256, accept=0,
-                           source_normals=nx, target_normals=ny, feature_tol=feature_tol)
-    info.update(triples=trials.n_triples, congruent=trials.n_congruent)
-    if not len(trials):
-        return None, dict(info, reason="no congruent triples")
-    P = stages.prepare(Xd, Yd, RIGID)
-    fits = [j.fit for j in (stages.judge(P, m, voxel / 3.5, max_candidates=4) for m in trials.matrices)
-            if j is not None]
-    if not fits:
-        return None, dict(info, reason="tensor voting found no consistent plane")
-    fits.sort(key=lambda f: -f.support)
-    best = fits[0]
-    R0, t0 = best.matrix[:3, :3], best.matrix[:3, 3]
-    rivals = [f for f in fits[1:] if f.support >= RIVAL_SHARE * best.support
-              and (rotation_angle_deg(f.matrix[:3, :3] @ R0.T) > 5.0
-                   or float(np.linalg.norm(f.matrix[:3, 3] - t0)) > 3.0 * voxel)]
-
-    fine = 3.0 * median_spacing(Ys)
-    tree = cKDTree(Ys)
-    rng = np.random.default_rng(seed)
-    sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
-    coarse = sub if sub.shape[0] <= COARSE_SAMPLE else sub[rng.choice(sub.shape[0], COARSE_SAMPLE, replace=False)]
-
-    def polish(R, t):
-        g = voxel
-        if refine:
-            while True:
-                R, t = refine_point_to_plane(sub if g <= fine else coarse, Ys, nys, R, t, g, tree=tree)
-                if g <= fine:
-                    break
-                g = max(fine, g / 2.0)
-        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
-
-    R, t, g, on = polish(R0, t0)
-    info["ambiguous"] = False
-    for rival in rivals:
-        Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
-        if (rotation_angle_deg(Rr @ R.T) < 1.0
-                and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
-            continue
-        if on_r > on:
-            R, t, g, on, Rr, on_r = Rr, tr, gr, on_r, R, on
-        if on_r >= RIVAL_SHARE * on:
-            info["ambiguous"] = True
-            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
-            break
-    info.update(final_gate=g, on_surface=on)
-    return (R, t), info
+    match = match_surfaces(X[src], Y[tgt], surf_y.normals[tgt], n_points=n_points, voxel=voxel, seed=seed,
+                           min_overlap=min_overlap, confidence=confidence, max_triples=max_triples,
+                           feature_tol=feature_tol, n_judged=n_judged, refine=refine,
+                           memory_budget=memory_budget, coarse_points=COARSE_SAMPLE)
+    keys = ("voxel", "n_downsampled", "triples", "congruent", "reason", "ambiguous", "rival", "final_gate",
+            "on_surface")
+    info = {k: match.info[k] for k in keys if k in match.info}
+    return ((match.rotation, match.translation) if match else None), info
 
 
 def segment_scans(source, target, *, max_motions: int | None = None, seed=0, confidence: float = 0.999,

@@ -810,7 +810,7 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                 while pending and (chunk or len(where) < 2 * threads):
                     queue.add(submit())
 
-            threads = _threads(client)
+            threads, counted = _threads(client), time.monotonic()
             queue = distributed.as_completed()
             fill(queue)
             for future in queue:
@@ -825,7 +825,8 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                 for k, record in zip(ks, records):
                     finish(k, record)
                 if pending:
-                    threads = _threads(client)  # workers may have joined or left
+                    if time.monotonic() - counted > 1.0:  # workers may have joined or left; ask the
+                        threads, counted = _threads(client), time.monotonic()  # scheduler once a second
                     fill(queue)
     summary = out / "summary.csv"
     _write_summary(summary, results, tasks)

@@ -21,6 +21,15 @@ gatv.voting
 
 from __future__ import annotations
 
+import os
+
+# Numba's parallel kernels run on OpenMP (libgomp), whose idle threads spin
+# for a while before sleeping.  On a busy machine the spinning threads take
+# the cores from the working ones: a batch of Table-2 calls took 3-5x longer
+# beside one other 2-thread job, and no less time on an idle machine with
+# passive waiting.  Set before numba starts its threads; a user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 from .errors import InputError
 from .ga import Rotor
 from .models import Motion, get_model
@@ -28,8 +37,17 @@ from .motion import RigidMotion, fit_rigid
 
 __version__ = "0.1.0"
 
-__all__ = ["Rotor", "Motion", "RigidMotion", "InputError", "get_model", "fit_rigid", "register",
-           "register_scans", "__version__"]
+__all__ = [
+    "InputError",
+    "Motion",
+    "RigidMotion",
+    "Rotor",
+    "__version__",
+    "fit_rigid",
+    "get_model",
+    "register",
+    "register_scans",
+]
 
 
 def __getattr__(name):

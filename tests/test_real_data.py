@@ -229,3 +229,18 @@ def test_partial_overlap_with_clutter_on_real_scans():
     assert m.info["pipeline"] == "scans"
     assert rotation_error_deg(m.rotation, R) < 1.0
     assert np.linalg.norm((source.mean(0) @ m.rotation.T + m.translation) - (source.mean(0) @ R.T + t)) < 2e-3
+
+
+@pytest.mark.parametrize("given", [None, "ACTIVE"])
+def test_openmp_threads_wait_passively_unless_the_user_says(given):
+    """gatv sets OMP_WAIT_POLICY=PASSIVE before numba starts its threads; a user's own value wins."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    out = subprocess.run([sys.executable, "-c", "import os, gatv; print(os.environ['OMP_WAIT_POLICY'])"],
+                         env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert out == (given or "PASSIVE")

@@ -332,7 +332,7 @@ def register(
         Bytes; inputs needing more fail at once (see
         :func:`gatv._validation.check_memory`).
     max_work : float or None, default: :data:`MAX_WORK`
-        Bound on the exact search's work (units of about a microsecond of
+        Bound on the exact search's work (units of a few microseconds of
         one core); past it the call returns a falsy result whose
         ``info["reason"]`` says so.  ``None``: no bound.
     time_limit : float or None, default: :data:`TIME_LIMIT`

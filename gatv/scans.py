@@ -455,9 +455,6 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
-    dist, j = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-    ok = np.flatnonzero(np.isfinite(dist))
-    pairs = np.stack([ok, j[ok]], axis=1)
-    pairs = pairs[stages.select_one_to_one(pairs, dist[ok])]
+    pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
     info.update(final_gate=g, on_surface=on)
     return SurfaceMatch(R, t, g, pairs, on, info)

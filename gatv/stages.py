@@ -46,6 +46,7 @@ __all__ = [
     "grow_tolerance",
     "noise_from_residuals",
     "settle_noise",
+    "nearest_pairs",
     "regate",
     "weighted_pose",
     "Judged",
@@ -457,13 +458,18 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
     return fit, sigma
 
 
+def nearest_pairs(moved: np.ndarray, tree: cKDTree, gate_radius: float) -> np.ndarray:
+    """One-to-one ``(row of moved, point of tree)`` pairs: each moved point's nearest within ``gate_radius``, cheapest first."""
+    dist, j = tree.query(moved, k=1, distance_upper_bound=gate_radius)
+    ok = np.flatnonzero(np.isfinite(dist))
+    pairs = np.stack([ok, j[ok]], axis=1)
+    return pairs[one_to_one(pairs, dist[ok])]
+
+
 def regate(problem: Problem, fit: Fit, gate_radius: float) -> Fit:
     """The one-to-one nearest pairs within ``gate_radius`` of ``fit``'s motion, which stays as it is."""
     A, t = split_matrix(fit.matrix)
-    dist, j = problem.tree.query(problem.source @ A.T + t, k=1, distance_upper_bound=gate_radius)
-    ok = np.flatnonzero(np.isfinite(dist))
-    pairs = np.stack([ok, j[ok]], axis=1)
-    return Fit(fit.matrix, pairs[one_to_one(pairs, dist[ok])])
+    return Fit(fit.matrix, nearest_pairs(problem.source @ A.T + t, problem.tree, gate_radius))
 
 
 def weighted_pose(problem: Problem, fit: Fit, sigma: float, rounds: int = 8) -> Fit:

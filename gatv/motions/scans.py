@@ -237,19 +237,19 @@ def residual_noise(X: np.ndarray, Y: np.ndarray, R: np.ndarray, t: np.ndarray, p
     local normals (as :func:`gatv.scans.plane_noise`): what
     :func:`local_noise` measures on each scan when the motion is right.
     """
+    from ..scans import plane_noise
+
     if pairs.shape[0] < 4:
         return float("inf")
     n = _unit_normals(Y, tree, pairs[:, 1])
-    r = np.einsum("ij,ij->i", X[pairs[:, 0]] @ R.T + t - Y[pairs[:, 1]], n)
-    return float(1.4826 * np.median(np.abs(r - np.median(r))) / np.sqrt(2.0))
+    rows = np.arange(pairs.shape[0])
+    return float(plane_noise(X[pairs[:, 0]] @ R.T + t, Y[pairs[:, 1]], n, np.stack([rows, rows], axis=1)))
 
 
 def _pairs(X, Y, R, t, gate, src, tgt, tree):
     """One-to-one nearest pairs (indices into the full sets) of ``src`` landing within ``gate`` of ``tgt``."""
-    d, j = tree.query(X[src] @ R.T + t, k=1, distance_upper_bound=gate)
-    ok = np.flatnonzero(np.isfinite(d))
-    pairs = np.stack([src[ok], tgt[j[ok]]], axis=1)
-    return pairs[stages.select_one_to_one(pairs, d[ok])]
+    rows = stages.nearest_pairs(X[src] @ R.T + t, tree, gate)
+    return np.stack([src[rows[:, 0]], tgt[rows[:, 1]]], axis=1)
 
 
 def regions(points: np.ndarray, link: float, *, min_points: int = 1) -> list[np.ndarray]:

@@ -35,14 +35,14 @@ from .._validation import frozen_array as _frozen
 from ..errors import InputError
 
 __all__ = [
-    "sample_plane",
-    "twist",
+    "NonRigidTrial",
     "bend",
     "elastic",
+    "nonrigid_trial",
     "piecewise_rigid",
     "rigid",
-    "NonRigidTrial",
-    "nonrigid_trial",
+    "sample_plane",
+    "twist",
 ]
 
 

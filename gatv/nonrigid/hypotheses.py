@@ -30,22 +30,23 @@ from ..candidates import one_to_one
 from .motion import ThinPlateWarp
 
 __all__ = [
-    "COARSE_TO_FINE",
-    "ANNEAL_MAX_POINTS",
     "ANNEAL_CONTROL",
+    "ANNEAL_LAMBDA",
+    "ANNEAL_MAX_POINTS",
+    "ANNEAL_OUTLIER",
     "ANNEAL_RATE",
     "ANNEAL_STEPS",
-    "ANNEAL_LAMBDA",
-    "ANNEAL_OUTLIER",
+    "COARSE_TO_FINE",
     "Matches",
     "affine_residuals",
-    "local_affine_predict",
-    "match_nearest",
-    "grow_rings",
-    "polish",
+    "anneal",
     "coarse_to_fine",
     "farthest_points",
-    "anneal",
+    "grow_rings",
+    "local_affine_predict",
+    "match_nearest",
+    "polish",
+    "window_centres",
 ]
 
 #: Gate (times the target scale) and relative smoothing (times extent²) of
@@ -219,6 +220,37 @@ def coarse_to_fine(X, Y, tree_y, warp, scale: float, extent2: float, floor: floa
             return _NO_PAIRS.copy()
         warp = ThinPlateWarp(xs[good], (ys - xs)[good], rel * extent2)
     return pairs
+
+
+# ------------------------------------------------------------ local windows
+def window_centres(P, k: int, n: int) -> np.ndarray:
+    """Up to ``n`` centres of local windows of ``k`` points, densest first, windows not overlapping.
+
+    Points are taken in order of their window's radius (the distance to
+    their ``k``-th nearest point, smallest first: a sampled surface or
+    curve is denser than outliers scattered through a volume or a plane,
+    and a radius over ``k`` points is a steadier density estimate than a
+    nearest neighbour's); a point becomes a centre when it lies outside
+    every window chosen so far (farther from each centre than that
+    centre's radius).  Deterministic (stable order).
+
+    Returns
+    -------
+    (n',) ndarray of int, n' <= n
+    """
+    m = P.shape[0]
+    k = min(k, m)
+    radius = cKDTree(P).query(P, k=k)[0].reshape(m, -1)[:, -1]
+    free = np.ones(m, bool)
+    chosen = []
+    for i in np.argsort(radius, kind="stable"):
+        if not free[i]:
+            continue
+        chosen.append(int(i))
+        if len(chosen) == n:
+            break
+        free &= np.sum((P - P[i]) ** 2, axis=1) > radius[i] ** 2
+    return np.asarray(chosen, np.int64)
 
 
 # ------------------------------------------------------------ anneal

@@ -76,6 +76,7 @@ from .stages import (
     fit_local_motions,
     joint_tokens,
     local_eq41,
+    local_hypothesis,
     refine_winner,
     rigid_hypothesis,
     select_seeds,
@@ -274,6 +275,13 @@ def register(
     return _register_direct(X, Y, settings, report, t_start)
 
 
+def wants_local_start(settings: Settings, best: str | None) -> bool:
+    """Try the *local* hypothesis (:func:`gatv.nonrigid.stages.local_hypothesis`): when growing, not
+    ``prealign=False``, and the best so far is none or a fallback it may beat (the annealed or the
+    rigid start: a bent body has no dominant rigid motion)."""
+    return settings.grow and settings.prealign is not False and best in (None, "anneal", "rigid")
+
+
 def wants_multiscale(X, Y, settings: Settings) -> bool:
     """The direct solve would vote on more than ``max_pairs`` candidate pairs with no bound given."""
     return (settings.max_displacement is None and settings.max_candidates is None
@@ -342,6 +350,14 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
                              {"angle_deg": rigid.angle_deg, "support": rigid.support})
         if rigid is not None:
             hypotheses["rigid"] = rigid.pairs
+            verdict = choose_hypothesis(problem, hypotheses)
+            info["hypotheses"] = verdict.summary()
+    if wants_local_start(settings, verdict.best):
+        report(0.85, "local windows")
+        local = local_hypothesis(problem, settings)
+        info["local_windows"] = list(local.windows)
+        if local.pairs.shape[0] >= 5:
+            hypotheses["local"] = local.pairs
             verdict = choose_hypothesis(problem, hypotheses)
             info["hypotheses"] = verdict.summary()
     info["hypothesis"] = verdict.best

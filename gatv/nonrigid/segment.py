@@ -16,6 +16,7 @@ motions is not given.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -187,6 +188,7 @@ def segment(
             reason = "fewer unexplained points than a motion needs"
             break
         report(len(motions) / max_motions, f"round {len(rounds) + 1}: {rs.size} x {rt.size} points")
+        t0 = time.perf_counter()
         try:
             m = register(X[rs], Y[rt], seed=base_seed + len(rounds), strain=strain, **options)
         except ValueError as exc:  # e.g. the remaining points are collinear
@@ -196,7 +198,8 @@ def segment(
             raise
         record = {"support": m.support, "hypothesis": m.info.get("hypothesis"),
                   "hypotheses": m.info.get("hypotheses"), "prealign": m.info.get("prealign"),
-                  "windows": m.info.get("windows"), "coarse": m.info.get("coarse_hypothesis")}
+                  "windows": m.info.get("windows"), "coarse": m.info.get("coarse_hypothesis"),
+                  "local_windows": m.info.get("local_windows"), "time_s": time.perf_counter() - t0}
         rounds.append(record)
         if m.support < least:
             reason = m.info.get("reason", "no motion beats chance among the remaining points")

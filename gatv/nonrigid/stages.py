@@ -38,44 +38,50 @@ from .hypotheses import (
     grow_rings,
     match_nearest,
     polish,
+    window_centres,
 )
 from .motion import ThinPlateWarp
 
 __all__ = [
+    "ANNEAL_PREFERENCE",
+    "AUTO_RIGID_TRIPLES",
+    "CHANCE_SHARE",
+    "LOCAL_GATE",
+    "LOCAL_WINDOWS",
+    "LOCAL_WINDOW_POINTS",
+    "MIN_SHARE",
     "SMOOTHING_GRID",
     "VERIFY_GATE",
-    "CHANCE_SHARE",
-    "MIN_SHARE",
-    "AUTO_RIGID_TRIPLES",
-    "ANNEAL_PREFERENCE",
-    "Settings",
-    "Problem",
     "Candidates",
-    "Votes",
     "LocalCheck",
-    "Seeds",
-    "Score",
-    "RigidStart",
-    "Verdict",
     "LocalFit",
-    "target_scale",
-    "candidate_pairs",
-    "joint_tokens",
-    "extract_curves",
-    "tensor_votes",
-    "local_eq41",
-    "select_seeds",
-    "voting_hypothesis",
-    "coarse_hypothesis",
+    "LocalStart",
+    "Problem",
+    "RigidStart",
+    "Score",
+    "Seeds",
+    "Settings",
+    "Verdict",
+    "Votes",
     "anneal_hypothesis",
-    "wants_rigid_start",
-    "rigid_hypothesis",
-    "verify_matches",
+    "candidate_pairs",
     "choose_hypothesis",
-    "refine_winner",
     "choose_smoothing",
-    "local_motions",
+    "coarse_hypothesis",
+    "extract_curves",
     "fit_local_motions",
+    "joint_tokens",
+    "local_eq41",
+    "local_hypothesis",
+    "local_motions",
+    "refine_winner",
+    "rigid_hypothesis",
+    "select_seeds",
+    "target_scale",
+    "tensor_votes",
+    "verify_matches",
+    "voting_hypothesis",
+    "wants_rigid_start",
 ]
 
 #: Relative smoothing values tried by the cross-validation (times extent²).
@@ -91,6 +97,17 @@ AUTO_RIGID_TRIPLES = 300
 #: The annealed hypothesis replaces another verified one only with this many
 #: times its support (its smooth field blurs creases).
 ANNEAL_PREFERENCE = 2.0
+#: Source points of a window of the *local* hypothesis (:func:`local_hypothesis`): a patch of
+#: about 3.5 spacings' radius on a surface (π 3.5² ≈ 40), small enough that a bend or a twist
+#: leaves it rigid within the rigid search's tolerances, large enough for a triple search.
+LOCAL_WINDOW_POINTS = 40
+#: Windows of the local hypothesis tried, densest first, before it gives up.
+LOCAL_WINDOWS = 16
+#: Match gate of a window's rigid search on exact data, times the window's spacing: a wrong
+#: target lands that close to a predicted position with probability about 0.1² per target as
+#: dense as the window, so chance matches stay under one in a window; a bend or twist leaves the
+#: window's core rigid that closely (the rest is grown, following the warp).
+LOCAL_GATE = 0.1
 
 
 # ------------------------------------------------------------ values
@@ -542,6 +559,72 @@ def rigid_hypothesis(problem: Problem, settings: Settings) -> RigidStart | None:
     pairs = coarse_to_fine(problem.source, problem.target, problem.tree, rigid.transform,
                            problem.scale, problem.extent2, problem.noise_floor)
     return RigidStart(rigid.angle_deg, rigid.support, pairs)
+
+
+@dataclass(frozen=True, eq=False)
+class LocalStart:
+    """The *local* hypothesis: windows tried, and the grown matches of the best one.
+
+    ``windows`` holds one record per window (its centre row, the rigid
+    search's angle and support, the grown matches' support and chance).
+    """
+
+    pairs: np.ndarray
+    windows: tuple
+
+
+def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
+    """The *local* hypothesis: rigid registration of local source windows, grown (section 5.1, locally).
+
+    A locally rigid motion with no dominant rigid part (a bar bent through
+    60° and turned) puts no large share of the points on one rigid motion,
+    so the global rigid start finds a wrong one; but a small window of the
+    source moves rigidly.  Windows of ``LOCAL_WINDOW_POINTS`` source points
+    (:func:`gatv.nonrigid.hypotheses.window_centres`: densest first, not
+    overlapping) are registered against the whole target by
+    :func:`gatv.register` (the congruent-triple search, bounded to
+    ``AUTO_RIGID_TRIPLES`` triples, its match gate ``LOCAL_GATE`` window
+    spacings, or ``3.5 noise`` when larger), their matches grown ring by ring by
+    local affine maps (:func:`gatv.nonrigid.hypotheses.grow_rings`, which
+    follows the bend) and polished, and the result verified against chance
+    (:func:`verify_matches`).  The first window whose grown matches count
+    (as in :func:`choose_hypothesis`) ends the search; otherwise the best
+    supported of ``LOCAL_WINDOWS`` windows is returned.  Wrong windows grow
+    little: their matches have no consistent continuation.
+    """
+    from ..registration import register as rigid_register
+
+    X, Y, tree, gate = problem.source, problem.target, problem.tree, problem.verify_gate
+    least = max(4, MIN_SHARE * problem.n_smaller)
+    k = min(LOCAL_WINDOW_POINTS, X.shape[0])
+    _, near = cKDTree(X).query(X, k=k)
+    near = near.reshape(X.shape[0], -1)
+    best, best_support = np.empty((0, 2), np.int64), -1
+    records = []
+    for c in window_centres(X, k, LOCAL_WINDOWS):
+        patch = near[c]
+        record = {"centre": int(c), "support": 0}
+        records.append(record)
+        tolerance = max(settings.noise or 0.0, LOCAL_GATE * median_spacing(X[patch]) / 3.5)
+        try:
+            rigid = rigid_register(X[patch], Y, model=settings.model, seed=settings.seed,
+                                   noise=tolerance, max_triples=AUTO_RIGID_TRIPLES)
+        except ValueError:  # a degenerate window (collinear points)
+            continue
+        if not rigid:
+            continue
+        seeds = np.column_stack([patch[rigid.correspondences[:, 0]], rigid.correspondences[:, 1]])
+        record.update(angle_deg=round(float(rigid.angle_deg), 2), rigid_support=int(rigid.support))
+        if seeds.shape[0] < 3:
+            continue
+        grown = polish(X, Y, tree, grow_rings(X, Y, tree, seeds, gate, settings.neighbours), gate)
+        score = verify_matches(problem, grown)
+        record.update(support=score.support, chance=round(float(score.chance), 2))
+        if score.support > best_support:
+            best, best_support = grown, score.support
+        if score.support >= least and score.chance <= CHANCE_SHARE * score.support:
+            break
+    return LocalStart(best, tuple(records))
 
 
 # ------------------------------------------------------------ 6. verification

@@ -264,6 +264,7 @@ def register(
         prealign=prealign,
         memory_budget=memory_budget,
         model=model,
+        local=prealign is not False,
     )
     report = check_progress(progress)
     options = {"coarse_points": check_int(coarse_points, "coarse_points", 50),
@@ -276,10 +277,11 @@ def register(
 
 
 def wants_local_start(settings: Settings, best: str | None) -> bool:
-    """Try the *local* hypothesis (:func:`gatv.nonrigid.stages.local_hypothesis`): when growing, not
-    ``prealign=False``, and the best so far is none or a fallback it may beat (the annealed or the
-    rigid start: a bent body has no dominant rigid motion)."""
-    return settings.grow and settings.prealign is not False and best in (None, "anneal", "rigid")
+    """Try the *local* hypothesis (:func:`gatv.nonrigid.stages.local_hypothesis`): when growing,
+    ``settings.local`` (not ``prealign=False``; the full-resolution windows keep it while they turn
+    the global rigid start off), and the best so far is none or a fallback it may beat (the
+    annealed or the rigid start: a bent body has no dominant rigid motion)."""
+    return settings.grow and settings.local and best in (None, "anneal", "rigid")
 
 
 def wants_multiscale(X, Y, settings: Settings) -> bool:
@@ -441,11 +443,15 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # 2.–3. placement of the full-resolution windows: first the identity (after any
     # pre-alignment), and the coarse solve only when no identity-placed window beats chance
     tree_x = cKDTree(X)
+    # windows hold the structure's rows only (outliers scattered through the volume would fill a
+    # ball around a surface point), centred on the denser half of the coarse subsample
+    tree_xd = cKDTree(X[dx])
+    core = _core(X, dx, tree_xd, si)
     margin = 3.0 * coarse_spacing + floor
     identity = _identity
     tried: list = []
-    by_identity = _window_order(X, None, si, MAX_WINDOWS)
-    seeds, local = _seed_windows(X, Y, tree_x, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
+    by_identity = _window_order(X, None, core, MAX_WINDOWS)
+    seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
                                  settings, window_points, report, tried, "identity")
     coarse = None
     if seeds is None:
@@ -459,11 +465,11 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         info.update(coarse_hypothesis=coarse.info.get("hypothesis"), coarse_support=coarse.support,
                     time_coarse_s=time.perf_counter() - t0)
         if coarse:  # identity windows already failed: place by the coarse warp
-            order = _window_order(X, X[si[coarse.correspondences[:, 0]]], si, MAX_WINDOWS)
-            seeds, local = _seed_windows(X, Y, tree_x, tree_y, order, coarse.warp, margin, settings,
+            order = _window_order(X, X[si[coarse.correspondences[:, 0]]], core, MAX_WINDOWS)
+            seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, order, coarse.warp, margin, settings,
                                          window_points, report, tried, "coarse")
         else:  # nothing to place by: the identity's other windows
-            seeds, local = _seed_windows(X, Y, tree_x, tree_y, by_identity[IDENTITY_WINDOWS:], identity,
+            seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[IDENTITY_WINDOWS:], identity,
                                          margin, settings, window_points, report, tried, "identity")
     info.update(coarse_points=(int(si.size), int(ti.size)), coarse_spacing=coarse_spacing,
                 windows=tried, placement=tried[-1]["placement"] if seeds is not None else None)
@@ -528,23 +534,39 @@ def _identity(p):
     return np.array(p, dtype=float)
 
 
-def _seed_windows(X, Y, tree_x, tree_y, centres, warp, margin: float, settings, window_points: int,
+def _core(X, dx, tree_xd, si) -> np.ndarray:
+    """The rows of the coarse subsample ``si`` whose 8th neighbour among the structure's rows ``dx``
+    is at most the median such distance of ``si``: window centres on the structure, not among the
+    outliers that pass :func:`multiscale.dense_rows` near it.  All of ``si`` when fewer than 8 rows."""
+    if dx.size <= 9 or si.size < 2:
+        return si
+    r = tree_xd.query(X[si], k=9)[0][:, -1]
+    core = si[r <= np.median(r)]
+    return core if core.size >= 2 else si
+
+
+def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, settings, window_points: int,
                   report, tried: list, placement: str):
     """The direct mode of section 5.1 on full-resolution windows at ``centres``, in order; the first
     whose result beats chance and matches ``MIN_WINDOW_SHARE`` of its smaller set gives the seeds.
+    A window's source rows are the ``window_points`` rows of ``rows_x`` (``tree_x`` is their k-d
+    tree) nearest the centre; its target rows all within that radius plus ``margin`` of the centre
+    moved by ``warp``.  The global rigid start is off in a window; the local windows are not.
 
     Returns ``(seeds, local)``: seeds as (K, 2) rows of ``X``, ``Y`` and the window's
     :class:`NonRigidMotion`, or ``(None, None)``.  Appends one record per window to ``tried``.
     """
     from dataclasses import replace
 
-    from . import multiscale as ms
 
-    k = min(X.shape[0], window_points)
+    k = min(rows_x.size, window_points)
     for c in centres:
         t0 = time.perf_counter()
-        radius = float(tree_x.query(X[c], k=k)[0][-1])
-        src, tgt = ms.window(X, Y, tree_x, tree_y, X[c], warp, radius, margin)
+        dist, near = tree_x.query(X[c], k=k)
+        radius = float(np.atleast_1d(dist)[-1])
+        src = np.sort(rows_x[np.atleast_1d(near)])
+        moved = warp(X[c][None])[0]
+        tgt = np.sort(np.asarray(tree_y.query_ball_point(moved, radius + margin), np.int64))
         report(0.05 + 0.05 * len(tried), f"window {len(tried) + 1} ({placement}): {src.size} x {tgt.size} points")
         record = {"placement": placement, "source": int(src.size), "target": int(tgt.size), "support": 0}
         tried.append(record)

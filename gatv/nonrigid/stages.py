@@ -131,6 +131,7 @@ class Settings:
     prealign: bool | str
     memory_budget: float | None
     model: str = "rigid"
+    local: bool = True  # try the local hypothesis when nothing counts (not with prealign=False)
 
     @property
     def noise_floor(self) -> float:

@@ -13,7 +13,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ._fit_kernels import kabsch3, umeyama3
+from ._fit_kernels import triangle_pose, umeyama3
+
+# Defaults of the optional array arguments (no visiting order, no occupancy grid).
+_NO_VISIT = np.zeros(0, np.int64)
+_NO_OCC = np.zeros(0, np.uint8)
+_ORIGIN = np.zeros(3)
+_DIMS = np.ones(3, np.int64)
 
 
 @njit(cache=True)
@@ -159,32 +165,103 @@ def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
 
 
 @njit(cache=True)
+def build_occupancy(points, origin, cell, dims, radius):
+    """Cells of a dense grid that some point's ball of ``radius`` meets.
+
+    Returns a ``uint8`` array over ``dims`` cells of size ``cell`` from
+    ``origin``: 1 where the cell's box comes within ``radius`` of a point.
+    A position in a 0 cell has no point within ``radius`` (a sure miss, one
+    memory read); in a 1 cell it may (:func:`nearest_in_grid` decides).
+    """
+    occ = np.zeros(dims[0] * dims[1] * dims[2], np.uint8)
+    reach = radius * (1.0 + 1e-9) + cell * 1e-9  # rounding slack: a sure miss must be sure
+    r2 = reach * reach
+    for i in range(points.shape[0]):
+        p = points[i]
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        for a in range(3):
+            lo[a] = max(int(np.floor((p[a] - reach - origin[a]) / cell)), 0)
+            hi[a] = min(int(np.floor((p[a] + reach - origin[a]) / cell)), dims[a] - 1)
+        for ix in range(lo[0], hi[0] + 1):
+            dx = max(origin[0] + ix * cell - p[0], 0.0, p[0] - origin[0] - (ix + 1) * cell)
+            for iy in range(lo[1], hi[1] + 1):
+                dy = max(origin[1] + iy * cell - p[1], 0.0, p[1] - origin[1] - (iy + 1) * cell)
+                for iz in range(lo[2], hi[2] + 1):
+                    dz = max(origin[2] + iz * cell - p[2], 0.0, p[2] - origin[2] - (iz + 1) * cell)
+                    if dx * dx + dy * dy + dz * dz <= r2:
+                        occ[(ix * dims[1] + iy) * dims[2] + iz] = 1
+    return occ
+
+
+@njit(cache=True)
+def maybe_occupied(p, occ, origin, cell, dims):
+    """False when ``p`` lies in a 0 cell of :func:`build_occupancy` or outside its grid."""
+    if occ.shape[0] == 0:
+        return True
+    ix = int(np.floor((p[0] - origin[0]) / cell))
+    iy = int(np.floor((p[1] - origin[1]) / cell))
+    iz = int(np.floor((p[2] - origin[2]) / cell))
+    if ix < 0 or iy < 0 or iz < 0 or ix >= dims[0] or iy >= dims[1] or iz >= dims[2]:
+        return False
+    return occ[(ix * dims[1] + iy) * dims[2] + iz] != 0
+
+
+@njit(cache=True)
 def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, need=0,
-                  visit=np.zeros(0, np.int64), n_pre=0, pre_need=0):
+                  visit=_NO_VISIT, slope=0.0, offset=0.0):
     """Number of source points whose moved position has a target within ``radius``.
 
     Gives up (returning a count below ``need``) as soon as ``need`` can no
     longer be reached.  The source is visited in the order ``visit`` (a
-    permutation; empty: index order); with ``n_pre > 0`` it also stops after
-    the first ``n_pre`` points when fewer than ``pre_need`` of them matched
-    (a cheap pre-test of a wrong motion).  The count so far is returned
-    whenever it stops early.
+    permutation; empty: index order), and the count stops early, returned
+    so far, once fewer than ``slope * v + offset`` of the first ``v``
+    visited points matched: the rejection boundary of a sequential test of
+    a wrong motion (:func:`gatv.congruent.sequential_boundary`).
+    ``slope = offset = 0`` never stops.
+    """
+    n, _ = count_inliers_visited(R, t, source, target, start, order, origin, cell, dims, radius, need,
+                                 visit, slope, offset, _NO_OCC, origin, cell, dims, _NO_VISIT)
+    return n
+
+
+@njit(cache=True)
+def count_inliers_visited(R, t, source, target, start, order, origin, cell, dims, radius, need,
+                          visit, slope, offset, occ, occ_origin, occ_cell, occ_dims, base):
+    """:func:`count_inliers` and the number of source points it visited.
+
+    ``occ`` (empty: none) is the target's :func:`build_occupancy` at
+    ``radius`` over the grid ``occ_origin``, ``occ_cell``, ``occ_dims``: a
+    moved point in an empty cell is a miss without a grid search.  The
+    points ``base`` (the sample the motion was fitted to, which it brings
+    onto the target by construction) count but stay out of the sequential
+    test: their hits say nothing of the motion.
     """
     n = 0
+    nb = 0  # hits and visits of base points, left out of the test
+    vb = 0
     p = np.empty(3)
     ordered = visit.shape[0] == source.shape[0]
     m = source.shape[0]
     for v in range(m):
-        if v == n_pre and n < pre_need:
-            return n
-        if n + (m - v) < need:
-            return n
+        if n - nb < slope * (v - vb) + offset or n + (m - v) < need:
+            return n, v
         i = visit[v] if ordered else v
+        in_base = False
+        for b in range(base.shape[0]):
+            if base[b] == i:
+                in_base = True
         for r in range(3):
             p[r] = R[r, 0] * source[i, 0] + R[r, 1] * source[i, 1] + R[r, 2] * source[i, 2] + t[r]
-        if nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0:
+        hit = maybe_occupied(p, occ, occ_origin, occ_cell, occ_dims) and \
+            nearest_in_grid(p, target, start, order, origin, cell, dims, radius) >= 0
+        if hit:
             n += 1
-    return n
+        if in_base:
+            vb += 1
+            if hit:
+                nb += 1
+    return n, m
 
 
 # ------------------------------------------------------------ hypotheses
@@ -277,6 +354,39 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
     return ks[:found], ls[:found], ms[:found], disc[:found]
 
 
+@njit(cache=True)
+def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated, max_matches,
+                   src_normals, tgt_normals, feature_tol, use_normals):
+    """The ``max_matches`` tightest of at most ``max_enumerated`` congruent matches of ``(a, b, c)``.
+
+    Returns ``(k, l, m, n_listed)``.  When more are listed than scored, the
+    matches within ``eps / 2`` of every side are listed first: if the last
+    of their ``max_matches`` tightest has a discrepancy (sum of squared
+    side errors) of at most ``(eps / 2)²``, no match outside that half box
+    can be tighter, and these are the tightest of all for about a quarter
+    of the listing work (the listing's inner loop grows like ``eps²``);
+    otherwise the full ``eps`` box is listed.
+    """
+    listed = 0
+    if max_enumerated > max_matches:
+        ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
+                                              0.5 * eps, max_enumerated, src_normals, tgt_normals, feature_tol,
+                                              use_normals)
+        listed += ks.shape[0]
+        if ks.shape[0] > max_matches:
+            pick = np.argsort(disc, kind="mergesort")[:max_matches]
+            if ks.shape[0] >= max_enumerated or disc[pick[-1]] <= 0.25 * eps * eps:
+                return ks[pick], ls[pick], ms[pick], listed
+    ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
+                                          max(max_enumerated, max_matches), src_normals, tgt_normals,
+                                          feature_tol, use_normals)
+    listed += ks.shape[0]
+    if ks.shape[0] > max_matches:
+        pick = np.argsort(disc, kind="mergesort")[:max_matches]
+        return ks[pick], ls[pick], ms[pick], listed
+    return ks, ls, ms, listed
+
+
 @njit(cache=True, parallel=True)
 def triple_hypotheses(
     source,
@@ -300,17 +410,21 @@ def triple_hypotheses(
     tgt_normals,
     feature_tol,
     max_enumerated=0,
-    visit=np.zeros(0, np.int64),
-    n_pre=0,
-    pre_need=0,
+    visit=_NO_VISIT,
+    slope=0.0,
+    offset=0.0,
+    occ=_NO_OCC,
+    occ_origin=_ORIGIN,
+    occ_cell=1.0,
+    occ_dims=_DIMS,
 ):
     """Best congruent match of each source triple, scored by inlier count.
 
     For source triple ``(a, b, c)`` every target triple ``(k, l, m)`` with
     ``| |ab| - |kl| |, | |ac| - |km| |, | |bc| - |lm| | <= eps`` (and, when
     normals are given, the invariants of :func:`_pair_features` of all
-    three sides within ``feature_tol``) gives a motion (Kabsch on the three
-    pairs) whose support is the number of source points landing within
+    three sides within ``feature_tol``) gives a motion (the least-squares pose of the
+    three pairs, :func:`gatv._fit_kernels.triangle_pose`) whose support is the number of source points landing within
     ``radius`` of a target point.  Up to ``max_enumerated`` congruent
     triples are listed (:func:`_congruent_matches`; default
     ``max_matches``) and the ``max_matches`` tightest of them (smallest
@@ -318,14 +432,17 @@ def triple_hypotheses(
     target triples, and the true one is among the tightest far more often
     than among an arbitrary share.
 
-    With ``n_pre > 0`` the source points are visited in the order ``visit``
-    (a permutation) and a motion bringing fewer than ``pre_need`` of the
-    first ``n_pre`` onto the target is dropped there, its count so far
-    returned (:func:`count_inliers`): a cheap pre-test of the many wrong
-    motions a noisy triple yields.
+    The source points are visited in the order ``visit`` (a permutation;
+    empty: index order) and a motion's count stops, returned so far, at the
+    sequential test's boundary ``slope * v + offset`` (:func:`count_inliers`;
+    ``0, 0``: none): most of the many wrong motions a noisy triple yields
+    are rejected after a few dozen points.  ``occ`` (the target's
+    :func:`build_occupancy` at ``radius``; empty: none) answers most of
+    their misses with one memory read.
 
-    Returns ``(score, R, t, n_matches, n_listed)`` per triple (``n_matches``
-    counts the scored ones, ``n_listed`` the listed ones); ``score = -1``
+    Returns ``(score, R, t, n_matches, n_listed, n_visited)`` per triple
+    (``n_matches`` counts the scored matches, ``n_listed`` the listed ones,
+    ``n_visited`` the source points visited in scoring them); ``score = -1``
     when no congruent triple exists.
     """
     nt = triples.shape[0]
@@ -334,33 +451,31 @@ def triple_hypotheses(
     trans = np.zeros((nt, 3))
     nmatch = np.zeros(nt, np.int64)
     nlisted = np.zeros(nt, np.int64)
+    nvisited = np.zeros(nt, np.int64)
     use_normals = src_normals.shape[0] == source.shape[0] and tgt_normals.shape[0] == target.shape[0]
     n_enum = max(max_enumerated, max_matches)
-    prescreen = n_pre > 0 and visit.shape[0] == source.shape[0]
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
-        ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist,
-                                              nidx, eps, n_enum, src_normals, tgt_normals, feature_tol,
-                                              use_normals)
+        ks, ls, ms, listed = scored_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist, nidx,
+                                            eps, n_enum, max_matches, src_normals, tgt_normals, feature_tol,
+                                            use_normals)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
         gather_rows(src, source, a, b, c)
-        if ks.shape[0] > max_matches:
-            pick = np.argsort(disc, kind="mergesort")[:max_matches]
-        else:
-            pick = np.arange(ks.shape[0])
-        for v in pick:
+        for v in range(ks.shape[0]):
             gather_rows(dst, target, ks[v], ls[v], ms[v])
-            R, t = kabsch3(src, dst)
-            sc = count_inliers(R, t, source, target, start, order, origin, cell, dims, radius, scores[q] + 1,
-                               visit, n_pre if prescreen else 0, pre_need)
+            R, t = triangle_pose(src, dst)
+            sc, nv = count_inliers_visited(R, t, source, target, start, order, origin, cell, dims, radius,
+                                           scores[q] + 1, visit, slope, offset, occ, occ_origin, occ_cell,
+                                           occ_dims, triples[q])
+            nvisited[q] += nv
             if sc > scores[q]:
                 scores[q] = sc
                 rots[q] = R
                 trans[q] = t
-        nmatch[q] = pick.shape[0]
-        nlisted[q] = ks.shape[0]
-    return scores, rots, trans, nmatch, nlisted
+        nmatch[q] = ks.shape[0]
+        nlisted[q] = listed
+    return scores, rots, trans, nmatch, nlisted, nvisited
 
 
 @njit(cache=True)

@@ -63,3 +63,69 @@ def umeyama3(src, dst):
     s = (S[0] + S[1] + last) / n / var if var > 0 else 1.0
     t = cd - s * (R @ cs)
     return s, R, t
+
+
+@njit(cache=True)
+def triangle_pose(src, dst):
+    """:func:`kabsch3` of two labelled triangles in closed form (no SVD).
+
+    Three points are coplanar, so the least-squares rotation maps the
+    source triangle's plane onto the target's, normal ``(b - a) × (c - a)``
+    onto normal, and turns in that plane by the angle of the 2D
+    least-squares fit, ``atan2(Σ x_i × y_i, Σ x_i · y_i)`` of the centred
+    in-plane coordinates.  Equal to :func:`kabsch3` whenever the two
+    labelled triangles have the same orientation in their planes (always
+    for congruent ones that are not nearly collinear), at a tenth of its
+    cost; nearly collinear triangles go to :func:`kabsch3`.
+    """
+    cs = np.empty(3)
+    cd = np.empty(3)
+    for k in range(3):
+        cs[k] = (src[0, k] + src[1, k] + src[2, k]) / 3.0
+        cd[k] = (dst[0, k] + dst[1, k] + dst[2, k]) / 3.0
+    fs = _triangle_frame(src)
+    fd = _triangle_frame(dst)
+    if fs[0, 0] != fs[0, 0] or fd[0, 0] != fd[0, 0]:  # NaN: nearly collinear
+        return kabsch3(src, dst)
+    # In-plane least-squares angle from the source's (u, v) to the target's.
+    dot = 0.0
+    crs = 0.0
+    for i in range(3):
+        xu = xv = yu = yv = 0.0
+        for k in range(3):
+            xs = src[i, k] - cs[k]
+            yd = dst[i, k] - cd[k]
+            xu += xs * fs[0, k]
+            xv += xs * fs[1, k]
+            yu += yd * fd[0, k]
+            yv += yd * fd[1, k]
+        dot += xu * yu + xv * yv
+        crs += xu * yv - xv * yu
+    h = np.hypot(dot, crs)
+    c, s = (dot / h, crs / h) if h > 0 else (1.0, 0.0)
+    R = np.zeros((3, 3))
+    for r in range(3):
+        ur = c * fd[0, r] + s * fd[1, r]  # image of the source's u
+        vr = -s * fd[0, r] + c * fd[1, r]  # image of the source's v
+        for k in range(3):
+            R[r, k] = ur * fs[0, k] + vr * fs[1, k] + fd[2, r] * fs[2, k]
+    t = cd - R @ cs
+    return R, t
+
+
+@njit(cache=True)
+def _triangle_frame(p):
+    """Rows ``u, v, n``: ``u`` along ``b - a``, ``n`` along ``(b - a) × (c - a)``; NaN when nearly collinear."""
+    f = np.empty((3, 3))
+    e1 = p[1] - p[0]
+    e2 = p[2] - p[0]
+    n = np.cross(e1, e2)
+    l1 = np.sqrt(e1 @ e1)
+    ln = np.sqrt(n @ n)
+    if not (ln > 1e-12 * l1 * np.sqrt(e2 @ e2)):
+        f[:, :] = np.nan
+        return f
+    f[0] = e1 / l1
+    f[2] = n / ln
+    f[1] = np.cross(f[2], f[0])
+    return f

@@ -33,12 +33,16 @@ from .models.base import homogeneous
 from .stats import chance_support, samples_needed
 
 __all__ = ["TargetIndex", "TrialMotions", "TrialPool", "accept_level", "trial_motions", "sample_triples",
-           "expected_matches", "n_triples_needed", "chance_support"]
+           "expected_matches", "n_triples_needed", "chance_support", "sequential_boundary", "MISS_RATE"]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
     """Source triples to draw so one is all-inlier with ``confidence`` (:func:`gatv.stats.samples_needed`)."""
     return samples_needed(inlier_share, confidence, 3)
+
+
+#: Most cells a side of :class:`TargetIndex`'s occupancy grid (2 MB at most).
+OCCUPANCY_CELLS = 128
 
 
 class TargetIndex:
@@ -69,6 +73,15 @@ class TargetIndex:
         self.dims = dims
         self.start, self.order = _k.build_grid(target, self.origin, cell, dims)
         self.volume = float(np.prod(ext + 2 * radius))
+        # Occupancy of the target's balls (sure misses in one read), over the
+        # box grown by the radius, cells half the radius (at most
+        # OCCUPANCY_CELLS a side): a wrong motion's points mostly miss.
+        span = ext + 2.0 * float(radius)
+        ocell = max(0.5 * float(radius), float(span.max()) / OCCUPANCY_CELLS)
+        self.occ_origin = self.origin - float(radius)
+        self.occ_cell = ocell
+        self.occ_dims = np.maximum(np.ceil(span / ocell).astype(np.int64), 1)
+        self.occupancy = _k.build_occupancy(target, self.occ_origin, ocell, self.occ_dims, float(radius))
 
     def nearest(self, points: np.ndarray, radius: float | None = None) -> np.ndarray:
         """Index of the nearest target within ``radius`` of each point, or -1."""
@@ -91,6 +104,7 @@ class TrialMotions:
     n_triples: int
     n_congruent: int
     n_listed: int = 0  # congruent matches listed (of which n_congruent were scored)
+    n_visited: int = -1  # source points visited in scoring them (-1: not counted)
 
     def __len__(self) -> int:
         return int(self.support.shape[0])
@@ -215,7 +229,8 @@ def trial_motions(
     feature_tol: float = 0.15,
     wide: int = 1,
     max_enumerated: int = 0,
-    prescreen: bool = False,
+    sequential: bool = False,
+    min_share: float = 0.0,
     progress=None,
 ) -> TrialMotions:
     """Draw source triples, match them congruently, score the motions.
@@ -261,10 +276,18 @@ def trial_motions(
         Congruent matches listed per triple, of which the ``max_matches``
         tightest (smallest side-length discrepancy) are scored; ``0`` lists
         only ``max_matches``.
-    prescreen : bool, default: False
-        Count a motion's support in full only when it passes a pre-test on
-        a random share of the source (:func:`_prescreen`); for large noisy
-        sets, where most of the scored motions are wrong.
+    sequential : bool, default: False
+        Count a motion's support in random order and stop at the rejection
+        boundary of Wald's sequential test (:func:`sequential_boundary`)
+        between the chance hit rate and the hit rate of a motion at the
+        ``accept`` level, missed with probability at most
+        :data:`MISS_RATE`: most congruent matches of a noisy triple are
+        wrong and are dropped after a few dozen points, so that many more
+        of them can be scored.
+    min_share : float, default: 0.0
+        Smallest share of the source that the caller's number of triples is
+        drawn to find (its RANSAC bound): the sequential test's alternative
+        is a motion of the larger of this share and ``accept``.
     """
     n = source.shape[0]
     threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
@@ -278,7 +301,8 @@ def trial_motions(
     drawn = 0
     n_congruent = 0
     n_listed = 0
-    visit, n_pre, pre_need = _prescreen(n, index, accept if prescreen else 0, rng)
+    slope, offset = _sequential_test(n, index, accept, min_share) if sequential else (0.0, 0.0)
+    n_visited = 0
     while drawn < max_triples:
         m = min(batch, max_triples - drawn)
         if wide > 1:
@@ -301,21 +325,25 @@ def trial_motions(
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
         offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
-        scores, R, t, nm, nl = _k.triple_hypotheses(
+        # A fresh visiting order a batch: the sequential test's misses of one
+        # true motion are then independent between batches.
+        visit = rng.permutation(n).astype(np.int64) if slope > 0 else np.zeros(0, np.int64)
+        scores, R, t, nm, nl, nv = _k.triple_hypotheses(
             source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
             index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
-            visit, n_pre, pre_need,
+            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims,
         )
         n_congruent += int(nm.sum())
         n_listed += int(nl.sum())
+        n_visited += int(nv.sum())
         pool.add(scores, R, t)
         if progress is not None:
             progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
         if pool.best >= accept:
             break
     trials = pool.trials(index.radius, threshold, drawn, n_congruent)
-    return dataclasses.replace(trials, n_listed=n_listed)
+    return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited)
 
 
 def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:
@@ -341,29 +369,42 @@ def _min_height(source: np.ndarray) -> float:
     return np.sqrt(2.0) * rho / 3.5
 
 
-#: Source points of the pre-test of :func:`trial_motions` (``prescreen=True``).
-PRESCREEN_POINTS = 128
+#: Largest probability that :func:`trial_motions`' sequential test drops a
+#: motion whose support is at the ``accept`` level (higher support: less).
+MISS_RATE = 0.05
 
 
-def _prescreen(n: int, index: TargetIndex, accept: int, rng: np.random.Generator):
-    """Visit order, size and pass mark of the pre-test of a motion's support.
+def sequential_boundary(p_chance: float, p_accept: float, miss_rate: float = MISS_RATE) -> tuple[float, float]:
+    """Rejection boundary ``(slope, offset)`` of Wald's sequential test of a motion's hit rate.
+
+    Each visited source point lands on a target with probability
+    ``p_chance`` under a wrong motion and with ``p_accept`` or more under a
+    motion worth counting in full.  After ``v`` points with ``h`` hits the
+    log-likelihood ratio of the two is ``h D - v log((1 - p_chance) /
+    (1 - p_accept))``, ``D = log(p_accept (1 - p_chance) / (p_chance (1 -
+    p_accept)))``; the test rejects once it reaches ``log(miss_rate)``, that
+    is once ``h < slope v + offset``.  By Wald's inequality a motion of hit
+    rate ``p_accept`` or more is rejected with probability at most
+    ``miss_rate``; a wrong one after about ``-log(miss_rate)`` over the
+    Kullback–Leibler divergence of the two rates, a few dozen points.
+    ``(0, 0)`` (never reject) unless ``0 < p_chance < p_accept < 1``.
+    """
+    if not (0.0 < p_chance < p_accept < 1.0) or not (0.0 < miss_rate < 1.0):
+        return 0.0, 0.0
+    step = float(np.log((1.0 - p_chance) / (1.0 - p_accept)))
+    D = float(np.log(p_accept / p_chance)) + step
+    return step / D, float(np.log(miss_rate)) / D
+
+
+def _sequential_test(n: int, index: TargetIndex, accept: int, min_share: float = 0.0) -> tuple[float, float]:
+    """:func:`sequential_boundary` of :func:`trial_motions`' scoring.
 
     A wrong motion brings each source point onto some target with the chance
-    rate ``δ = 1 - exp(-n_target · ball(radius) / volume)``; among
-    :data:`PRESCREEN_POINTS` random source points it matches about
-    ``μ = δ · PRESCREEN_POINTS``.  A motion must match more than
-    ``μ + sqrt(μ)`` of them to be counted in full, but never more than half
-    of what a motion just at the ``accept`` level would match there, so that
-    motions worth judging pass.  No pre-test when that pass mark is below 2
-    or the source is small.
+    rate ``1 - exp(-n_target · ball(radius) / volume)``; one worth counting
+    brings ``accept / n`` of them, or ``min_share`` if more.
     """
-    none = np.zeros(0, np.int64), 0, 0
-    if accept <= 0 or accept >= np.iinfo(np.int64).max or n <= 2 * PRESCREEN_POINTS:
-        return none
+    if accept <= 0 or accept >= np.iinfo(np.int64).max:
+        return 0.0, 0.0
     ball = 4.0 / 3.0 * np.pi * index.radius**3
-    delta = 1.0 - np.exp(-index.target.shape[0] * ball / index.volume)
-    mu = delta * PRESCREEN_POINTS
-    need = int(min(np.ceil(mu + np.sqrt(mu)), np.floor(0.5 * accept * PRESCREEN_POINTS / n)))
-    if need < 2:
-        return none
-    return rng.permutation(n).astype(np.int64), PRESCREEN_POINTS, need
+    p_chance = 1.0 - np.exp(-index.target.shape[0] * ball / index.volume)
+    return sequential_boundary(p_chance, min(max(accept / n, float(min_share)), 1.0))

@@ -5,11 +5,12 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import _congruent_kernels as k
-from gatv.congruent import TargetIndex, sample_triples, trial_motions, triangle_heights
+from gatv.congruent import TargetIndex, sample_triples, sequential_boundary, trial_motions, triangle_heights
 from gatv.fitting import kabsch
 from gatv.ga import Rotor
 
@@ -97,7 +98,7 @@ def test_triple_hypotheses_find_the_best_congruent_triple(seed):
     index = TargetIndex(y, radius)
     tri = sample_triples(9, 6, rng)
     offsets = rng.integers(0, 1 << 30, tri.shape[0])  # any start: the full scan wraps around
-    scores, _, _, _, _ = k.triple_hypotheses(
+    scores, _, _, _, _, _ = k.triple_hypotheses(
         x, y, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
         index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15)
     for q in range(tri.shape[0]):
@@ -135,3 +136,103 @@ def test_triangle_heights_are_rigid_invariant_and_scale_linearly(seed, scale):
     # The smallest height is at most every side (it is one triangle's height over its longest side).
     sides = np.linalg.norm(pts[tri[:, [0, 0, 1]]] - pts[tri[:, [1, 2, 2]]], axis=2)
     assert np.all(h <= sides.min(axis=1) + 1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 40), r=st.floats(0.05, 2.0))
+def test_occupancy_never_turns_a_hit_into_a_miss(seed, n, r):
+    """A query within ``r`` of a target lies in an occupied cell; counts with the grid are exact."""
+    rng = np.random.default_rng(seed)
+    target = _cloud(seed, max(n, 2))
+    index = TargetIndex(target, r)
+    near = target[rng.integers(0, target.shape[0], 60)] + rng.normal(size=(60, 3)) * r / 2
+    queries = np.vstack([near, _cloud(seed + 1, 60)])
+    d = np.linalg.norm(queries[:, None] - target[None], axis=2).min(axis=1)
+    occupied = np.array([k.maybe_occupied(q, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims)
+                         for q in queries])
+    assert np.all(occupied[d <= r])
+    R, t = np.eye(3), np.zeros(3)
+    got, visited = k.count_inliers_visited(R, t, queries, target, index.start, index.order, index.origin,
+                                           index.cell, index.dims, index.radius, 0, np.zeros(0, np.int64),
+                                           0.0, 0.0, index.occupancy, index.occ_origin, index.occ_cell,
+                                           index.occ_dims, np.zeros(0, np.int64))
+    assert got == int(np.sum(d <= r)) and visited == queries.shape[0]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), p_accept=st.floats(0.05, 0.5), ratio=st.floats(2.0, 50.0))
+def test_sequential_count_stops_exactly_at_the_boundary(seed, p_accept, ratio):
+    """The count so far is the brute-force count of the visited prefix, stopped where it first crosses."""
+    rng = np.random.default_rng(seed)
+    source = _cloud(seed, 200)
+    target = np.vstack([source[: int(200 * p_accept)], _cloud(seed + 1, 50)])
+    index = TargetIndex(target, 1e-6)
+    slope, offset = sequential_boundary(p_accept / ratio, p_accept)
+    visit = rng.permutation(200).astype(np.int64)
+    base = visit[:3].copy()  # base points count, but not in the test
+    n, v = k.count_inliers_visited(np.eye(3), np.zeros(3), source, target, index.start, index.order, index.origin,
+                                   index.cell, index.dims, index.radius, 0, visit, slope, offset, index.occupancy,
+                                   index.occ_origin, index.occ_cell, index.occ_dims, base)
+    hits = (np.arange(200) < int(200 * p_accept))[visit]
+    assert n == int(hits[:v].sum())
+    in_base = np.isin(visit, base)
+    stat = np.concatenate([[0], np.cumsum(hits & ~in_base)])
+    steps = np.concatenate([[0], np.cumsum(~in_base)])
+    crossed = stat < slope * steps + offset
+    first = int(np.argmax(crossed)) if crossed[:200].any() else 200
+    assert v == min(first, 200)
+
+
+@settings(max_examples=10, deadline=None)
+@given(p_accept=st.floats(0.02, 0.4), ratio=st.floats(3.0, 30.0), miss=st.sampled_from([0.01, 0.05, 0.2]))
+def test_sequential_boundary_is_walds_test(p_accept, ratio, miss):
+    """On the boundary the log-likelihood ratio is log(miss); a motion at p_accept is dropped at most
+    that often, a wrong one almost always within a few times the expected -log(miss) / KL points."""
+    p0 = p_accept / ratio
+    slope, offset = sequential_boundary(p0, p_accept, miss)
+    v = 100.0
+    h = slope * v + offset
+    llr = h * np.log(p_accept / p0) + (v - h) * np.log((1 - p_accept) / (1 - p0))
+    assert llr == pytest.approx(np.log(miss), abs=1e-9)
+    kl = p0 * np.log(p0 / p_accept) + (1 - p0) * np.log((1 - p0) / (1 - p_accept))
+    horizon = int(4 * -np.log(miss) / kl) + 50
+    line = slope * np.arange(1, horizon + 1) + offset
+    rng = np.random.default_rng(0)
+    stat = np.cumsum(rng.random((2000, horizon)) < p_accept, axis=1)
+    dropped = np.any(stat < line, axis=1).mean()
+    assert dropped <= miss + 4 * np.sqrt(miss / 2000)
+    wrong = np.cumsum(rng.random((1000, horizon)) < p0, axis=1)
+    assert np.any(wrong < line, axis=1).mean() > 0.9
+    assert sequential_boundary(p_accept, p_accept) == (0.0, 0.0)
+
+
+def _congruent_by_discrepancy(source, target, tri, eps):
+    """Brute force: every ordered target triple congruent to ``tri`` within ``eps``, tightest first."""
+    a, b, c = tri
+    sides = (np.linalg.norm(source[a] - source[b]), np.linalg.norm(source[a] - source[c]),
+             np.linalg.norm(source[b] - source[c]))
+    found = []
+    for kk, ll, mm in itertools.permutations(range(target.shape[0]), 3):
+        s2 = (np.linalg.norm(target[kk] - target[ll]), np.linalg.norm(target[kk] - target[mm]),
+              np.linalg.norm(target[ll] - target[mm]))
+        e = np.subtract(s2, sides)
+        if np.all(np.abs(e) <= eps):
+            found.append((float(e @ e), (kk, ll, mm)))
+    return [m for _, m in sorted(found)]
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.3, 0.6, 1.0]), keep=st.sampled_from([2, 8, 20]))
+def test_scored_matches_are_the_tightest_of_all(seed, eps, keep):
+    """With more matches listed than scored, the scored ones are the tightest of all, whichever pass."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-3, 3, (10, 3))
+    y = rng.uniform(-3, 3, (14, 3))
+    index = TargetIndex(y, 0.1)
+    a, b, c = sample_triples(10, 1, rng)[0]
+    ks, ls, ms, listed = k.scored_matches(x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen, index.pi,
+                                          index.pj, index.ndist, index.nidx, eps, 10**5, keep, np.zeros((0, 3)),
+                                          np.zeros((0, 3)), 0.15, False)
+    want = _congruent_by_discrepancy(x, y, (a, b, c), eps)[:keep]
+    assert sorted(zip(ks.tolist(), ls.tolist(), ms.tolist())) == sorted(want)
+    assert listed >= len(want)

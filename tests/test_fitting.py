@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from gatv._fit_kernels import kabsch3, umeyama3
+from gatv._fit_kernels import kabsch3, triangle_pose, umeyama3
 from gatv.errors import InputError
 from gatv.fitting import fit_rigid, kabsch, umeyama
 from gatv.ga import Rotor
@@ -52,6 +52,32 @@ def test_numba_kabsch3_matches_numpy(seed, k):
     R1, t1 = kabsch3(np.ascontiguousarray(x), np.ascontiguousarray(y))
     assert np.allclose(R0, R1, atol=1e-10)
     assert np.allclose(t0, t1, atol=1e-10)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), noise=st.floats(0.0, 0.1))
+def test_triangle_pose_equals_kabsch_on_congruent_triangles(seed, noise):
+    """The closed form is the least-squares pose of two (noisy) congruent triangles."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(3, 3))
+    a, b, c = x
+    h = np.linalg.norm(np.cross(b - a, c - a)) / max(np.linalg.norm(b - a), np.linalg.norm(c - a),
+                                                        np.linalg.norm(c - b))
+    assume(h >= 0.3)  # nearly collinear: noise of 0.1 could flip its orientation
+    R = Rotor.from_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi)).as_matrix()
+    y = x @ R.T + rng.normal(size=3) + noise * rng.normal(size=(3, 3))
+    R0, t0 = kabsch3(np.ascontiguousarray(x), np.ascontiguousarray(y))
+    R1, t1 = triangle_pose(np.ascontiguousarray(x), np.ascontiguousarray(y))
+    assert np.allclose(R1, R0, atol=1e-9)
+    assert np.allclose(t1, t0, atol=1e-9)
+    assert np.allclose(R1 @ R1.T, np.eye(3), atol=1e-12) and np.linalg.det(R1) == pytest.approx(1.0)
+
+
+def test_triangle_pose_of_collinear_points_falls_back_to_kabsch():
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    y = x + [0.5, 1.0, -2.0]
+    R, t = triangle_pose(x, y)
+    assert np.allclose(x @ R.T + t, y, atol=1e-12)
 
 
 @settings(max_examples=40, deadline=None)

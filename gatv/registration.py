@@ -82,7 +82,7 @@ MAX_ENUMERATED = 32768
 WIDE = 32
 #: Options of the rigid model's trial motions in :func:`register` (see
 #: :func:`gatv.congruent.trial_motions`).
-RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "prescreen": True}
+RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
 #: Default work bound of a search, in the search's work units (a few
 #: microseconds each on one core): a call fails with a reason instead of
 #: running on.  Deterministic: the same seed stops at the same point.
@@ -426,7 +426,8 @@ def register(
         raise InputError("`max_translation` needs `max_angle` (the small-motion mode).")
 
     info["mode"] = "congruent-triples"
-    need = n_triples_needed(max(float(min_inlier_share), 3.0 / n), confidence)
+    share = max(float(min_inlier_share), 3.0 / n)
+    need = n_triples_needed(share, confidence)
     n_possible = n * (n - 1) * (n - 2) // 6
     budget = int(min(need, 3 * n_possible if n_possible < 10**6 else need))
     if max_triples is not None:
@@ -437,7 +438,8 @@ def register(
                           max_candidates=max_candidates, polish=refine, grow=noise is None and not rigid,
                           memory_budget=memory_budget, progress=report, tried=tried,
                           max_matches=NOISY_MAX_MATCHES if rigid else stages.MAX_MATCHES,
-                          max_work=max_work, trial_options=RIGID_TRIALS if rigid else None,
+                          max_work=max_work, confidence=confidence,
+                          trial_options=dict(RIGID_TRIALS, min_share=share) if rigid else None,
                           deadline=None if time_limit is None else t_start + time_limit)
     if found is None:
         info.update(trials=tried, time_s=time.perf_counter() - t_start)

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from .candidates import median_spacing, one_to_one
 from .models import Motion, MotionModel, get_model, split_matrix
-from .stats import chance_count
+from .stats import chance_count, samples_needed
 
 __all__ = [
     "NOISE_SCHEDULE",
@@ -596,7 +596,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
            threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
            progress=None, tried: list | None = None, max_matches: int = MAX_MATCHES,
            max_work: float | None = None, trial_options: dict | None = None,
-           deadline: float | None = None) -> Found | None:
+           deadline: float | None = None, confidence: float = 0.999) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -605,8 +605,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     coarse tolerance (many matching but wrong samples, each scored on every
     point) does not slow down an exact one.  Work is counted
     deterministically, in microsecond-like units: 1 per sample drawn (plus
-    the model's ``triple_cost``) and ``2 + 0.03 n`` per match scored, so the
-    same seed gives the same result.  The ``keep`` best trials of a chunk
+    the model's ``triple_cost``), 0.2 per match listed, 2 per match scored
+    and 0.03 per source point it visited (all ``n`` unless the model stops
+    early), so the same seed gives the same result.  The ``keep`` best trials of a chunk
     that reach the density test's chance level are judged by tensor voting
     (:func:`judge`); the first whose support reaches the chance level of
     the gate (family-wise over ``threshold_tests``; or ``min_support``) is
@@ -623,6 +624,13 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     ``deadline`` (a :func:`time.perf_counter` reading) stops the search
     between chunks once passed, a wall-clock bound for callers that promise
     one (unlike the work bound, it depends on the machine's speed).
+
+    A level draws at most the samples that find, with ``confidence``, the
+    smallest motion its density test accepts (the RANSAC bound of
+    :func:`gatv.stats.samples_needed` at ``accept / n``), never more than
+    ``budget``: at a coarse tolerance random motions already reach a large
+    share of the points, and only a motion larger still can be found
+    there, which a few samples hit.
     Returns ``None`` when the budget, the work or the time runs out.
     """
     model = problem.model
@@ -636,7 +644,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         idx.set_radius(gate(tol))
         indexes.append(idx)
     accept = [model.chance(n, n2, idx.volume, idx.radius, budget * max_matches) for idx in indexes]
-    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "best_support": 0, "threshold": a}
+    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    caps = [min(budget, samples_needed(min(1.0, a / n), confidence, k_pts)) for a in accept]
+    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "visited": 0, "best_support": 0, "threshold": a}
                for tol, a in zip(levels, accept)]
     if tried is not None:
         tried.extend(records)
@@ -646,9 +656,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     options = dict(trial_options or {})
     listed_total = [0] * len(levels)
     work = 0.0
-    while min(done) < budget:
+    while any(d < c for d, c in zip(done, caps)):
         for level, tol in enumerate(levels):
-            if done[level] >= budget:
+            if done[level] >= caps[level]:
                 continue
             if max_work is not None and work >= max_work:
                 if tried is not None:
@@ -658,10 +668,10 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 if tried is not None:
                     tried.append({"stopped": "time limit", "work": work})
                 return None
-            m = int(min(budget - done[level], max(2, min(4096, SEARCH_SHARE / per_triple[level]))))
+            m = int(min(caps[level] - done[level], max(2, min(4096, SEARCH_SHARE / per_triple[level]))))
             done[level] += m
             rec = records[level]
-            report(sum(done) / (budget * len(levels)), f"tolerance {tol:.3g}: {rec['triples']} triples")
+            report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")
             g = gate(tol)
             # Side-length tolerance: a side's length error is the noise of four
             # points projected on it (standard deviation 2 tol); 2.5 of those.
@@ -676,11 +686,16 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             rec["triples"] += trials.n_triples
             rec["congruent"] += trials.n_congruent
             cost = triple_cost(n2) if triple_cost is not None else 0.0
-            per_triple[level] = (1.0 + cost) + (2.0 + 0.03 * n) * rec["congruent"] / max(rec["triples"], 1)
+            # A scored match costs its pose plus its visited source points (all
+            # of them unless the model counts fewer, see its sequential test).
+            visited = getattr(trials, "n_visited", -1)
+            rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
+            per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
             listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
             listed_total[level] += listed
             per_triple[level] += LIST_COST * listed / max(trials.n_triples, 1)
-            work += (1.0 + cost) * trials.n_triples + (2.0 + 0.03 * n) * trials.n_congruent + LIST_COST * listed
+            work += ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
+                     + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed)
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

@@ -189,6 +189,28 @@ def test_grow_reaches_the_whole_of_an_anisotropic_strip_from_a_few_seeds(stretch
     assert np.array_equal(pairs[:, 1], truth[pairs[:, 0]])
 
 
+@settings(max_examples=6, deadline=None)
+@given(offset=st.floats(0.1, 0.3), row=st.integers(0, 399))
+def test_grow_leaves_an_ambiguous_point_waiting(offset, row):
+    """A point whose prediction lies halfway between two unused targets (its true partner moved by
+    ``offset`` spacings one way, a decoy the other way) is not matched by the growth; every other
+    point is matched to its true partner, and the decoy to nothing."""
+    from scipy.spatial import cKDTree
+
+    g = np.arange(20.0)
+    x = np.column_stack([np.repeat(g, 20), np.tile(g, 20), np.zeros(400)])  # spacing 1
+    Y = x.copy()
+    Y[row, 0] += offset
+    Y = np.vstack([Y, x[row] - [offset, 0.0, 0.0]])  # the decoy, row 400
+    centre = np.argsort(np.linalg.norm(x - x[row] - [6.0, 6.0, 0.0], axis=1))[:9]
+    centre = centre[centre != row]
+    seeds = np.column_stack([centre, centre])
+    pairs = ms.grow(x, Y, cKDTree(Y), seeds, 0.45)
+    assert row not in pairs[:, 0] and 400 not in pairs[:, 1]
+    assert pairs.shape[0] == 399 and np.array_equal(pairs[:, 0], pairs[:, 1])
+    assert 0.0 < ms.GROW_AMBIGUITY < 1.0
+
+
 def test_direct_solve_skips_the_annealed_hypothesis_only_when_it_cannot_win(monkeypatch):
     from gatv.nonrigid import registration as reg
 

@@ -39,6 +39,7 @@ from ..candidates import median_spacing, one_to_one
 from ..fitting import kabsch
 
 __all__ = [
+    "GROW_AMBIGUITY",
     "GROW_NEIGHBOURS",
     "MLS_NEIGHBOURS",
     "REFINE_LEVELS",
@@ -60,6 +61,12 @@ MLS_NEIGHBOURS = 12
 #: sample, within about 2 spacings; on an anisotropic one, e.g. a strip sampled 3x closer across
 #: than along, still the next row along it).
 GROW_NEIGHBOURS = 12
+#: A growth candidate is taken only when its nearest unused target within the gate is at most this
+#: share of the distance to the second nearest: the prediction then lies well inside that target's
+#: Voronoi cell.  A prediction near a cell boundary (a compressed region, an outlier beside the
+#: true partner) would let a slide by one sample start and spread, locally consistent; it waits
+#: for a later ring (more matched neighbours) or the final matching.
+GROW_AMBIGUITY = 0.5
 #: Rows per block when evaluating k-nearest-neighbour fits (bounds temporaries).
 _BLOCK = 20_000
 
@@ -392,7 +399,9 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     ``GROW_NEIGHBOURS`` nearest of a match added in the previous round (the
     seeds at first), moves them by the :class:`LocalAffineWarp` of all
     matches, and matches them to the nearest unused target within ``gate``,
-    one-to-one (closest first).  Stops when a ring adds nothing.  Taking one
+    one-to-one (closest first), when that target is unambiguous (at most
+    :data:`GROW_AMBIGUITY` times as far as the second nearest unused one;
+    otherwise the point waits).  Stops when a ring adds nothing.  Taking one
     ring at a time keeps the affine extrapolation short: a locally affine
     warp extrapolated over several spacings drifts where the warp bends,
     and a drift of one sample along a uniformly sampled surface is locally
@@ -428,6 +437,8 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
         d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
         ok = np.isfinite(d)
         ok[ok] = ~used_t[j[ok]]
+        du = np.sort(np.where(ok, d, np.inf), axis=1)
+        ok &= du[:, :1] <= GROW_AMBIGUITY * du[:, 1:2]  # unambiguous: one unused target, or a clear nearest
         rows, cols = np.nonzero(ok)
         if rows.size == 0:
             break

@@ -451,8 +451,13 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     identity = _identity
     tried: list = []
     by_identity = _window_order(X, None, core, MAX_WINDOWS)
+    # the local hypothesis (16 rigid searches) only when the window's other hypotheses fail in
+    # every identity window: then the same windows again with it
     seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
-                                 settings, window_points, report, tried, "identity")
+                                 replace(settings, local=False), window_points, report, tried, "identity")
+    if seeds is None and settings.local:
+        seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
+                                     margin, settings, window_points, report, tried, "identity")
     coarse = None
     if seeds is None:
         report(0.1, f"coarse solve on {si.size} x {ti.size} points")
@@ -568,7 +573,8 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
         moved = warp(X[c][None])[0]
         tgt = np.sort(np.asarray(tree_y.query_ball_point(moved, radius + margin), np.int64))
         report(0.05 + 0.05 * len(tried), f"window {len(tried) + 1} ({placement}): {src.size} x {tgt.size} points")
-        record = {"placement": placement, "source": int(src.size), "target": int(tgt.size), "support": 0}
+        record = {"placement": placement, "source": int(src.size), "target": int(tgt.size), "support": 0,
+                  "local": settings.local}
         tried.append(record)
         if src.size < 4 or tgt.size < 4:
             continue

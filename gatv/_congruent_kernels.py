@@ -291,6 +291,14 @@ def _features_agree(src, i, j, sn, tgt, k, l, tn, tol):
 
 
 @njit(cache=True)
+def _grown(a, size):
+    """``a`` copied into a new array of ``size`` entries."""
+    b = np.empty(size, a.dtype)
+    b[: a.shape[0]] = a
+    return b
+
+
+@njit(cache=True)
 def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated,
                        src_normals, tgt_normals, feature_tol, use_normals):
     """Target triples congruent to the source triple ``(a, b, c)`` within ``eps``.
@@ -305,10 +313,13 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
     dab = _dist(source, a, source, b)
     dac = _dist(source, a, source, c)
     dbc = _dist(source, b, source, c)
-    ks = np.empty(max_enumerated, np.int64)
-    ls = np.empty(max_enumerated, np.int64)
-    ms = np.empty(max_enumerated, np.int64)
-    disc = np.empty(max_enumerated)
+    # Grown by doubling up to max_enumerated: most triples list a few matches,
+    # and allocating the cap (1 MB at 32,768) for each cost more than listing.
+    size = min(max_enumerated, 64)
+    ks = np.empty(size, np.int64)
+    ls = np.empty(size, np.int64)
+    ms = np.empty(size, np.int64)
+    disc = np.empty(size)
     lo = _lower_bound(plen, dab - eps)
     hi = _lower_bound(plen, dab + eps)
     found = 0
@@ -342,6 +353,12 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
                     continue
                 e1 = plen[s] - dab
                 e2 = row[u] - dac
+                if found == size:
+                    size = min(2 * size, max_enumerated)
+                    ks = _grown(ks, size)
+                    ls = _grown(ls, size)
+                    ms = _grown(ms, size)
+                    disc = _grown(disc, size)
                 ks[found] = k
                 ls[found] = l
                 ms[found] = m

@@ -15,7 +15,11 @@ import math
 
 from scipy.stats import poisson
 
-__all__ = ["ball_measure", "chance_count", "chance_support", "samples_needed"]
+__all__ = ["ALPHA", "ball_measure", "chance_count", "chance_support", "samples_needed"]
+
+#: Family-wise level of the chance tests: a wrong motion beats the chance
+#: level with at most this probability over all the tests counted.
+ALPHA = 1e-6
 
 
 def ball_measure(radius: float, dim: int = 3) -> float:
@@ -28,7 +32,7 @@ def ball_measure(radius: float, dim: int = 3) -> float:
 
 
 def chance_count(n_source: float, n_target: float, measure: float, radius: float, *,
-                 dim: int = 3, alpha: float = 1e-6, n_tests: float = 1.0) -> int:
+                 dim: int = 3, alpha: float = ALPHA, n_tests: float = 1.0) -> int:
     """Smallest count a random motion exceeds with probability below ``alpha / n_tests``."""
     if dim == 3:
         expected = n_target * (4.0 / 3.0) * math.pi * radius**3
@@ -41,7 +45,7 @@ def chance_count(n_source: float, n_target: float, measure: float, radius: float
 
 
 def chance_support(n_source: int, n_target: int, measure: float, radius: float,
-                   n_tests: float = 1.0, alpha: float = 1e-6, *, dim: int = 3,
+                   n_tests: float = 1.0, alpha: float = ALPHA, *, dim: int = 3,
                    sample_size: int = 3) -> int:
     """Support a wrong motion reaches by chance, with family-wise level ``alpha``.
 

@@ -131,3 +131,23 @@ def test_search_reports_progress_and_a_found_motion():
     assert isinstance(found, stages.Found) and found.fit.support == 40
     assert seen and all(0.0 <= f <= 1.0 for f in seen)
     assert found.threshold <= found.fit.support
+
+
+@settings(max_examples=40, deadline=None)
+@given(mu=st.floats(1e-4, 60.0), n_matches=st.floats(1.0, 1e9))
+def test_density_test_lets_through_at_most_the_judged_wrong_motions(mu, n_matches):
+    """Over n_matches wrong motions of mean chance count mu, the expected number exceeding the
+    density test's level is at most JUDGED_WRONG (family-wise ALPHA when that is stricter)."""
+    from scipy.stats import poisson
+
+    from gatv.stats import ALPHA, chance_count
+
+    tests = stages.density_tests(n_matches)
+    assert tests >= 1.0
+    # 1000 source points, each landing on the one target ball (volume 1) with p = mu / 1000
+    level = chance_count(1000.0, 1.0, 1000.0 / mu, 1.0 / np.cbrt(4.0 / 3.0 * np.pi), n_tests=tests)
+    expected_wrong = n_matches * poisson.sf(level, mu)
+    assert expected_wrong <= max(stages.JUDGED_WRONG, ALPHA * n_matches) * (1 + 1e-9)
+    # and not much stricter than needed: one count less would let more through
+    if tests > 1.0 and level > 0:
+        assert n_matches * poisson.sf(level - 1, mu) > stages.JUDGED_WRONG * (1 - 1e-9)

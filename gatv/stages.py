@@ -585,7 +585,7 @@ class Found:
 JUDGED_WRONG = 50.0
 
 
-def density_tests(n_matches: float) -> float:
+def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -> float:
     """The ``n_tests`` of the density test's chance level when ``n_matches`` matches are scored.
 
     The density test only screens trial motions for the judge (tensor
@@ -595,9 +595,13 @@ def density_tests(n_matches: float) -> float:
     family-wise :data:`gatv.stats.ALPHA` over all of them.  At f = 0.9
     and 1% noise that is 43 instead of 62 points at the coarse tolerance
     where a true motion brings ~65.  Returns the count to give as
-    ``n_tests`` (at least 1) to the chance level, family-wise at ``ALPHA``.
+    ``n_tests`` (at least 1) to the chance level, family-wise at ``ALPHA``;
+    ``judged_wrong=None`` keeps the level family-wise over all the matches
+    (``n_matches``).
     """
-    return max(1.0, ALPHA * float(n_matches) / JUDGED_WRONG)
+    if judged_wrong is None:
+        return float(n_matches)
+    return max(1.0, ALPHA * float(n_matches) / float(judged_wrong))
 
 
 #: Work units per round of :func:`search` at each tolerance (see there).
@@ -618,7 +622,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
            threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
            progress=None, tried: list | None = None, max_matches: int = MAX_MATCHES,
            max_work: float | None = None, trial_options: dict | None = None,
-           deadline: float | None = None, confidence: float = 0.999) -> Found | None:
+           deadline: float | None = None, confidence: float = 0.999,
+           judged_wrong: float | None = JUDGED_WRONG) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -631,10 +636,11 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     and 0.03 per source point it visited (all ``n`` unless the model stops
     early), so the same seed gives the same result.  The ``keep`` best
     trials of a chunk that reach the density test's chance level
-    (:func:`density_tests`) are judged by tensor voting (:func:`judge`);
-    the first whose support reaches the chance level of the gate
-    (family-wise over ``threshold_tests`` × :data:`JUDGED_WRONG` judged
-    trials; or ``min_support``) is
+    (:func:`density_tests` with ``judged_wrong``; ``None``: family-wise
+    over every match) are judged by tensor voting (:func:`judge`); the
+    first whose support reaches the chance level of the gate (family-wise
+    over ``threshold_tests`` × ``judged_wrong`` judged trials; or
+    ``min_support``) is
     refined (``polish``, :func:`refine`) and its tolerance grown while its
     support grows beyond chance (``grow``, :func:`grow_tolerance`).
 
@@ -667,7 +673,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         idx = copy.copy(base)
         idx.set_radius(gate(tol))
         indexes.append(idx)
-    accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches)) for idx in indexes]
+    accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
+              for idx in indexes]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     caps = [min(budget, samples_needed(min(1.0, a / n), confidence, k_pts)) for a in accept]
     records = [{"tolerance": tol, "triples": 0, "congruent": 0, "visited": 0, "best_support": 0, "threshold": a}
@@ -724,9 +731,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:
                 continue
-            # Family-wise over the judge's calls too: up to JUDGED_WRONG wrong ones.
+            # Family-wise over the judge's calls too: up to judged_wrong wrong ones.
             threshold = (min_support if min_support is not None
-                         else problem.chance(g, threshold_tests * JUDGED_WRONG))
+                         else problem.chance(g, threshold_tests * (judged_wrong or 1.0)))
             for k, matrix in enumerate(trials.matrices):
                 if trials.support[k] < accept[level]:
                     break

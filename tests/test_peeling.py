@@ -116,7 +116,7 @@ def test_search_budget_covers_the_smallest_motion_the_search_can_judge(seed):
         accept = []
         for tol in levels:
             index.set_radius(stages.gate(tol))
-            accept.append(P.model.chance(n, n2, index.volume, index.radius, stages.density_tests(b * 512)))
+            accept.append(P.model.chance(n, n2, index.volume, index.radius, b * 512))
         return min(accept)
 
     for smallest in (4.0, 10.0, 40.0):

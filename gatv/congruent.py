@@ -32,8 +32,19 @@ from ._validation import check_memory
 from .models.base import homogeneous
 from .stats import chance_support, samples_needed
 
-__all__ = ["TargetIndex", "TrialMotions", "TrialPool", "accept_level", "trial_motions", "sample_triples",
-           "expected_matches", "n_triples_needed", "chance_support", "sequential_boundary", "MISS_RATE"]
+__all__ = [
+    "MISS_RATE",
+    "TargetIndex",
+    "TrialMotions",
+    "TrialPool",
+    "accept_level",
+    "chance_support",
+    "expected_matches",
+    "n_triples_needed",
+    "sample_triples",
+    "sequential_boundary",
+    "trial_motions",
+]
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:

@@ -10,7 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import _congruent_kernels as k
-from gatv.congruent import TargetIndex, sample_triples, sequential_boundary, trial_motions, triangle_heights
+from gatv.congruent import (
+    TargetIndex,
+    sample_triples,
+    sequential_boundary,
+    trial_motions,
+    triangle_heights,
+)
 from gatv.fitting import kabsch
 from gatv.ga import Rotor
 

@@ -93,7 +93,7 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
         volumes.append((index.volume, index.radius))
 
     def findable(b: int) -> float:
-        accept = min(model.chance(n, n2, v, r, stages.density_tests(b * max_matches, None)) for v, r in volumes)
+        accept = min(model.chance(n, n2, v, r, b * max_matches) for v, r in volumes)
         return max(float(smallest), float(accept))
 
     def needed(m: float) -> int:

@@ -30,7 +30,7 @@ import numpy as np
 from . import _congruent_kernels as _k
 from ._validation import check_memory
 from .models.base import homogeneous
-from .stats import chance_support, samples_needed
+from .stats import ball_measure, chance_support, samples_needed
 
 __all__ = [
     "MISS_RATE",
@@ -416,6 +416,5 @@ def _sequential_test(n: int, index: TargetIndex, accept: int, min_share: float =
     """
     if accept <= 0 or accept >= np.iinfo(np.int64).max:
         return 0.0, 0.0
-    ball = 4.0 / 3.0 * np.pi * index.radius**3
-    p_chance = 1.0 - np.exp(-index.target.shape[0] * ball / index.volume)
+    p_chance = 1.0 - np.exp(-index.target.shape[0] * ball_measure(index.radius) / index.volume)
     return sequential_boundary(p_chance, min(max(accept / n, float(min_share)), 1.0))

@@ -453,15 +453,6 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     return pairs[np.argsort(pairs[:, 0], kind="stable")]
 
 
-def window(X, Y, tree_x, tree_y, centre, warp, radius: float, margin: float):
-    """Rows of a source window (within ``radius`` of ``centre``) and of the target window
-    that must hold their partners (within ``radius + margin`` of ``warp(centre)``)."""
-    src = np.sort(np.asarray(tree_x.query_ball_point(centre, radius), np.int64))
-    moved = warp(centre[None])[0]
-    tgt = np.sort(np.asarray(tree_y.query_ball_point(moved, radius + margin), np.int64))
-    return src, tgt
-
-
 # ------------------------------------------------------------------ pre-alignment fallback
 def moment_prealign(X, Y, *, iterations: int = 30, max_points: int = 3000, seed: int = 0):
     """Similarity pre-alignment from principal axes, refined by trimmed similarity ICP.

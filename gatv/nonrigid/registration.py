@@ -563,7 +563,6 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
     """
     from dataclasses import replace
 
-
     k = min(rows_x.size, window_points)
     for c in centres:
         t0 = time.perf_counter()

@@ -401,7 +401,11 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     matches, and matches them to the nearest unused target within ``gate``,
     one-to-one (closest first), when that target is unambiguous (at most
     :data:`GROW_AMBIGUITY` times as far as the second nearest unused one;
-    otherwise the point waits).  Stops when a ring adds nothing.  Taking one
+    otherwise the point waits).  Stops when a ring adds nothing; the points
+    still waiting next to a match are then matched once, as leaves, by the
+    same test among the targets that no other waiting point has as its
+    nearest (two samples closer than twice the warp's error are each
+    other's second target and would wait for ever).  Taking one
     ring at a time keeps the affine extrapolation short: a locally affine
     warp extrapolated over several spacings drifts where the warp bends,
     and a drift of one sample along a uniformly sampled surface is locally
@@ -427,30 +431,58 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     for r in range(max_rounds):
         if pairs.shape[0] < 4 or frontier.size == 0:
             break
-        near = tree_x.query(X[frontier], k=kn)[1]
-        free = np.unique(near.reshape(-1))
-        free = free[~used_s[free]]
-        if free.size == 0:
+        new = _ring(X, Y, tree_x, tree_y, pairs, frontier, used_s, used_t, gate, h, kn, GROW_AMBIGUITY)
+        if new.shape[0] == 0:
             break
-        xs = X[pairs[:, 0]]
-        warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs, spacing=h)
-        d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
-        ok = np.isfinite(d)
-        ok[ok] = ~used_t[j[ok]]
-        du = np.sort(np.where(ok, d, np.inf), axis=1)
-        ok &= du[:, :1] <= GROW_AMBIGUITY * du[:, 1:2]  # unambiguous: one unused target, or a clear nearest
-        rows, cols = np.nonzero(ok)
-        if rows.size == 0:
-            break
-        cand = np.stack([free[rows], j[rows, cols]], axis=1)
-        new = cand[one_to_one(cand, d[rows, cols])]
         pairs = np.vstack([pairs, new])
-        used_s[new[:, 0]] = True
-        used_t[new[:, 1]] = True
         frontier = new[:, 0]
         if report is not None and r % 10 == 0:
             report(min(1.0, pairs.shape[0] / X.shape[0]), f"growth: {pairs.shape[0]} matches")
+    if pairs.shape[0] >= 4:
+        # Two source samples closer than twice the warp's error wait for ever, each
+        # the other's second target: once growth stops, the points still waiting
+        # next to a match are taken as leaves (nothing grows from them) when they
+        # are unambiguous among the targets no other waiting point has as nearest.
+        new = _ring(X, Y, tree_x, tree_y, pairs, pairs[:, 0], used_s, used_t, gate, h, kn, GROW_AMBIGUITY,
+                    claimed=True)
+        pairs = np.vstack([pairs, new])
     return pairs[np.argsort(pairs[:, 0], kind="stable")]
+
+
+def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate: float, h: float, kn: int,
+          ambiguity: float, *, claimed: bool = False) -> np.ndarray:
+    """One ring of :func:`grow`: the unused source points among the ``kn`` nearest of ``centres``,
+    moved by the local affine warp of ``pairs`` and matched one-to-one (closest first) to their
+    nearest unused target within ``gate``, when at most ``ambiguity`` times as far as the second
+    (with ``claimed``, a target that is another candidate's nearest is no second).  Marks the new
+    matches used; returns them, (K, 2)."""
+    near = tree_x.query(X[centres], k=kn)[1]
+    free = np.unique(near.reshape(-1))
+    free = free[~used_s[free]]
+    if free.size == 0:
+        return np.empty((0, 2), np.int64)
+    xs = X[pairs[:, 0]]
+    warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs, spacing=h)
+    d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
+    ok = np.isfinite(d)
+    ok[ok] = ~used_t[j[ok]]
+    first = np.argmax(ok, axis=1)  # the nearest unused target's column (distances come sorted)
+    rivals = ok.copy()
+    rivals[np.arange(free.size), first] = False
+    if claimed:
+        nearest = j[np.arange(free.size), first][ok.any(axis=1)]
+        rivals &= ~np.isin(j, nearest)
+    d1 = np.where(ok.any(axis=1), d[np.arange(free.size), first], np.inf)
+    d2 = np.where(rivals, d, np.inf).min(axis=1)
+    ok &= (d1 <= ambiguity * d2)[:, None]  # unambiguous: one unused target, or a clear nearest
+    rows, cols = np.nonzero(ok)
+    if rows.size == 0:
+        return np.empty((0, 2), np.int64)
+    cand = np.stack([free[rows], j[rows, cols]], axis=1)
+    new = cand[one_to_one(cand, d[rows, cols])]
+    used_s[new[:, 0]] = True
+    used_t[new[:, 1]] = True
+    return new
 
 
 # ------------------------------------------------------------------ pre-alignment fallback

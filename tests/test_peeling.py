@@ -12,7 +12,16 @@ from gatv import stages
 from gatv.errors import InputError
 from gatv.models import get_model
 from gatv.motions import Segmentation, multi_motion_scene, segment
-from gatv.motions.peeling import likelihood_gate, peel, pool_noise, search_budget
+from gatv.motions.peeling import (
+    LISTING,
+    SEARCH_LISTING,
+    assign_pairs,
+    likelihood_gate,
+    listed_share,
+    peel,
+    pool_noise,
+    search_budget,
+)
 from gatv.stats import samples_needed
 
 
@@ -126,6 +135,96 @@ def test_search_budget_covers_the_smallest_motion_the_search_can_judge(seed):
         assert budget <= samples_needed(smallest / n, 0.999, 3)  # never more than asked
         if budget > 1:  # the least such budget: one draw fewer is too few for what it could find
             assert budget - 1 < samples_needed(max(smallest, level(budget - 1)) / n, 0.999, 3)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_search_budget_counts_only_the_listed_all_inlier_samples(seed):
+    """With a share ``L`` of all-inlier samples listed, the budget finds the motion with the same confidence."""
+    scene = _noisy_two_motions(seed, 0.05)
+    P = stages.prepare(scene.source, scene.target)
+    levels = [0.05 * P.spacing]
+    n = P.source.shape[0]
+    full, m_full = search_budget(P, levels, 10.0, 0.999, 10**8, 512)
+    for listed in (0.9, listed_share(LISTING), 0.05):
+        budget, m = search_budget(P, levels, 10.0, 0.999, 10**8, 512, listed=listed)
+        assert m >= m_full and budget > full
+        w = (m / n) ** 3 * listed  # a draw finds a motion of m points
+        assert (1 - w) ** budget <= 1e-3  # enough for what it can find
+        w_asked = (10.0 / n) ** 3 * listed
+        assert (1 - w_asked) ** (budget - 1) > 1e-3  # never more than asked
+
+
+@settings(max_examples=30, deadline=None)
+@given(listing=st.floats(0.05, 6.0), k=st.integers(1, 4))
+def test_listed_share_is_the_gaussian_mass_within_the_listing_on_every_side(listing, k):
+    from scipy.stats import norm
+
+    one = norm.cdf(listing) - norm.cdf(-listing)
+    assert listed_share(listing, k) == pytest.approx(one**k, rel=1e-9)
+    assert listed_share(listing * 1.1, k) > listed_share(listing, k)
+
+
+def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations():
+    """stages.search lists at eps = 5 tau (SEARCH_LISTING = 2.5 sd of a side); the peel's wrapper scales it."""
+    from gatv.motions.peeling import _Listing, _subproblem_with
+
+    seen = []
+
+    class Spy:
+        def __init__(self, model):
+            self._model = model
+
+        def __getattr__(self, name):
+            return getattr(self._model, name)
+
+        def trial_motions(self, source, index, *, eps, **options):
+            seen.append(eps)
+            return self._model.trial_motions(source, index, eps=eps, **options)
+
+    scene = _noisy_two_motions(0, 0.05)
+    P = stages.prepare(scene.source, scene.target)
+    tau = 0.05 * P.spacing
+    for model, expected in ((Spy(P.model), 5.0 * tau), (_Listing(Spy(P.model), LISTING), 2.0 * tau * LISTING)):
+        seen.clear()
+        stages.search(_subproblem_with(P, model), [tau], budget=4, rng=np.random.default_rng(0), keep=2)
+        assert seen and all(e == pytest.approx(expected) for e in seen)
+    assert SEARCH_LISTING * 2.0 * tau == pytest.approx(5.0 * tau)
+
+
+def _best_matching(pairs, gain):
+    """Brute force: the largest total gain of a one-to-one subset of rows."""
+    best = 0.0
+
+    def walk(k, used_s, used_t, total):
+        nonlocal best
+        best = max(best, total)
+        for r in range(k, len(pairs)):
+            i, j = pairs[r]
+            if gain[r] > 0 and i not in used_s and j not in used_t:
+                walk(r + 1, used_s | {i}, used_t | {j}, total + gain[r])
+
+    walk(0, frozenset(), frozenset(), 0.0)
+    return best
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 4), st.integers(0, 4), st.floats(-1.0, 1.0)), min_size=0, max_size=9))
+def test_assign_pairs_is_the_one_to_one_subset_of_largest_gain(rows):
+    pairs = np.array([(i, j) for i, j, _ in rows], np.int64).reshape(-1, 2)
+    gain = np.array([g for _, _, g in rows], np.float64)
+    keep = assign_pairs(pairs, gain)
+    chosen = pairs[keep]
+    assert len(np.unique(chosen[:, 0])) == len(keep) and len(np.unique(chosen[:, 1])) == len(keep)
+    assert np.all(gain[keep] > 0)
+    assert gain[keep].sum() == pytest.approx(_best_matching(pairs.tolist(), gain.tolist()), abs=1e-9)
+
+
+def test_assign_pairs_gives_a_point_its_second_target_when_its_nearest_is_taken():
+    # a -> t0 (residual 0.5) or t1 (0.6); b -> t0 (0.55) only; gate 1: gain 1 - r^2
+    pairs = np.array([[0, 0], [0, 1], [1, 0]])
+    gain = 1.0 - np.array([0.5, 0.6, 0.55]) ** 2
+    assert sorted(map(tuple, pairs[assign_pairs(pairs, gain)].tolist())) == [(0, 1), (1, 0)]
+    assert stages.select_one_to_one(pairs, 1.0 - gain).tolist() == [0]  # cheapest first keeps one pair
 
 
 def test_pool_noise_regates_every_motion_one_to_one():

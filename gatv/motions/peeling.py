@@ -42,16 +42,60 @@ from .._validation import (
     check_progress,
 )
 from ..errors import InputError
+from ..models.base import split_matrix
 from ..stages import Fit, Problem
-from ..stats import samples_needed
 from .segmentation import Segmentation
 
-__all__ = ["likelihood_gate", "peel", "pool_noise", "search_budget"]
+__all__ = ["LISTING", "assign_pairs", "likelihood_gate", "listed_share", "peel", "pool_noise", "search_budget"]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
 #: Default cap on the samples drawn per tolerance level and round.
 MAX_SAMPLES = 200_000
+#: Side-length tolerance of :func:`gatv.stages.search`'s congruent listing,
+#: in standard deviations of a side's noise: ``eps = 5 τ`` where a side of
+#: four points with noise ``τ`` each has standard deviation ``2 τ``.
+SEARCH_LISTING = 2.5
+#: The listing tolerance of a noisy peel's rounds once the noise is measured,
+#: in the same unit (see :func:`listed_share`): one standard deviation.
+LISTING = 1.0
+
+
+def listed_share(listing: float, sample_points: int = 3) -> float:
+    """Share of all-inlier samples whose true match a congruent listing at ``listing`` keeps.
+
+    A side's length error is Gaussian (four noisy points projected on it);
+    the listing keeps a match when each side is within ``listing`` standard
+    deviations, ``2Φ(listing) − 1`` for one side, about that to the power of
+    the ``sample_points`` sides (taken as independent).  The matches listed
+    per sample grow as ``listing³`` (target triangles within the tolerance
+    of all three sides) while the all-inlier samples listed grow as this
+    share, so the work per motion found goes as ``(listing / (2Φ(listing) −
+    1))³``: 16.2 at 2.5 standard deviations, 3.1 at one, 2.0 at the limit
+    of none, where the samples drawn grow without bound.
+    """
+    from scipy.special import erf
+
+    return float(erf(float(listing) / np.sqrt(2.0)) ** sample_points)
+
+
+class _Listing:
+    """``model`` whose congruent listing in :func:`gatv.stages.search` runs at ``listing`` standard deviations.
+
+    Everything else (index, chance level, scoring, judge, fit) is the model's
+    own; only the side-length tolerance ``eps`` of its trial motions scales by
+    ``listing / SEARCH_LISTING``.
+    """
+
+    def __init__(self, model, listing: float):
+        self._model = model
+        self._scale = float(listing) / SEARCH_LISTING
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def trial_motions(self, source, index, *, eps, **options):
+        return self._model.trial_motions(source, index, eps=eps * self._scale, **options)
 
 
 def _sample_space(model, n: int) -> int:
@@ -66,8 +110,13 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
     return Problem(P.source[src], Y, P.model, cKDTree(Y), P.spacing, P.extent, P.volume)
 
 
+def _subproblem_with(P: Problem, model) -> Problem:
+    """``P`` with another model object (the same points and scale facts)."""
+    return Problem(P.source, P.target, model, P.tree, P.spacing, P.extent, P.volume)
+
+
 def search_budget(problem: Problem, levels, smallest: float, confidence: float, cap: int,
-                  max_matches: int, *, memory_budget: float | None = None) -> tuple[int, float]:
+                  max_matches: int, *, memory_budget: float | None = None, listed: float = 1.0) -> tuple[int, float]:
     """Samples a round draws, for the smallest motion its search can find; and that motion's size.
 
     A motion of ``m`` of the ``n`` source points is hit by an all-inlier
@@ -82,6 +131,9 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
     the budget; the budget returned is the least ``b`` (bisection) that is
     enough for the smallest motion findable with ``b`` draws, so it covers
     every motion the search could find with any budget up to ``cap``.
+    ``listed`` is the share of all-inlier samples whose true match the
+    search lists (:func:`listed_share`): a sample finds the motion with
+    probability ``(m / n)^k · listed``.
     """
     model = problem.model
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
@@ -97,7 +149,8 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
         return max(float(smallest), float(accept))
 
     def needed(m: float) -> int:
-        return int(min(samples_needed(min(1.0, m / n), confidence, k_pts), cap))
+        w = min(1.0, m / n) ** k_pts * float(listed)
+        return int(min(1 if w >= 1.0 else np.ceil(np.log1p(-confidence) / np.log1p(-w)), cap))
 
     hi = max(needed(float(smallest)), 1)
     if needed(findable(hi)) >= hi:
@@ -127,6 +180,55 @@ def likelihood_gate(sigma: float, density: float, dim: int = 3) -> float:
     return float(np.sqrt(2.0 * s2 * np.log(ratio))) if ratio > 1.0 else 0.0
 
 
+def assign_pairs(pairs: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """Rows of ``pairs`` of the one-to-one subset of largest total ``gain`` (all gains > 0 are kept candidates).
+
+    The maximum-weight bipartite matching, exact: the candidate pairs fall
+    into connected components (pairs sharing a source or a target point), and
+    each component's assignment is solved on its own
+    (:func:`scipy.optimize.linear_sum_assignment`, a pair left out gaining
+    nothing).  With ``gain`` the log-likelihood ratio of each pair being a
+    true one, this is the most likely one-to-one labelling; the greedy
+    selection (cheapest first) instead drops a point whose nearest target
+    went to another, even when its second nearest is free.
+    """
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    gain = np.asarray(gain, np.float64)
+    ok = np.flatnonzero(gain > 0)
+    if ok.size == 0:
+        return ok
+    # the best row for each (source, target): the same pair under two motions
+    order = ok[np.lexsort((-gain[ok], pairs[ok, 1], pairs[ok, 0]))]
+    first = np.ones(order.size, bool)
+    first[1:] = np.any(pairs[order[1:]] != pairs[order[:-1]], axis=1)
+    rows = order[first]
+    s_ids, s_of = np.unique(pairs[rows, 0], return_inverse=True)
+    t_ids, t_of = np.unique(pairs[rows, 1], return_inverse=True)
+    ns, nt = s_ids.size, t_ids.size
+    graph = coo_matrix((np.ones(rows.size), (s_of, ns + t_of)), shape=(ns + nt, ns + nt))
+    _, comp = connected_components(graph, directed=False)
+    kept = []
+    for c in np.unique(comp[s_of]):
+        mine = np.flatnonzero(comp[s_of] == c)
+        if mine.size == 1:
+            kept.append(rows[mine])
+            continue
+        si, sr = np.unique(s_of[mine], return_inverse=True)
+        ti, tr = np.unique(t_of[mine], return_inverse=True)
+        weight = np.zeros((si.size, ti.size))
+        weight[sr, tr] = gain[rows[mine]]
+        a, b = linear_sum_assignment(weight, maximize=True)
+        index = np.full((si.size, ti.size), -1, np.int64)
+        index[sr, tr] = mine
+        chosen = index[a, b]
+        kept.append(rows[chosen[chosen >= 0]])
+    return np.sort(np.concatenate(kept))
+
+
 def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[list[Fit], float]:
     """Every motion's correspondences re-gated at the noise of the one sensor, measured on them all.
 
@@ -151,20 +253,24 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     g = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
     n1, density = P.source.shape[0], P.target.shape[0] / P.volume
     ball = np.pi ** (P.dim / 2.0) / gamma(P.dim / 2.0 + 1.0)
-    pairs, cost, owner = [], [], []
+    pairs, gain, owner = [], [], []
     for k, (fit, own) in enumerate(zip(fits, noises)):
         wider = stages.regate(P, fit, g)
         g_own = stages.FINAL_GATE * own
         # random pairs expected in the added shell, had every source point a random target there
         shell = n1 * density * ball * max(g**P.dim - g_own**P.dim, 0.0)
-        if g > g_own and wider.support - fit.support <= shell:
-            wider = fit
-        c = wider.correspondences
+        g_k = g_own if g > g_own and wider.support - fit.support <= shell else g
+        # Every target within the gate, not only the nearest: a point whose
+        # nearest target is another's partner may take its second nearest.
+        A, t = split_matrix(fit.matrix)
+        near = P.tree.query_ball_point(P.source @ A.T + t, g_k)
+        c = np.array([(i, j) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
         pairs.append(c)
-        cost.append(P.residuals(fit.matrix, c))
+        # log-likelihood ratio of "true pair" over "both unexplained", times 2σ²
+        gain.append(g_k**2 - np.square(P.residuals(fit.matrix, c)))
         owner.append(np.full(c.shape[0], k))
-    pairs, cost, owner = np.vstack(pairs), np.concatenate(cost), np.concatenate(owner)
-    keep = stages.select_one_to_one(pairs, cost)
+    pairs, gain, owner = np.vstack(pairs), np.concatenate(gain), np.concatenate(owner)
+    keep = assign_pairs(pairs, gain)
     out = []
     for k, fit in enumerate(fits):
         mine = keep[owner[keep] == k]
@@ -274,6 +380,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     smallest = max(float(min_inlier_share) * n1, float(k_pts))
     round_levels = list(levels)
+    measured_noise = 0.0
     used_s = np.zeros(n1, bool)
     used_t = np.zeros(n2, bool)
     fits: list[Fit] = []
@@ -297,9 +404,19 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if noisy:
             need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
         cap = int(min(3 * n_possible, max_triples))
+        # Once the noise is measured (one sensor), a round lists congruent
+        # matches at LISTING standard deviations of a side's noise, not the
+        # schedule's SEARCH_LISTING: fewer all-inlier samples are listed
+        # (listed_share) and more are drawn, but each lists (2.5 / LISTING)³
+        # times fewer matches to score.
+        measured = noisy and bool(fits)
+        # A side's noise is that of the points (measured), which may lie under
+        # the round's tolerance (the schedule's first level is its floor): the
+        # listing then holds more than LISTING standard deviations of it.
+        listed = listed_share(LISTING * round_levels[0] / max(measured_noise, 1e-300), k_pts) if measured else 1.0
         budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
                                          search_options.get("max_matches", stages.MAX_MATCHES),
-                                         memory_budget=memory_budget)
+                                         memory_budget=memory_budget, listed=listed)
         report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
         tried: list = []
         t_round = time.perf_counter()
@@ -308,9 +425,15 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             # The round's budget is drawn for motions of need_min points: the
             # sequential test need not look for smaller ones.
             options["trial_options"] = dict(options["trial_options"], min_share=need_min / src.size)
-        found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
+        # The search's own cap at each level is the RANSAC bound for every
+        # all-inlier sample listed, at `confidence`: the same bound for the
+        # listed share is that of the confidence below (float-clipped).
+        search_confidence = confidence if listed >= 1.0 else min(
+            -np.expm1(np.log1p(-confidence) / listed), np.nextafter(1.0, 0.0))
+        found = stages.search(_subproblem_with(S, _Listing(model, LISTING)) if measured else S, round_levels,
+                              budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
                               max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
-                              threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
+                              threshold_tests=N_JUDGED, min_support=min_support, confidence=search_confidence,
                               # Family-wise over every match, as a peel keeps motions
                               # until none beats chance: register's screen level
                               # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
@@ -328,9 +451,13 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if noisy:
             fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
                                            floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
-            # One sensor: the next rounds search at the noise measured here, not the
-            # whole schedule.
-            round_levels = [max(tol, levels[0])]
+            # One sensor: the next rounds search at the noise measured so far
+            # (pooled over the motions found, weighted by support as in
+            # pool_noise), not the whole schedule.
+            n_k = np.array([f.support for f in fits] + [fit.support], np.float64)
+            s_k = np.array(tolerances + [tol], np.float64)
+            measured_noise = float(np.sqrt(np.sum(n_k * s_k**2) / np.sum(n_k)))
+            round_levels = [max(measured_noise, levels[0])]
         log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
                     "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
                     "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,

@@ -138,6 +138,20 @@ def test_search_budget_covers_the_smallest_motion_the_search_can_judge(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+def test_noisy_peel_finds_a_small_motion_beside_a_large_one(seed):
+    """Rounds at the measured noise list at LISTING sd: a motion of 20 of 160 points is still found, nothing more."""
+    rng = np.random.default_rng(seed)
+    rots = Rotation.random(2, random_state=seed).as_matrix()
+    scene = multi_motion_scene(rots, rng.uniform(-5, 5, (2, 3)), [60, 20], n_outliers=80, noise=0.1, seed=rng)
+    seg = segment(scene.source, scene.target)
+    assert len(seg) == 2, seg.info["reason"]
+    small = min(seg, key=lambda m: m.support)
+    assert _overlap(small.correspondences, scene.true_pairs[1]) >= 17
+    assert seg.info["rounds"][-1].get("support") is None  # the last round found nothing
+    _check_one_to_one(seg)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
 def test_search_budget_counts_only_the_listed_all_inlier_samples(seed):
     """With a share ``L`` of all-inlier samples listed, the budget finds the motion with the same confidence."""
     scene = _noisy_two_motions(seed, 0.05)

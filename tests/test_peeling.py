@@ -18,6 +18,7 @@ from gatv.motions.peeling import (
     assign_pairs,
     likelihood_gate,
     listed_share,
+    merge_same_motions,
     peel,
     pool_noise,
     search_budget,
@@ -203,6 +204,25 @@ def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations():
         stages.search(_subproblem_with(P, model), [tau], budget=4, rng=np.random.default_rng(0), keep=2)
         assert seen and all(e == pytest.approx(expected) for e in seen)
     assert SEARCH_LISTING * 2.0 * tau == pytest.approx(5.0 * tau)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10**6), cut=st.floats(0.25, 0.75))
+def test_merge_joins_a_motion_found_in_two_parts_and_keeps_two_motions_apart(seed, cut):
+    scene = _noisy_two_motions(seed, 0.05)  # target noise 0.05 per axis: sigma 0.05 / sqrt(2) in gatv's terms
+    P = stages.prepare(scene.source, scene.target)
+    first, second = scene.true_pairs
+    k = int(cut * len(first))
+    parts = [first[:k], first[k:], second]
+    fits = [stages.Fit(P.model.fit(P.source[p[:, 0]], P.target[p[:, 1]]), p) for p in parts]
+    out, noises, joined = merge_same_motions(P, fits, [0.05 / np.sqrt(2)] * 3)
+    assert len(out) == 2 and len(joined) == 1 and joined[0]["motions"] == (0, 1)
+    assert _overlap(out[0].correspondences, first) == len(first)
+    assert np.array_equal(out[1].correspondences, second)
+    assert noises[1] == pytest.approx(0.05 / np.sqrt(2))
+    # two different motions are never one: each alone, or halves of both
+    out2, _, joined2 = merge_same_motions(P, [fits[0], fits[2]], [0.05 / np.sqrt(2)] * 2)
+    assert len(out2) == 2 and not joined2
 
 
 def _best_matching(pairs, gain):

@@ -46,7 +46,16 @@ from ..models.base import split_matrix
 from ..stages import Fit, Problem
 from .segmentation import Segmentation
 
-__all__ = ["LISTING", "assign_pairs", "likelihood_gate", "listed_share", "peel", "pool_noise", "search_budget"]
+__all__ = [
+    "LISTING",
+    "assign_pairs",
+    "likelihood_gate",
+    "listed_share",
+    "merge_same_motions",
+    "peel",
+    "pool_noise",
+    "search_budget",
+]
 
 #: Judged trials per round; the family-wise chance level counts them.
 N_JUDGED = 4
@@ -227,6 +236,62 @@ def assign_pairs(pairs: np.ndarray, gain: np.ndarray) -> np.ndarray:
         chosen = index[a, b]
         kept.append(rows[chosen[chosen >= 0]])
     return np.sort(np.concatenate(kept))
+
+
+#: Level of :func:`merge_same_motions`' test that two found motions are one.
+MERGE_LEVEL = 1e-3
+
+
+def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *,
+                       level: float = MERGE_LEVEL) -> tuple[list[Fit], list[float], list[dict]]:
+    """Join motions that are one motion found in two rounds (rigid model, 3D).
+
+    A round may keep part of a motion (a trial pose a little off brings only
+    some of its points within the gate) and a later round the rest.  For two
+    found motions with pairs ``A`` and ``B``, the least-squares fit of ``A ∪ B``
+    and the fits of each: under "one motion" the extra residual
+    ``(RSS(A ∪ B) − RSS(A) − RSS(B)) / s²`` (``s² = 2 σ²`` the per-axis
+    variance of a pair's residual at the pooled noise ``σ``) is a chi-square
+    with the motion's 6 degrees of freedom; two different motions leave it
+    orders of magnitude above.  The pair with the smallest statistic under
+    its ``level`` quantile is joined (pose refitted on the union, support
+    weighted noise), and the test repeats.  Returns the fits, their noises and
+    a record of each join.
+    """
+    from scipy.stats import chi2
+
+    P = problem
+    if P.model.name != "rigid" or P.dim != 3:
+        return list(fits), list(noises), []
+    fits, noises = list(fits), [float(x) for x in noises]
+    n = np.array([f.support for f in fits], np.float64)
+    s2 = 2.0 * float(np.sum(n * np.square(noises)) / np.sum(n))
+    limit = float(chi2.isf(level, 6))
+    joined = []
+
+    def rss(pairs):
+        M = P.model.fit(P.source[pairs[:, 0]], P.target[pairs[:, 1]])
+        return M, float(np.sum(np.square(P.residuals(M, pairs))))
+
+    while len(fits) > 1 and s2 > 0:
+        best = None
+        own = [rss(f.correspondences)[1] for f in fits]
+        for a in range(len(fits)):
+            for b in range(a + 1, len(fits)):
+                union = np.vstack([fits[a].correspondences, fits[b].correspondences])
+                M, r = rss(union)
+                stat = (r - own[a] - own[b]) / s2
+                if stat <= limit and (best is None or stat < best[0]):
+                    best = (stat, a, b, M, union)
+        if best is None:
+            break
+        stat, a, b, M, union = best
+        na, nb = fits[a].support, fits[b].support
+        joined.append({"motions": (a, b), "supports": (na, nb), "statistic": stat, "limit": limit})
+        noises[a] = float(np.sqrt((na * noises[a] ** 2 + nb * noises[b] ** 2) / (na + nb)))
+        fits[a] = Fit(M, union[np.argsort(union[:, 0], kind="stable")])
+        del fits[b], noises[b]
+    return fits, noises, joined
 
 
 def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[list[Fit], float]:
@@ -469,6 +534,14 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         used_t[kept[:, 1]] = True
 
     pooled = None
+    merged: list = []
+    rounds_of = list(range(len(fits)))
+    if noisy and noise is None and len(fits) > 1:
+        fits, tolerances, merged = merge_same_motions(P, fits, tolerances)
+        for rec in merged:  # joins in order, indices as they were then
+            a, b = rec["motions"]
+            rec["rounds"] = (rounds_of[a], rounds_of[b])
+            del rounds_of[b]
     if noisy and noise is None and len(fits) > 1:
         fits, pooled = pool_noise(P, fits, tolerances)
         tolerances = [pooled] * len(fits)
@@ -482,12 +555,12 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         src_lab[c[:, 0]] = new
         tgt_lab[c[:, 1]] = new
         motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k], "noise": tolerances[k],
-                                                   "round": k}))
+                                                   "round": rounds_of[k]}))
         c = c[np.argsort(c[:, 0], kind="stable")]
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
     info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),

@@ -300,19 +300,34 @@ def _grown(a, size):
 
 @njit(cache=True)
 def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated,
-                       src_normals, tgt_normals, feature_tol, use_normals):
+                       src_normals, tgt_normals, feature_tol, use_normals, by_point=-1):
     """Target triples congruent to the source triple ``(a, b, c)`` within ``eps``.
 
-    Returns ``(k, l, m, discrepancy)`` arrays of at most ``max_enumerated``
-    matches, ``discrepancy`` the sum of the three squared side-length
-    differences.  The scan of the target pairs of length ``|ab| ± eps``
-    starts at ``offset`` (modulo the window) and wraps around, so that a
-    capped scan is an unbiased sample of the window rather than its shortest
-    pairs.
+    Returns ``(k, l, m, discrepancy, probes)``: arrays of at most
+    ``max_enumerated`` matches, ``discrepancy`` the sum of the three squared
+    side-length differences, and the number of binary searches and
+    candidate third points the listing examined (its cost).
+
+    Two ways of listing the same matches.  By pair: each target pair of
+    length ``|ab| ± eps`` (both orientations ``k, l``), then the points
+    ``m`` of ``k``'s sorted neighbour list at ``|ac| ± eps``: two binary
+    searches a pair.  By point (``by_point=1``; ``-1`` chooses it when the
+    window holds more pairs than the target has points): for each target
+    point ``k`` the neighbours ``l`` at ``|ab| ± eps`` and ``m`` at
+    ``|ac| ± eps`` of its list, four binary searches a point.  Either scan
+    starts at ``offset`` (modulo the window or the target) and wraps
+    around, so that a capped scan is an unbiased sample rather than the
+    shortest pairs or the first points.
     """
     dab = _dist(source, a, source, b)
     dac = _dist(source, a, source, c)
     dbc = _dist(source, b, source, c)
+    lo = _lower_bound(plen, dab - eps)
+    hi = _lower_bound(plen, dab + eps)
+    n2 = target.shape[0]
+    if by_point == 1 or (by_point < 0 and hi - lo > n2):
+        return _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, ndist, nidx, eps,
+                                           max_enumerated, src_normals, tgt_normals, feature_tol, use_normals)
     # Grown by doubling up to max_enumerated: most triples list a few matches,
     # and allocating the cap (1 MB at 32,768) for each cost more than listing.
     size = min(max_enumerated, 64)
@@ -320,9 +335,8 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
     ls = np.empty(size, np.int64)
     ms = np.empty(size, np.int64)
     disc = np.empty(size)
-    lo = _lower_bound(plen, dab - eps)
-    hi = _lower_bound(plen, dab + eps)
     found = 0
+    probes = 2
     width = hi - lo
     for w in range(width):
         if found >= max_enumerated:
@@ -339,6 +353,7 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
             row = ndist[k]
             m0 = _lower_bound(row, dac - eps)
             m1 = _lower_bound(row, dac + eps)
+            probes += 2 + (m1 - m0)
             for u in range(m0, m1):
                 m = nidx[k, u]
                 if m == l:
@@ -368,7 +383,70 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
                     break
             if found >= max_enumerated:
                 break
-    return ks[:found], ls[:found], ms[:found], disc[:found]
+    return ks[:found], ls[:found], ms[:found], disc[:found], probes
+
+
+@njit(cache=True)
+def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, ndist, nidx, eps, max_enumerated,
+                                src_normals, tgt_normals, feature_tol, use_normals):
+    """:func:`_congruent_matches` listed point by point (see there)."""
+    n2 = target.shape[0]
+    size = min(max_enumerated, 64)
+    ks = np.empty(size, np.int64)
+    ls = np.empty(size, np.int64)
+    ms = np.empty(size, np.int64)
+    disc = np.empty(size)
+    found = 0
+    probes = 0
+    for w in range(n2):
+        if found >= max_enumerated:
+            break
+        k = (offset + w) % n2
+        row = ndist[k]
+        l0 = _lower_bound(row, dab - eps)
+        l1 = _lower_bound(row, dab + eps)
+        probes += 2
+        if l0 == l1:
+            continue
+        m0 = _lower_bound(row, dac - eps)
+        m1 = _lower_bound(row, dac + eps)
+        probes += 2
+        for ul in range(l0, l1):
+            if found >= max_enumerated:
+                break
+            l = nidx[k, ul]
+            if use_normals and not _features_agree(source, a, b, src_normals, target, k, l, tgt_normals,
+                                                   feature_tol):
+                continue
+            e1 = row[ul] - dab
+            probes += m1 - m0
+            for um in range(m0, m1):
+                m = nidx[k, um]
+                if m == l:
+                    continue
+                e3 = _dist(target, l, target, m) - dbc
+                if abs(e3) > eps:
+                    continue
+                if use_normals and not (
+                    _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
+                    and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
+                ):
+                    continue
+                e2 = row[um] - dac
+                if found == size:
+                    size = min(2 * size, max_enumerated)
+                    ks = _grown(ks, size)
+                    ls = _grown(ls, size)
+                    ms = _grown(ms, size)
+                    disc = _grown(disc, size)
+                ks[found] = k
+                ls[found] = l
+                ms[found] = m
+                disc[found] = e1 * e1 + e2 * e2 + e3 * e3
+                found += 1
+                if found >= max_enumerated:
+                    break
+    return ks[:found], ls[:found], ms[:found], disc[:found], probes
 
 
 @njit(cache=True)
@@ -376,32 +454,36 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
                    src_normals, tgt_normals, feature_tol, use_normals):
     """The ``max_matches`` tightest of at most ``max_enumerated`` congruent matches of ``(a, b, c)``.
 
-    Returns ``(k, l, m, n_listed)``.  When more are listed than scored, the
-    matches within ``eps / 2`` of every side are listed first: if the last
-    of their ``max_matches`` tightest has a discrepancy (sum of squared
-    side errors) of at most ``(eps / 2)²``, no match outside that half box
-    can be tighter, and these are the tightest of all for about a quarter
-    of the listing work (the listing's inner loop grows like ``eps²``);
-    otherwise the full ``eps`` box is listed.
+    Returns ``(k, l, m, n_listed, n_probes)`` (``n_probes``: the listing's
+    cost, see :func:`_congruent_matches`).  When more are listed than
+    scored, the matches within ``eps / 2`` of every side are listed first:
+    if the last of their ``max_matches`` tightest has a discrepancy (sum of
+    squared side errors) of at most ``(eps / 2)²``, no match outside that
+    half box can be tighter, and these are the tightest of all for about a
+    quarter of the listing work (the listing's inner loop grows like
+    ``eps²``); otherwise the full ``eps`` box is listed.
     """
     listed = 0
+    probes = 0
     if max_enumerated > max_matches:
-        ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
-                                              0.5 * eps, max_enumerated, src_normals, tgt_normals, feature_tol,
-                                              use_normals)
+        ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
+                                                  0.5 * eps, max_enumerated, src_normals, tgt_normals, feature_tol,
+                                                  use_normals)
         listed += ks.shape[0]
+        probes += pr
         if ks.shape[0] > max_matches:
             pick = np.argsort(disc, kind="mergesort")[:max_matches]
             if ks.shape[0] >= max_enumerated or disc[pick[-1]] <= 0.25 * eps * eps:
-                return ks[pick], ls[pick], ms[pick], listed
-    ks, ls, ms, disc = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
-                                          max(max_enumerated, max_matches), src_normals, tgt_normals,
-                                          feature_tol, use_normals)
+                return ks[pick], ls[pick], ms[pick], listed, probes
+    ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
+                                              max(max_enumerated, max_matches), src_normals, tgt_normals,
+                                              feature_tol, use_normals)
     listed += ks.shape[0]
+    probes += pr
     if ks.shape[0] > max_matches:
         pick = np.argsort(disc, kind="mergesort")[:max_matches]
-        return ks[pick], ls[pick], ms[pick], listed
-    return ks, ls, ms, listed
+        return ks[pick], ls[pick], ms[pick], listed, probes
+    return ks, ls, ms, listed, probes
 
 
 @njit(cache=True, parallel=True)
@@ -457,10 +539,10 @@ def triple_hypotheses(
     :func:`build_occupancy` at ``radius``; empty: none) answers most of
     their misses with one memory read.
 
-    Returns ``(score, R, t, n_matches, n_listed, n_visited)`` per triple
-    (``n_matches`` counts the scored matches, ``n_listed`` the listed ones,
-    ``n_visited`` the source points visited in scoring them); ``score = -1``
-    when no congruent triple exists.
+    Returns ``(score, R, t, n_matches, n_listed, n_visited, n_probes)`` per
+    triple (``n_matches`` counts the scored matches, ``n_listed`` the listed
+    ones, ``n_visited`` the source points visited in scoring them, ``n_probes`` the listing's binary searches and candidates);
+    ``score = -1`` when no congruent triple exists.
     """
     nt = triples.shape[0]
     scores = np.full(nt, -1, np.int64)
@@ -469,13 +551,14 @@ def triple_hypotheses(
     nmatch = np.zeros(nt, np.int64)
     nlisted = np.zeros(nt, np.int64)
     nvisited = np.zeros(nt, np.int64)
+    nprobes = np.zeros(nt, np.int64)
     use_normals = src_normals.shape[0] == source.shape[0] and tgt_normals.shape[0] == target.shape[0]
     n_enum = max(max_enumerated, max_matches)
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
-        ks, ls, ms, listed = scored_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist, nidx,
-                                            eps, n_enum, max_matches, src_normals, tgt_normals, feature_tol,
-                                            use_normals)
+        ks, ls, ms, listed, probes = scored_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist,
+                                                    nidx, eps, n_enum, max_matches, src_normals, tgt_normals,
+                                                    feature_tol, use_normals)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
         gather_rows(src, source, a, b, c)
@@ -492,7 +575,8 @@ def triple_hypotheses(
                 trans[q] = t
         nmatch[q] = ks.shape[0]
         nlisted[q] = listed
-    return scores, rots, trans, nmatch, nlisted, nvisited
+        nprobes[q] = probes
+    return scores, rots, trans, nmatch, nlisted, nvisited, nprobes
 
 
 @njit(cache=True)

@@ -41,6 +41,7 @@ __all__ = [
     "chance_support",
     "expected_matches",
     "n_triples_needed",
+    "rarest_side_first",
     "sample_triples",
     "sequential_boundary",
     "trial_motions",
@@ -116,6 +117,7 @@ class TrialMotions:
     n_congruent: int
     n_listed: int = 0  # congruent matches listed (of which n_congruent were scored)
     n_visited: int = -1  # source points visited in scoring them (-1: not counted)
+    n_probes: int = 0  # binary searches and candidate points of the listing (its cost)
 
     def __len__(self) -> int:
         return int(self.support.shape[0])
@@ -314,6 +316,7 @@ def trial_motions(
     n_listed = 0
     slope, offset = _sequential_test(n, index, accept, min_share) if sequential else (0.0, 0.0)
     n_visited = 0
+    n_probes = 0
     while drawn < max_triples:
         m = min(batch, max_triples - drawn)
         if wide > 1:
@@ -335,11 +338,12 @@ def trial_motions(
             if tri.shape[0] == 0:
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
+        tri = rarest_side_first(source, tri, index.plen, eps)
         offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
         # A fresh visiting order a batch: the sequential test's misses of one
         # true motion are then independent between batches.
         visit = rng.permutation(n).astype(np.int64) if slope > 0 else np.zeros(0, np.int64)
-        scores, R, t, nm, nl, nv = _k.triple_hypotheses(
+        scores, R, t, nm, nl, nv, npr = _k.triple_hypotheses(
             source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
             index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
@@ -348,13 +352,38 @@ def trial_motions(
         n_congruent += int(nm.sum())
         n_listed += int(nl.sum())
         n_visited += int(nv.sum())
+        n_probes += int(npr.sum())
         pool.add(scores, R, t)
         if progress is not None:
             progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
         if pool.best >= accept:
             break
     trials = pool.trials(index.radius, threshold, drawn, n_congruent)
-    return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited)
+    return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited, n_probes=n_probes)
+
+
+def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
+    """``triples`` with each one's vertices reordered so that its first side has the fewest target pairs.
+
+    The congruent listing scans the target pairs as long as the first side
+    ``(0, 1)`` within ``eps`` (or, when they outnumber the target's points,
+    every point's neighbours at that length), so the rarest length in the
+    target's sorted pair lengths ``plen`` makes the shortest scan.  The
+    triangle and its matches are the same; only the order of the work
+    changes.
+    """
+    t = np.asarray(triples)
+    if t.shape[0] == 0:
+        return t
+    sides = ((0, 1), (0, 2), (1, 2))
+    width = np.empty((t.shape[0], 3), np.int64)
+    for q, (u, v) in enumerate(sides):
+        d = np.linalg.norm(points[t[:, u]] - points[t[:, v]], axis=1)
+        width[:, q] = np.searchsorted(plen, d + eps) - np.searchsorted(plen, d - eps)
+    # Side (0, 2) first: swap vertices 1 and 2; side (1, 2) first: rotate to (1, 2, 0).
+    perms = np.array([[0, 1, 2], [0, 2, 1], [1, 2, 0]])
+    order = perms[np.argmin(width, axis=1)]
+    return np.take_along_axis(t, order, axis=1)
 
 
 def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:

@@ -60,14 +60,21 @@ import time
 import numpy as np
 
 from . import stages
-from ._validation import as_points, as_rng, check_fraction, check_int, check_positive, check_progress
+from ._validation import (
+    as_points,
+    as_rng,
+    check_fraction,
+    check_int,
+    check_positive,
+    check_progress,
+)
 from .candidates import bounded_pairs
 from .congruent import n_triples_needed
 from .errors import InputError
 from .models import Motion, get_model
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
-__all__ = ["register", "choose_pipeline", "resolve_pipeline", "surface_likeness", "reject_exact_options", "NOISE_SCHEDULE", "NOISY_SCHEDULE"]
+__all__ = ["NOISE_SCHEDULE", "NOISY_SCHEDULE", "choose_pipeline", "register", "reject_exact_options", "resolve_pipeline", "surface_likeness"]
 
 #: Matches scored per source triple in the rigid search (the chance level
 #: counts them as tests).  Exact data rarely has more than a few; under noise
@@ -78,15 +85,17 @@ NOISY_MAX_MATCHES = 512
 #: ``NOISY_MAX_MATCHES`` tightest are scored.
 MAX_ENUMERATED = 32768
 #: Candidate triples drawn for each one matched (:func:`gatv.congruent.trial_motions`'s
-#: ``wide``): the one with the fewest expected matches is kept.
-WIDE = 32
+#: ``wide``): the one with the fewest expected matches is kept.  Fewer chance
+#: matches make both the listing cheaper and the true match rank among the
+#: scored tightest more often; the candidates cost a few searches each.
+WIDE = 128
 #: Options of the rigid model's trial motions in :func:`register` (see
 #: :func:`gatv.congruent.trial_motions`).
 RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
-#: Default work bound of a search, in the search's work units (a few
-#: microseconds each on one core): a call fails with a reason instead of
+#: Default work bound of a search, in the search's work units (about a
+#: microsecond each on one core): a call fails with a reason instead of
 #: running on.  Deterministic: the same seed stops at the same point.
-MAX_WORK = 2.5e7
+MAX_WORK = 6e7
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
 #: machine the work bound alone can take minutes.
 TIME_LIMIT = 60.0
@@ -332,7 +341,7 @@ def register(
         Bytes; inputs needing more fail at once (see
         :func:`gatv._validation.check_memory`).
     max_work : float or None, default: :data:`MAX_WORK`
-        Bound on the exact search's work (units of a few microseconds of
+        Bound on the exact search's work (units of about a microsecond of
         one core); past it the call returns a falsy result whose
         ``info["reason"]`` says so.  ``None``: no bound.
     time_limit : float or None, default: :data:`TIME_LIMIT`

@@ -610,6 +610,10 @@ SEARCH_SHARE = 20000.0
 MAX_MATCHES = 64
 #: Work units per congruent match listed but not necessarily scored.
 LIST_COST = 0.2
+#: Work units per probe of the listing (a binary search in a sorted length
+#: list or a candidate third point): at fine tolerances a sample lists a
+#: few matches but still probes hundreds of target pairs.
+PROBE_COST = 0.05
 #: Samples of the first chunk at each tolerance, before its cost is measured.
 FIRST_CHUNK = 2
 #: Matches listed per sample from which :func:`search` passes its
@@ -632,7 +636,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     coarse tolerance (many matching but wrong samples, each scored on every
     point) does not slow down an exact one.  Work is counted
     deterministically, in microsecond-like units: 1 per sample drawn (plus
-    the model's ``triple_cost``), 0.2 per match listed, 2 per match scored
+    the model's ``triple_cost``), 0.2 per match listed, 0.05 per probe of
+    the listing (:data:`PROBE_COST`), 2 per match scored
     and 0.03 per source point it visited (all ``n`` unless the model stops
     early), so the same seed gives the same result.  The ``keep`` best
     trials of a chunk that reach the density test's chance level
@@ -724,9 +729,11 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
             listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
             listed_total[level] += listed
-            per_triple[level] += LIST_COST * listed / max(trials.n_triples, 1)
+            probes = getattr(trials, "n_probes", 0)
+            per_triple[level] += (LIST_COST * listed + PROBE_COST * probes) / max(trials.n_triples, 1)
             work += ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
-                     + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed)
+                     + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed
+                     + PROBE_COST * probes)
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from gatv import _congruent_kernels as k
 from gatv.congruent import (
     TargetIndex,
+    rarest_side_first,
     sample_triples,
     sequential_boundary,
     trial_motions,
@@ -104,7 +105,7 @@ def test_triple_hypotheses_find_the_best_congruent_triple(seed):
     index = TargetIndex(y, radius)
     tri = sample_triples(9, 6, rng)
     offsets = rng.integers(0, 1 << 30, tri.shape[0])  # any start: the full scan wraps around
-    scores, _, _, _, _, _ = k.triple_hypotheses(
+    scores, _, _, _, _, _, _ = k.triple_hypotheses(
         x, y, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
         index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15)
     for q in range(tri.shape[0]):
@@ -236,9 +237,57 @@ def test_scored_matches_are_the_tightest_of_all(seed, eps, keep):
     y = rng.uniform(-3, 3, (14, 3))
     index = TargetIndex(y, 0.1)
     a, b, c = sample_triples(10, 1, rng)[0]
-    ks, ls, ms, listed = k.scored_matches(x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen, index.pi,
-                                          index.pj, index.ndist, index.nidx, eps, 10**5, keep, np.zeros((0, 3)),
-                                          np.zeros((0, 3)), 0.15, False)
+    ks, ls, ms, listed, _ = k.scored_matches(x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen,
+                                             index.pi, index.pj, index.ndist, index.nidx, eps, 10**5, keep,
+                                             np.zeros((0, 3)), np.zeros((0, 3)), 0.15, False)
     want = _congruent_by_discrepancy(x, y, (a, b, c), eps)[:keep]
     assert sorted(zip(ks.tolist(), ls.tolist(), ms.tolist())) == sorted(want)
     assert listed >= len(want)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.05, 0.3, 1.0]), n2=st.sampled_from([6, 14, 25]))
+def test_both_listings_give_every_congruent_match(seed, eps, n2):
+    """Listed by pair or by point, the matches are the brute-force set; each costs probes."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-3, 3, (10, 3))
+    y = rng.uniform(-3, 3, (n2, 3))
+    index = TargetIndex(y, 0.1)
+    a, b, c = sample_triples(10, 1, rng)[0]
+    want = sorted(_congruent_by_discrepancy(x, y, (a, b, c), eps))
+    none = np.zeros((0, 3))
+    for by_point in (0, 1, -1):
+        ks, ls, ms, disc, probes = k._congruent_matches(
+            x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen, index.pi, index.pj, index.ndist,
+            index.nidx, eps, 10**5, none, none, 0.15, False, by_point)
+        assert sorted(zip(ks.tolist(), ls.tolist(), ms.tolist())) == want
+        sides = np.array([[np.linalg.norm(y[p] - y[q]) for p, q in ((kk, ll), (kk, mm), (ll, mm))]
+                          for kk, ll, mm in zip(ks, ls, ms)]).reshape(-1, 3)
+        ref = np.array([np.linalg.norm(x[a] - x[b]), np.linalg.norm(x[a] - x[c]), np.linalg.norm(x[b] - x[c])])
+        assert np.allclose(disc, ((sides - ref) ** 2).sum(axis=1))
+        assert probes >= 2
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.05, 0.3, 1.0]))
+def test_rarest_side_first_keeps_the_triangles(seed, eps):
+    """Same vertex sets and side lengths, first side the one with fewest target pairs; the matches follow."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-3, 3, (12, 3))
+    y = rng.uniform(-3, 3, (15, 3))
+    index = TargetIndex(y, 0.1)
+    tri = sample_triples(12, 20, rng)
+    out = rarest_side_first(x, tri, index.plen, eps)
+    assert np.array_equal(np.sort(out, axis=1), np.sort(tri, axis=1))
+
+    def width(t, u, v):
+        d = np.linalg.norm(x[t[:, u]] - x[t[:, v]], axis=1)
+        return np.searchsorted(index.plen, d + eps) - np.searchsorted(index.plen, d - eps)
+
+    first = width(out, 0, 1)
+    assert np.all(first <= width(out, 0, 2)) and np.all(first <= width(out, 1, 2))
+    # The reordered triple's matches are the original's, relabelled.
+    q = int(np.argmax(first))
+    perm = [list(tri[q]).index(v) for v in out[q]]
+    before = {tuple(m[p] for p in perm) for m in _congruent_by_discrepancy(x, y, tuple(tri[q]), eps)}
+    assert set(_congruent_by_discrepancy(x, y, tuple(out[q]), eps)) == before

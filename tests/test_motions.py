@@ -9,7 +9,13 @@ import pytest
 
 from gatv.datasets import rotation_error_deg
 from gatv.ga import Rotor
-from gatv.motions import Segmentation, fig12_scene, joint_space_residuals, multi_motion_scene, segment
+from gatv.motions import (
+    Segmentation,
+    fig12_scene,
+    joint_space_residuals,
+    multi_motion_scene,
+    segment,
+)
 
 
 def _matched(scene, seg):

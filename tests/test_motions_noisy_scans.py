@@ -17,7 +17,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import Rotor
-from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair, rotation_error_deg
+from gatv.datasets import (
+    DataNotFoundError,
+    load_bunny_pair,
+    load_uwa_pair,
+    rotation_error_deg,
+)
 from gatv.errors import InputError
 from gatv.motions import multi_motion_scene, scan_scene, segment
 from gatv.motions.scans import chance_support, local_noise, regions, thickness

@@ -43,7 +43,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import stages
-from .._validation import check_fraction, check_int, check_positive, check_progress, seed_int
+from .._validation import (
+    check_fraction,
+    check_int,
+    check_positive,
+    check_progress,
+    seed_int,
+)
 from ..candidates import median_spacing
 from ..errors import InputError
 from ..fitting import fit_rigid

@@ -152,6 +152,32 @@ def test_noisy_peel_finds_a_small_motion_beside_a_large_one(seed):
     _check_one_to_one(seg)
 
 
+def test_noisy_peel_rejects_a_wrong_motion_whose_measured_noise_makes_it_chance(monkeypatch):
+    """A round that returns a wrong motion: settled at its noise it does not beat chance, and the peel goes on."""
+    scene = _noisy_two_motions(5, 0.1)
+    P = stages.prepare(scene.source, scene.target)
+    real = stages.search
+    calls = []
+
+    def search(problem, levels, **kw):
+        calls.append(len(levels))
+        if len(calls) > 1:
+            return real(problem, levels, **kw)
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()  # no true motion rotates so
+        wrong = stages.regate(problem, stages.Fit(M, np.empty((0, 2), np.int64)), stages.gate(levels[-1]))
+        return stages.Found(wrong, levels[-1], stages.Judged(wrong, wrong.support, 1.0), wrong.support, 3)
+
+    monkeypatch.setattr(stages, "search", search)
+    seg = peel(P, seed=0, noisy=True)
+    first = seg.info["rounds"][0]
+    assert "rejected" in first and first["rejected"]["support"] < first["rejected"]["chance"]
+    assert len(seg) == 2, seg.info["reason"]
+    for truth in scene.true_pairs:
+        assert max(_overlap(m.correspondences, truth) for m in seg) >= 0.9 * len(truth)
+    assert sorted(m.info["round"] for m in seg) == [1, 2]  # the rounds that kept them
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_search_budget_counts_only_the_listed_all_inlier_samples(seed):
     """With a share ``L`` of all-inlier samples listed, the budget finds the motion with the same confidence."""

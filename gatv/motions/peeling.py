@@ -446,6 +446,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     smallest = max(float(min_inlier_share) * n1, float(k_pts))
     round_levels = list(levels)
     measured_noise = 0.0
+    fit_rounds: list[int] = []
+    rejected = 0
     used_s = np.zeros(n1, bool)
     used_t = np.zeros(n2, bool)
     fits: list[Fit] = []
@@ -516,6 +518,24 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if noisy:
             fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
                                            floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
+            # Kept only when its settled support beats chance at the gate it is
+            # reported with (FINAL_GATE times its measured noise), family-wise as
+            # the judge: a wrong motion's residuals spread over the whole gate, so
+            # its noise, gate and chance level come out large.
+            chance = S.chance(stages.FINAL_GATE * tol, N_JUDGED)
+            if fit.support < chance:
+                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
+                            "smallest": need_min, "points": (int(src.size), int(tgt.size)),
+                            "rejected": {"support": fit.support, "noise": float(tol), "chance": int(chance)}})
+                # Its points leave the search (mostly outliers; pool_noise re-gates the kept motions
+                # over all points at the end), so the next round draws anew.
+                used_s[src[fit.correspondences[:, 0]]] = True
+                used_t[tgt[fit.correspondences[:, 1]]] = True
+                rejected += 1
+                if rejected > N_JUDGED or fit.support == 0:
+                    reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
+                    break
+                continue
             # One sensor: the next rounds search at the noise measured so far
             # (pooled over the motions found, weighted by support as in
             # pool_noise), not the whole schedule.
@@ -529,13 +549,14 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                     "sigma": found.judged.sigma})
         kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
         fits.append(Fit(fit.matrix, kept))
+        fit_rounds.append(len(log) - 1)
         tolerances.append(float(tol))
         used_s[kept[:, 0]] = True
         used_t[kept[:, 1]] = True
 
     pooled = None
     merged: list = []
-    rounds_of = list(range(len(fits)))
+    rounds_of = list(fit_rounds)
     if noisy and noise is None and len(fits) > 1:
         fits, tolerances, merged = merge_same_motions(P, fits, tolerances)
         for rec in merged:  # joins in order, indices as they were then

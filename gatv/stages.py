@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass
+from math import erf
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -604,6 +605,10 @@ def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -
     return max(1.0, ALPHA * float(n_matches) / float(judged_wrong))
 
 
+#: Default side-length tolerance of :func:`search`'s congruent listing, in
+#: standard deviations of a side's length error at the level's tolerance.
+LISTING = 2.5
+
 #: Work units per round of :func:`search` at each tolerance (see there).
 SEARCH_SHARE = 20000.0
 #: Best model matches scored per trial sample.
@@ -627,7 +632,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
            progress=None, tried: list | None = None, max_matches: int = MAX_MATCHES,
            max_work: float | None = None, trial_options: dict | None = None,
            deadline: float | None = None, confidence: float = 0.999,
-           judged_wrong: float | None = JUDGED_WRONG) -> Found | None:
+           judged_wrong: float | None = JUDGED_WRONG, listing: float = LISTING) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -650,7 +655,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     support grows beyond chance (``grow``, :func:`grow_tolerance`).
 
     ``tried`` (a list) receives one record per tolerance: samples drawn,
-    matches scored, best trial support, the density test's threshold.
+    matches scored and listed, points visited, work units spent, best trial
+    support, the density test's threshold.
     ``max_matches`` caps the matches scored per sample (under noise a sample
     matches many target samples; the model scans them from a random start,
     so a capped scan is an unbiased share of them); ``max_work`` caps the
@@ -660,9 +666,18 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     between chunks once passed, a wall-clock bound for callers that promise
     one (unlike the work bound, it depends on the machine's speed).
 
+    A sample's congruent matches are listed within ``listing`` standard
+    deviations of a side's length error at the level's tolerance ``τ``
+    (``eps = 2 listing τ``, four noisy points on a side): when ``τ`` is
+    the noise, a wider listing keeps more true matches (each side with
+    probability ``erf(listing / sqrt 2)``) but lists chance matches as
+    ``eps³``, and the work a motion found costs goes as ``(listing /
+    erf(listing / sqrt 2))³``.
+
     A level draws at most the samples that find, with ``confidence``, the
     smallest motion its density test accepts (the RANSAC bound of
-    :func:`gatv.stats.samples_needed` at ``accept / n``), never more than
+    :func:`gatv.stats.samples_needed` at ``accept / n`` times that
+    probability, one factor a side), never more than
     ``budget``: at a coarse tolerance random motions already reach a large
     share of the points, and only a motion larger still can be found
     there, which a few samples hit.
@@ -681,9 +696,12 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
               for idx in indexes]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
-    caps = [min(budget, samples_needed(min(1.0, a / n), confidence, k_pts)) for a in accept]
-    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "visited": 0, "best_support": 0, "threshold": a}
-               for tol, a in zip(levels, accept)]
+    # Each side of a true sample stays within the listing's tolerance with
+    # probability erf(listing / sqrt(2)): one factor a point of the sample.
+    side_kept = float(erf(listing / np.sqrt(2.0)))
+    caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
+    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "listed": 0, "visited": 0, "work": 0.0,
+                "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
     if tried is not None:
         tried.extend(records)
     triple_cost = getattr(model, "triple_cost", None)
@@ -710,8 +728,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")
             g = gate(tol)
             # Side-length tolerance: a side's length error is the noise of four
-            # points projected on it (standard deviation 2 tol); 2.5 of those.
-            eps = 5.0 * tol
+            # points projected on it (standard deviation 2 tol); ``listing`` of those.
+            eps = 2.0 * listing * tol
             # The model's options for many matches a sample (``trial_options``)
             # only where the samples so far had many: they cost more than they
             # save on exact data.
@@ -729,11 +747,14 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
             listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
             listed_total[level] += listed
+            rec["listed"] += listed
             probes = getattr(trials, "n_probes", 0)
             per_triple[level] += (LIST_COST * listed + PROBE_COST * probes) / max(trials.n_triples, 1)
-            work += ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
+            chunk = ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
                      + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed
                      + PROBE_COST * probes)
+            rec["work"] += chunk
+            work += chunk
             if len(trials):
                 rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
             if not len(trials) or trials.support[0] < accept[level]:

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gatv import InputError, register
+from gatv import InputError, register, stages
 from gatv.datasets import (
     DataNotFoundError,
     correspondence_stats,
@@ -16,7 +16,12 @@ from gatv.datasets import (
     rotation_error_deg,
     table2_trial,
 )
-from gatv.registration import NOISY_MAX_MATCHES, choose_pipeline, surface_likeness
+from gatv.registration import (
+    NOISY_MAX_MATCHES,
+    RIGID_TRIALS,
+    choose_pipeline,
+    surface_likeness,
+)
 from gatv.scans import plane_noise, register_scans
 from gatv.stages import gate, noise_from_residuals
 
@@ -97,8 +102,31 @@ def test_trial_motions_stay_under_their_bound_as_noise_grows(noise, seed):
     per_match = 2.0 + 0.03 * n
     one_chunk = 4096 * (1.0 + per_match * NOISY_MAX_MATCHES)
     assert scored * per_match + triples <= max_work + len(levels) * one_chunk
+    # Each level's work record counts at least its samples and scored matches, and all of it stays bounded.
+    work = [r["work"] for r in levels]
+    assert all(w >= r["triples"] + 2.0 * r["congruent"] for w, r in zip(work, levels))
+    assert sum(work) <= max_work + len(levels) * one_chunk
     if not m:
         assert "reason" in m.info
+
+
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 1000))
+def test_a_narrower_listing_lists_fewer_matches_a_sample(seed):
+    """A sample at 1 deviation lists fewer matches than at 2.5 (whose half box, at 1.25, already holds more)."""
+    trial = table2_trial(0.9, noise=0.02, seed=seed)
+    P = stages.prepare(trial.source, trial.target)
+    levels = [0.1 * P.spacing]
+    listed = {}
+    for listing in (1.0, 2.5):
+        tried: list = []
+        stages.search(P, levels, budget=64, rng=np.random.default_rng(seed), max_matches=NOISY_MAX_MATCHES,
+                      trial_options=RIGID_TRIALS, tried=tried, max_work=2e5, listing=listing)
+        rec = tried[0]
+        listed[listing] = rec["listed"] / max(rec["triples"], 1)
+        assert rec["congruent"] <= min(rec["listed"], NOISY_MAX_MATCHES * rec["triples"])
+        assert rec["work"] >= rec["triples"] + 2.0 * rec["congruent"] + 0.2 * rec["listed"]
+    assert listed[1.0] < listed[2.5]
 
 
 def test_time_limit_stops_the_search_with_a_reason():

@@ -178,6 +178,24 @@ def test_noisy_peel_rejects_a_wrong_motion_whose_measured_noise_makes_it_chance(
     assert sorted(m.info["round"] for m in seg) == [1, 2]  # the rounds that kept them
 
 
+def test_rounds_at_the_measured_noise_rank_LISTING_WIDE_candidates(monkeypatch):
+    from gatv.motions.peeling import LISTING_WIDE, _Listing
+    from gatv.registration import RIGID_TRIALS
+
+    real, seen = stages.search, []
+
+    def search(problem, levels, **kw):
+        seen.append((len(levels), kw["trial_options"]["wide"], problem.model))
+        return real(problem, levels, **kw)
+
+    monkeypatch.setattr(stages, "search", search)
+    scene = _noisy_two_motions(0, 0.1)
+    seg = peel(stages.prepare(scene.source, scene.target), seed=0, noisy=True)
+    assert len(seg) == 2 and len(seen) == 3
+    assert seen[0][1] == RIGID_TRIALS["wide"] and not isinstance(seen[0][2], _Listing)  # the schedule's listing
+    assert all(w == LISTING_WIDE and isinstance(m, _Listing) for _, w, m in seen[1:])
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_search_budget_counts_only_the_listed_all_inlier_samples(seed):
     """With a share ``L`` of all-inlier samples listed, the budget finds the motion with the same confidence."""

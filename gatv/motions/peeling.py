@@ -68,6 +68,11 @@ SEARCH_LISTING = 2.5
 #: The listing tolerance of a noisy peel's rounds once the noise is measured,
 #: in the same unit (see :func:`listed_share`): one standard deviation.
 LISTING = 1.0
+#: Candidate triples ranked a sample (``trial_motions``' ``wide``) in those
+#: rounds.  They list 7-25 matches a sample (1-2% noise), where ranking
+#: costs as much as scoring: on 1%/2% K=4 rounds 32 beat 2, 8 and 128
+#: (:data:`gatv.registration.WIDE`, which suits wide listings).
+LISTING_WIDE = 32
 
 
 def listed_share(listing: float, sample_points: int = 3) -> float:
@@ -492,6 +497,10 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             # The round's budget is drawn for motions of need_min points: the
             # sequential test need not look for smaller ones.
             options["trial_options"] = dict(options["trial_options"], min_share=need_min / src.size)
+            if measured:
+                # A tight listing lists a few matches a sample: ranking more
+                # candidate triples than LISTING_WIDE costs more than it saves.
+                options["trial_options"]["wide"] = LISTING_WIDE
         # The search's own cap at each level is the RANSAC bound for every
         # all-inlier sample listed, at `confidence`: the same bound for the
         # listed share is that of the confidence below (float-clipped).

@@ -527,15 +527,19 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if noisy:
             fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
                                            floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
-            # Kept only when its settled support beats chance at the gate it is
-            # reported with (FINAL_GATE times its measured noise), family-wise as
-            # the judge: a wrong motion's residuals spread over the whole gate, so
-            # its noise, gate and chance level come out large.
-            chance = S.chance(stages.FINAL_GATE * tol, N_JUDGED)
-            if fit.support < chance:
+            # Kept only when, at its measured noise, it still beats chance as the
+            # judge asks (its pairs within gate(σ) against the chance level there,
+            # family-wise over N_JUDGED): a wrong motion's residuals spread over
+            # the whole gate, so its noise, gate and chance level come out large.
+            # (Not at the wider FINAL_GATE: at 4% noise random motions reach a
+            # true motion's support there.)
+            g_noise = stages.gate(tol)
+            within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
+            chance = S.chance(g_noise, N_JUDGED)
+            if within < chance:
                 log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
                             "smallest": need_min, "points": (int(src.size), int(tgt.size)),
-                            "rejected": {"support": fit.support, "noise": float(tol), "chance": int(chance)}})
+                            "rejected": {"support": within, "noise": float(tol), "chance": int(chance)}})
                 # Its points leave the search (mostly outliers; pool_noise re-gates the kept motions
                 # over all points at the end), so the next round draws anew.
                 used_s[src[fit.correspondences[:, 0]]] = True

@@ -316,8 +316,9 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
     point ``k`` the neighbours ``l`` at ``|ab| ± eps`` and ``m`` at
     ``|ac| ± eps`` of its list, four binary searches a point.  Either scan
     starts at ``offset`` (modulo the window or the target) and wraps
-    around, so that a capped scan is an unbiased sample rather than the
-    shortest pairs or the first points.
+    around, the points in a stride order the offset also draws, so that a
+    capped scan is an unbiased sample rather than the shortest pairs or a
+    run of neighbouring points.
     """
     dab = _dist(source, a, source, b)
     dac = _dist(source, a, source, c)
@@ -387,6 +388,13 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
 
 
 @njit(cache=True)
+def _gcd(a, b):
+    while b:
+        a, b = b, a % b
+    return a
+
+
+@njit(cache=True)
 def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, ndist, nidx, eps, max_enumerated,
                                 src_normals, tgt_normals, feature_tol, use_normals):
     """:func:`_congruent_matches` listed point by point (see there)."""
@@ -398,10 +406,16 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
     disc = np.empty(size)
     found = 0
     probes = 0
+    # Points in a stride order coprime to n2 from the offset: a capped scan
+    # then takes points spread over the target, not a run of consecutive
+    # indices (which a voxel-ordered target keeps in one region).
+    stride = 1 + (offset // n2) % max(n2 - 1, 1)
+    while _gcd(stride, n2) != 1:
+        stride += 1
     for w in range(n2):
         if found >= max_enumerated:
             break
-        k = (offset + w) % n2
+        k = (offset + w * stride) % n2
         row = ndist[k]
         l0 = _lower_bound(row, dab - eps)
         l1 = _lower_bound(row, dab + eps)

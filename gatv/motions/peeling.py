@@ -576,9 +576,28 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             a, b = rec["motions"]
             rec["rounds"] = (rounds_of[a], rounds_of[b])
             del rounds_of[b]
-    if noisy and noise is None and len(fits) > 1:
-        fits, pooled = pool_noise(P, fits, tolerances)
-        tolerances = [pooled] * len(fits)
+    dropped: list = []
+    while noisy and noise is None and len(fits) > 1:
+        pooled_fits, pooled = pool_noise(P, fits, tolerances)
+        # At the pooled noise of the one sensor, every motion must still beat
+        # chance among all points (its pairs within gate(σ) against the chance
+        # level there, as the judge): a wrong motion kept in the first round,
+        # when the noise was unknown, had its own (small) noise.  Pooling runs
+        # again without it, whose pairs may belong to the others.
+        g_pool = stages.gate(pooled)
+        chance = P.chance(g_pool, N_JUDGED)
+        within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
+        weak = [k for k, w in enumerate(within) if w < chance]
+        if not weak or len(weak) == len(fits):
+            fits = pooled_fits
+            tolerances = [pooled] * len(fits)
+            break
+        for k in sorted(weak, reverse=True):
+            dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chance), "noise": pooled})
+            del fits[k], tolerances[k], rounds_of[k]
+        if len(fits) == 1:
+            pooled = None
+            break
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(n2, -1, np.int64)
@@ -594,7 +613,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
     info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),

@@ -452,7 +452,6 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     round_levels = list(levels)
     measured_noise = 0.0
     fit_rounds: list[int] = []
-    rejected = 0
     used_s = np.zeros(n1, bool)
     used_t = np.zeros(n2, bool)
     fits: list[Fit] = []
@@ -527,28 +526,6 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if noisy:
             fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
                                            floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
-            # Kept only when, at its measured noise, it still beats chance as the
-            # judge asks (its pairs within gate(σ) against the chance level there,
-            # family-wise over N_JUDGED): a wrong motion's residuals spread over
-            # the whole gate, so its noise, gate and chance level come out large.
-            # (Not at the wider FINAL_GATE: at 4% noise random motions reach a
-            # true motion's support there.)
-            g_noise = stages.gate(tol)
-            within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
-            chance = S.chance(g_noise, N_JUDGED)
-            if within < chance:
-                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
-                            "smallest": need_min, "points": (int(src.size), int(tgt.size)),
-                            "rejected": {"support": within, "noise": float(tol), "chance": int(chance)}})
-                # Its points leave the search (mostly outliers; pool_noise re-gates the kept motions
-                # over all points at the end), so the next round draws anew.
-                used_s[src[fit.correspondences[:, 0]]] = True
-                used_t[tgt[fit.correspondences[:, 1]]] = True
-                rejected += 1
-                if rejected > N_JUDGED or fit.support == 0:
-                    reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
-                    break
-                continue
             # One sensor: the next rounds search at the noise measured so far
             # (pooled over the motions found, weighted by support as in
             # pool_noise), not the whole schedule.

@@ -355,36 +355,50 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
             m0 = _lower_bound(row, dac - eps)
             m1 = _lower_bound(row, dac + eps)
             probes += 2 + (m1 - m0)
-            for u in range(m0, m1):
-                m = nidx[k, u]
-                if m == l:
-                    continue
-                e3 = _dist(target, l, target, m) - dbc
-                if abs(e3) > eps:
-                    continue
-                if use_normals and not (
-                    _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
-                    and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
-                ):
-                    continue
-                e1 = plen[s] - dab
-                e2 = row[u] - dac
-                if found == size:
-                    size = min(2 * size, max_enumerated)
-                    ks = _grown(ks, size)
-                    ls = _grown(ls, size)
-                    ms = _grown(ms, size)
-                    disc = _grown(disc, size)
-                ks[found] = k
-                ls[found] = l
-                ms[found] = m
-                disc[found] = e1 * e1 + e2 * e2 + e3 * e3
-                found += 1
-                if found >= max_enumerated:
-                    break
+            ks, ls, ms, disc, found = _third_points(source, target, a, b, c, k, l, plen[s] - dab, row, nidx[k], m0,
+                                                    m1, dac, dbc, eps, ks, ls, ms, disc, found, max_enumerated,
+                                                    src_normals, tgt_normals, feature_tol, use_normals)
             if found >= max_enumerated:
                 break
     return ks[:found], ls[:found], ms[:found], disc[:found], probes
+
+
+@njit(cache=True)
+def _third_points(source, target, a, b, c, k, l, e1, row, near, m0, m1, dac, dbc, eps, ks, ls, ms, disc, found,
+                  max_enumerated, src_normals, tgt_normals, feature_tol, use_normals):
+    """Append the matches ``(k, l, m)`` for ``m`` among ``near[m0:m1]`` (``k``'s neighbours at ``|ac| ± eps``).
+
+    ``e1`` is the first side's error, ``row`` ``k``'s sorted neighbour
+    distances; ``m`` must also be ``|bc| ± eps`` from ``l``.  The lists grow
+    by doubling up to ``max_enumerated``.  Returns them and the new count.
+    """
+    for u in range(m0, m1):
+        m = near[u]
+        if m == l:
+            continue
+        e3 = _dist(target, l, target, m) - dbc
+        if abs(e3) > eps:
+            continue
+        if use_normals and not (
+            _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
+            and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
+        ):
+            continue
+        e2 = row[u] - dac
+        if found == ks.shape[0]:
+            size = min(2 * ks.shape[0], max_enumerated)
+            ks = _grown(ks, size)
+            ls = _grown(ls, size)
+            ms = _grown(ms, size)
+            disc = _grown(disc, size)
+        ks[found] = k
+        ls[found] = l
+        ms[found] = m
+        disc[found] = e1 * e1 + e2 * e2 + e3 * e3
+        found += 1
+        if found >= max_enumerated:
+            break
+    return ks, ls, ms, disc, found
 
 
 @njit(cache=True)
@@ -432,34 +446,10 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
             if use_normals and not _features_agree(source, a, b, src_normals, target, k, l, tgt_normals,
                                                    feature_tol):
                 continue
-            e1 = row[ul] - dab
             probes += m1 - m0
-            for um in range(m0, m1):
-                m = nidx[k, um]
-                if m == l:
-                    continue
-                e3 = _dist(target, l, target, m) - dbc
-                if abs(e3) > eps:
-                    continue
-                if use_normals and not (
-                    _features_agree(source, a, c, src_normals, target, k, m, tgt_normals, feature_tol)
-                    and _features_agree(source, b, c, src_normals, target, l, m, tgt_normals, feature_tol)
-                ):
-                    continue
-                e2 = row[um] - dac
-                if found == size:
-                    size = min(2 * size, max_enumerated)
-                    ks = _grown(ks, size)
-                    ls = _grown(ls, size)
-                    ms = _grown(ms, size)
-                    disc = _grown(disc, size)
-                ks[found] = k
-                ls[found] = l
-                ms[found] = m
-                disc[found] = e1 * e1 + e2 * e2 + e3 * e3
-                found += 1
-                if found >= max_enumerated:
-                    break
+            ks, ls, ms, disc, found = _third_points(source, target, a, b, c, k, l, row[ul] - dab, row, nidx[k], m0,
+                                                    m1, dac, dbc, eps, ks, ls, ms, disc, found, max_enumerated,
+                                                    src_normals, tgt_normals, feature_tol, use_normals)
     return ks[:found], ls[:found], ms[:found], disc[:found], probes
 
 

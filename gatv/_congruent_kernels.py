@@ -299,6 +299,17 @@ def _grown(a, size):
 
 
 @njit(cache=True)
+def _match_lists(max_enumerated):
+    """Empty ``(k, l, m, discrepancy)`` lists of a listing, grown by :func:`_third_points` as matches come.
+
+    They start at 64 entries: most triples list a few matches, and allocating
+    the cap (1 MB at 32,768) for each cost more than the listing.
+    """
+    size = min(max_enumerated, 64)
+    return np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size)
+
+
+@njit(cache=True)
 def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated,
                        src_normals, tgt_normals, feature_tol, use_normals, by_point=-1):
     """Target triples congruent to the source triple ``(a, b, c)`` within ``eps``.
@@ -329,13 +340,7 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
     if by_point == 1 or (by_point < 0 and hi - lo > n2):
         return _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, ndist, nidx, eps,
                                            max_enumerated, src_normals, tgt_normals, feature_tol, use_normals)
-    # Grown by doubling up to max_enumerated: most triples list a few matches,
-    # and allocating the cap (1 MB at 32,768) for each cost more than listing.
-    size = min(max_enumerated, 64)
-    ks = np.empty(size, np.int64)
-    ls = np.empty(size, np.int64)
-    ms = np.empty(size, np.int64)
-    disc = np.empty(size)
+    ks, ls, ms, disc = _match_lists(max_enumerated)
     found = 0
     probes = 2
     width = hi - lo
@@ -413,11 +418,7 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
                                 src_normals, tgt_normals, feature_tol, use_normals):
     """:func:`_congruent_matches` listed point by point (see there)."""
     n2 = target.shape[0]
-    size = min(max_enumerated, 64)
-    ks = np.empty(size, np.int64)
-    ls = np.empty(size, np.int64)
-    ms = np.empty(size, np.int64)
-    disc = np.empty(size)
+    ks, ls, ms, disc = _match_lists(max_enumerated)
     found = 0
     probes = 0
     # Points in a stride order coprime to n2 from the offset: a capped scan

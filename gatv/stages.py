@@ -651,8 +651,10 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     first whose support reaches the chance level of the gate (family-wise
     over ``threshold_tests`` × ``judged_wrong`` judged trials; or
     ``min_support``) is
-    refined (``polish``, :func:`refine`) and its tolerance grown while its
-    support grows beyond chance (``grow``, :func:`grow_tolerance`).
+    refined (``polish``, :func:`refine`), kept when (behind the screen) its
+    refined support also beats chance family-wise over every match the
+    budget scores, and its tolerance grown while its support grows beyond
+    chance (``grow``, :func:`grow_tolerance`).
 
     ``tried`` (a list) receives one record per tolerance: samples drawn,
     matches scored and listed, points visited, work units spent, best trial

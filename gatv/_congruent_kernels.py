@@ -546,8 +546,9 @@ def triple_hypotheses(
 
     Returns ``(score, R, t, n_matches, n_listed, n_visited, n_probes)`` per
     triple (``n_matches`` counts the scored matches, ``n_listed`` the listed
-    ones, ``n_visited`` the source points visited in scoring them, ``n_probes`` the listing's binary searches and candidates);
-    ``score = -1`` when no congruent triple exists.
+    ones, ``n_visited`` the source points visited in scoring them,
+    ``n_probes`` the listing's binary searches and candidates); ``score =
+    -1`` when no congruent triple exists.
     """
     nt = triples.shape[0]
     scores = np.full(nt, -1, np.int64)

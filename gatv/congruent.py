@@ -202,12 +202,16 @@ def expected_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex
     grow with it.  Long sides, where the target's pair lengths are sparse,
     give few matches.
     """
-    p = source
-    count = np.ones(triples.shape[0])
-    for u, v in ((0, 1), (0, 2), (1, 2)):
-        d = np.linalg.norm(p[triples[:, u]] - p[triples[:, v]], axis=1)
-        count *= np.maximum(np.searchsorted(index.plen, d + eps) - np.searchsorted(index.plen, d - eps), 0)
-    return count
+    return np.prod(_side_widths(source, triples, index.plen, eps), axis=1, dtype=np.float64)
+
+
+def _side_widths(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
+    """(M, 3) target pairs in the sorted lengths ``plen`` within ``eps`` of each side ``(0, 1), (0, 2), (1, 2)``."""
+    width = np.empty((triples.shape[0], 3), np.int64)
+    for q, (u, v) in enumerate(((0, 1), (0, 2), (1, 2))):
+        d = np.linalg.norm(points[triples[:, u]] - points[triples[:, v]], axis=1)
+        width[:, q] = np.maximum(np.searchsorted(plen, d + eps) - np.searchsorted(plen, d - eps), 0)
+    return width
 
 
 def sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -375,14 +379,9 @@ def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray,
     t = np.asarray(triples)
     if t.shape[0] == 0:
         return t
-    sides = ((0, 1), (0, 2), (1, 2))
-    width = np.empty((t.shape[0], 3), np.int64)
-    for q, (u, v) in enumerate(sides):
-        d = np.linalg.norm(points[t[:, u]] - points[t[:, v]], axis=1)
-        width[:, q] = np.searchsorted(plen, d + eps) - np.searchsorted(plen, d - eps)
     # Side (0, 2) first: swap vertices 1 and 2; side (1, 2) first: rotate to (1, 2, 0).
     perms = np.array([[0, 1, 2], [0, 2, 1], [1, 2, 0]])
-    order = perms[np.argmin(width, axis=1)]
+    order = perms[np.argmin(_side_widths(points, t, plen, eps), axis=1)]
     return np.take_along_axis(t, order, axis=1)
 
 

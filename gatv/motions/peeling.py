@@ -61,10 +61,11 @@ __all__ = [
 N_JUDGED = 4
 #: Default cap on the samples drawn per tolerance level and round.
 MAX_SAMPLES = 200_000
-#: Side-length tolerance of :func:`gatv.stages.search`'s congruent listing,
-#: in standard deviations of a side's noise: ``eps = 5 τ`` where a side of
-#: four points with noise ``τ`` each has standard deviation ``2 τ``.
-SEARCH_LISTING = 2.5
+#: Side-length tolerance of :func:`gatv.stages.search`'s congruent listing
+#: (its default, :data:`gatv.stages.LISTING`), in standard deviations of a
+#: side's noise: ``eps = 5 τ`` where a side of four points with noise ``τ``
+#: each has standard deviation ``2 τ``.
+SEARCH_LISTING = stages.LISTING
 #: The listing tolerance of a noisy peel's rounds once the noise is measured,
 #: in the same unit (see :func:`listed_share`): one standard deviation.
 LISTING = 1.0

@@ -144,12 +144,11 @@ def test_large_rigid_motion_on_top_of_a_twist_needs_the_rigid_hypothesis():
     trial = deform.nonrigid_trial(x, y, 0.25, seed=4)
     m = register(trial.source, trial.target)
     # the bounded rigid search (300 triples) finds a motion beating chance, sometimes only a small
-    # rigid patch (6-24 pairs over seeds 0-3) that coarse-to-fine grows to the dominant motion, or not
-    # (at 3e4b7b9 seeds 0 and 2 grew to 30 and 11 points), and then the local windows (registered
-    # rigidly and grown) recover it
+    # rigid patch (6-24 pairs over seeds 0-3), which coarse-to-fine grows to the dominant motion; the
+    # local windows (registered rigidly and grown) may match a few more of the twisted ends and win
     hyp = m.info["hypotheses"]
     assert m.info["prealign"]["support"] >= 3
-    assert max(hyp["rigid"]["support"], hyp["local"]["support"]) >= 0.8 * len(x)
+    assert hyp["rigid"]["support"] >= 0.8 * len(x)
     assert hyp["voting"]["support"] < 0.1 * len(x)
     assert m.info["hypothesis"] in ("rigid", "local")
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)

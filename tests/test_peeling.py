@@ -14,7 +14,6 @@ from gatv.models import get_model
 from gatv.motions import Segmentation, multi_motion_scene, segment
 from gatv.motions.peeling import (
     LISTING,
-    SEARCH_LISTING,
     assign_pairs,
     likelihood_gate,
     listed_share,
@@ -179,22 +178,26 @@ def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled
     assert sorted(m.info["round"] for m in seg) == [1, 2]  # the rounds that kept them
 
 
-def test_rounds_at_the_measured_noise_rank_LISTING_WIDE_candidates(monkeypatch):
-    from gatv.motions.peeling import LISTING_WIDE, _Listing
+def test_rounds_at_the_measured_noise_rank_LISTING_WIDE_candidates_and_list_at_LISTING(monkeypatch):
+    """The first round searches as register (its WIDE, the search's listing); later ones at LISTING, LISTING_WIDE."""
+    from gatv.motions.peeling import LISTING_WIDE
     from gatv.registration import RIGID_TRIALS
 
     real, seen = stages.search, []
 
     def search(problem, levels, **kw):
-        seen.append((len(levels), kw["trial_options"]["wide"], problem.model))
+        seen.append((len(levels), kw["trial_options"]["wide"], kw["listing"], kw["confidence"]))
         return real(problem, levels, **kw)
 
     monkeypatch.setattr(stages, "search", search)
     scene = _noisy_two_motions(0, 0.1)
-    seg = peel(stages.prepare(scene.source, scene.target), seed=0, noisy=True)
+    seg = peel(stages.prepare(scene.source, scene.target), seed=0, noisy=True, confidence=0.999)
     assert len(seg) == 2 and len(seen) == 3
-    assert seen[0][1] == RIGID_TRIALS["wide"] and not isinstance(seen[0][2], _Listing)  # the schedule's listing
-    assert all(w == LISTING_WIDE and isinstance(m, _Listing) for _, w, m in seen[1:])
+    assert seen[0][0] > 1 and seen[0][1:3] == (RIGID_TRIALS["wide"], stages.LISTING)  # the schedule's search
+    # the search counts the listed share itself: the peel's confidence goes through unchanged
+    assert all(c == 0.999 for *_, c in seen)
+    assert all(n == 1 and w == LISTING_WIDE and listing == LISTING for n, w, listing, _ in seen[1:])
+    assert LISTING < stages.LISTING
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -224,11 +227,9 @@ def test_listed_share_is_the_gaussian_mass_within_the_listing_on_every_side(list
     assert listed_share(listing * 1.1, k) > listed_share(listing, k)
 
 
-def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations():
-    """stages.search lists at eps = 5 tau (SEARCH_LISTING = 2.5 sd of a side); the peel's wrapper scales it."""
-    from gatv.motions.peeling import _Listing, _subproblem_with
-
-    seen = []
+def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations(monkeypatch):
+    """Each trial sample's matches are listed at eps = 2 listing tau: the search's listing, then the peel's LISTING."""
+    rounds = []
 
     class Spy:
         def __init__(self, model):
@@ -238,17 +239,23 @@ def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations():
             return getattr(self._model, name)
 
         def trial_motions(self, source, index, *, eps, **options):
-            seen.append(eps)
+            rounds[-1].append(eps / (2.0 * index.radius / stages.gate(1.0)))  # eps over 2 tau, tau the level's
             return self._model.trial_motions(source, index, eps=eps, **options)
 
-    scene = _noisy_two_motions(0, 0.05)
+    real = stages.search
+
+    def search(problem, levels, **kw):
+        rounds.append([])
+        return real(problem, levels, **kw)
+
+    monkeypatch.setattr(stages, "search", search)
+    scene = _noisy_two_motions(0, 0.1)
     P = stages.prepare(scene.source, scene.target)
-    tau = 0.05 * P.spacing
-    for model, expected in ((Spy(P.model), 5.0 * tau), (_Listing(Spy(P.model), LISTING), 2.0 * tau * LISTING)):
-        seen.clear()
-        stages.search(_subproblem_with(P, model), [tau], budget=4, rng=np.random.default_rng(0), keep=2)
-        assert seen and all(e == pytest.approx(expected) for e in seen)
-    assert SEARCH_LISTING * 2.0 * tau == pytest.approx(5.0 * tau)
+    spied = stages.Problem(P.source, P.target, Spy(P.model), P.tree, P.spacing, P.extent, P.volume)
+    seg = peel(spied, seed=0, noisy=True)
+    assert len(seg) == 2 and len(rounds) == 3 and all(rounds)
+    np.testing.assert_allclose(rounds[0], stages.LISTING)  # the noise unknown: the search's own listing
+    np.testing.assert_allclose(np.concatenate(rounds[1:]), LISTING)
 
 
 @settings(max_examples=12, deadline=None)

@@ -61,13 +61,10 @@ __all__ = [
 N_JUDGED = 4
 #: Default cap on the samples drawn per tolerance level and round.
 MAX_SAMPLES = 200_000
-#: Side-length tolerance of :func:`gatv.stages.search`'s congruent listing
-#: (its default, :data:`gatv.stages.LISTING`), in standard deviations of a
-#: side's noise: ``eps = 5 τ`` where a side of four points with noise ``τ``
-#: each has standard deviation ``2 τ``.
-SEARCH_LISTING = stages.LISTING
-#: The listing tolerance of a noisy peel's rounds once the noise is measured,
-#: in the same unit (see :func:`listed_share`): one standard deviation.
+#: The listing tolerance (:func:`gatv.stages.search`'s ``listing``: standard
+#: deviations of a side's length error, ``eps = 2 listing τ``) of a noisy
+#: peel's rounds once the noise is measured (see :func:`listed_share`); the
+#: first round lists at the search's default, :data:`gatv.stages.LISTING`.
 LISTING = 1.0
 #: Candidate triples ranked a sample (``trial_motions``' ``wide``) in those
 #: rounds.  They list 7-25 matches a sample (1-2% noise), where ranking
@@ -94,25 +91,6 @@ def listed_share(listing: float, sample_points: int = 3) -> float:
     return float(erf(float(listing) / np.sqrt(2.0)) ** sample_points)
 
 
-class _Listing:
-    """``model`` whose congruent listing in :func:`gatv.stages.search` runs at ``listing`` standard deviations.
-
-    Everything else (index, chance level, scoring, judge, fit) is the model's
-    own; only the side-length tolerance ``eps`` of its trial motions scales by
-    ``listing / SEARCH_LISTING``.
-    """
-
-    def __init__(self, model, listing: float):
-        self._model = model
-        self._scale = float(listing) / SEARCH_LISTING
-
-    def __getattr__(self, name):
-        return getattr(self._model, name)
-
-    def trial_motions(self, source, index, *, eps, **options):
-        return self._model.trial_motions(source, index, eps=eps * self._scale, **options)
-
-
 def _sample_space(model, n: int) -> int:
     """Distinct trial samples among ``n`` points: the model's ``sample_space`` or C(n, sample_size)."""
     f = getattr(model, "sample_space", None)
@@ -123,11 +101,6 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
     """The points not yet explained, with the full problem's scale facts."""
     Y = P.target[tgt]
     return Problem(P.source[src], Y, P.model, cKDTree(Y), P.spacing, P.extent, P.volume)
-
-
-def _subproblem_with(P: Problem, model) -> Problem:
-    """``P`` with another model object (the same points and scale facts)."""
-    return Problem(P.source, P.target, model, P.tree, P.spacing, P.extent, P.volume)
 
 
 def search_budget(problem: Problem, levels, smallest: float, confidence: float, cap: int,
@@ -478,14 +451,15 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         cap = int(min(3 * n_possible, max_triples))
         # Once the noise is measured (one sensor), a round lists congruent
         # matches at LISTING standard deviations of a side's noise, not the
-        # schedule's SEARCH_LISTING: fewer all-inlier samples are listed
-        # (listed_share) and more are drawn, but each lists (2.5 / LISTING)³
-        # times fewer matches to score.
+        # search's default stages.LISTING: fewer all-inlier samples are listed
+        # (listed_share) and more are drawn, but each lists
+        # (stages.LISTING / LISTING)³ times fewer matches to score.
         measured = noisy and bool(fits)
+        listing = LISTING if measured else stages.LISTING
         # A side's noise is that of the points (measured), which may lie under
         # the round's tolerance (the schedule's first level is its floor): the
         # listing then holds more than LISTING standard deviations of it.
-        listed = listed_share(LISTING * round_levels[0] / max(measured_noise, 1e-300), k_pts) if measured else 1.0
+        listed = listed_share(listing * round_levels[0] / max(measured_noise, 1e-300) if measured else listing, k_pts)
         budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
                                          search_options.get("max_matches", stages.MAX_MATCHES),
                                          memory_budget=memory_budget, listed=listed)
@@ -501,15 +475,12 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                 # A tight listing lists a few matches a sample: ranking more
                 # candidate triples than LISTING_WIDE costs more than it saves.
                 options["trial_options"]["wide"] = LISTING_WIDE
-        # The search's own cap at each level is the RANSAC bound for every
-        # all-inlier sample listed, at `confidence`: the same bound for the
-        # listed share is that of the confidence below (float-clipped).
-        search_confidence = confidence if listed >= 1.0 else min(
-            -np.expm1(np.log1p(-confidence) / listed), np.nextafter(1.0, 0.0))
-        found = stages.search(_subproblem_with(S, _Listing(model, LISTING)) if measured else S, round_levels,
-                              budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
+        # listing=: the search caps each level at the RANSAC bound for the share
+        # of all-inlier samples its listing keeps (erf(listing / sqrt 2) a side).
+        found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
                               max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
-                              threshold_tests=N_JUDGED, min_support=min_support, confidence=search_confidence,
+                              threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
+                              listing=listing,
                               # Family-wise over every match, as a peel keeps motions
                               # until none beats chance: register's screen level
                               # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%

@@ -37,6 +37,7 @@ __all__ = [
     "Problem",
     "Tokens",
     "Votes",
+    "beats_chance_at_some_level",
     "candidate_tokens",
     "constraint",
     "density_tests",
@@ -586,6 +587,26 @@ class Found:
 JUDGED_WRONG = 50.0
 
 
+def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: float) -> bool:
+    """Whether ``fit``'s pairs within some level's gate beat chance there.
+
+    A motion found at a coarse tolerance is polished at its gate, which
+    also collects the chance pairs of that wide gate; a true motion's pairs
+    stay tight (the noise, not the gate), so within a finer level's gate it
+    keeps most of them while chance falls as the gate cubed.  Each level's
+    count is tested family-wise over ``n_tests`` matches and, Bonferroni,
+    over the ``len(levels)`` gates looked at.  The pairs are ``fit``'s own
+    (one-to-one), so a finer gate only drops pairs.
+    """
+    res = problem.residuals(fit.matrix, fit.correspondences)
+    n_levels = float(len(levels))
+    for tol in levels:
+        g = gate(tol)
+        if np.count_nonzero(res <= g) >= problem.chance(g, n_tests * n_levels):
+            return True
+    return False
+
+
 def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -> float:
     """The ``n_tests`` of the density test's chance level when ``n_matches`` matches are scored.
 
@@ -652,9 +673,10 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     over ``threshold_tests`` × ``judged_wrong`` judged trials; or
     ``min_support``) is
     refined (``polish``, :func:`refine`), kept when (behind the screen) its
-    refined support also beats chance family-wise over every match the
-    budget scores, and its tolerance grown while its support grows beyond
-    chance (``grow``, :func:`grow_tolerance`).
+    refined pairs within its level's gate or a finer one's also beat
+    chance family-wise over every match the budget scores
+    (:func:`beats_chance_at_some_level`), and its tolerance grown while its
+    support grows beyond chance (``grow``, :func:`grow_tolerance`).
 
     ``tried`` (a list) receives one record per tolerance: samples drawn,
     matches scored and listed, points visited, work units spent, best trial
@@ -781,7 +803,12 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 fit = judged.fit
                 if polish:
                     fit = refine(problem, fit, g)
-                if fit.support < final:
+                if final > threshold:
+                    # At its own gate or a finer level's (a true motion's pairs stay tight).
+                    if not beats_chance_at_some_level(problem, fit, levels[:level + 1],
+                                                      threshold_tests * float(budget) * max_matches):
+                        continue
+                elif fit.support < final:
                     continue
                 if grow:
                     fit, grown = grow_tolerance(problem, fit, levels, level)

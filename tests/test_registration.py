@@ -160,3 +160,27 @@ def test_a_mesh_among_outliers_gives_its_motion_not_a_partial_self_match(seed):
     m = register(trial.source, trial.target)
     assert rotation_error_deg(m.rotation, trial.rotation) < 1e-6
     assert correspondence_stats(m.correspondences, trial.true_pairs) == (1.0, 1.0)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10**6), angle=st.floats(20.0, 180.0))
+def test_final_level_keeps_a_noisy_true_motion_and_rejects_a_random_one(seed, angle):
+    """``stages.beats_chance_at_some_level``: a true motion polished at a gate many noise deviations
+    wide beats chance within a finer level's gate (its pairs stay tight, chance falls as the gate
+    cubed), and a random motion polished the same way beats it at none of the levels."""
+    from gatv import stages
+
+    trial = table2_trial(0.9, noise=0.01, seed=seed)
+    P = stages.prepare(trial.source, trial.target)
+    # The noisy schedule up to the level where register's searches find these motions.
+    levels = stages.tolerance_levels(P, None, stages.NOISY_SCHEDULE)[:5]
+    n_tests = 5e7
+    true = np.eye(4)
+    true[:3, :3], true[:3, 3] = trial.rotation, trial.translation
+    fit = stages.refine(P, stages.Fit(true, trial.true_pairs[:3]), stages.gate(levels[-1]))
+    assert stages.beats_chance_at_some_level(P, fit, levels, n_tests)
+    # A random motion of the same pose size, polished at the same gate.
+    wrong = true.copy()
+    wrong[:3, :3] = Rotor.from_axis_angle((1.0, -2.0, 0.5), np.radians(angle)).as_matrix() @ trial.rotation
+    polished = stages.refine(P, stages.Fit(wrong, trial.true_pairs[:3]), stages.gate(levels[-1]))
+    assert not stages.beats_chance_at_some_level(P, polished, levels, n_tests)

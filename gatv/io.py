@@ -23,6 +23,12 @@ extension           read     write    notes
                                       and Open3D do (``double=True``: float64)
 ==================  =======  =======  ==========================================
 
+Per-point scalars (a segmentation's ``motion`` label, an intensity) travel
+with the points in ``.ply`` (one vertex property each, its integer or float
+type kept), ``.vtk``/``.vtp`` (point arrays) and ``.csv`` (named columns after
+``x,y,z``): ``write_points(path, points, scalars={"motion": labels})`` and
+``read_points(path, scalars=True)``.
+
 Motions travel as 4×4 homogeneous matrices: ``matrix`` in every JSON
 record (row-major), and as text with :func:`write_matrix` /
 :func:`read_matrix` (four lines of four numbers, what ``numpy.loadtxt``
@@ -45,7 +51,7 @@ import os
 import re
 import tempfile
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +60,7 @@ from .errors import InputError
 
 __all__ = [
     "READ_EXTENSIONS",
+    "SCALAR_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "PointFileError",
     "atomic_path",
@@ -77,6 +84,8 @@ _PYVISTA_WRITE = (".ply", ".vtk", ".vtp")
 READ_EXTENSIONS = (*_PYVISTA_READ, *_TEXT, ".npy", ".pcd")
 #: Extensions :func:`write_points` understands.
 WRITE_EXTENSIONS = (*_PYVISTA_WRITE, *_TEXT, ".npy", ".pcd")
+#: Extensions whose files carry named per-point scalars (``scalars=``).
+SCALAR_EXTENSIONS = (".ply", ".vtk", ".vtp", ".csv")
 
 
 class PointFileError(InputError):
@@ -91,7 +100,7 @@ def _fail(path, problem: str) -> PointFileError:
 
 
 # --------------------------------------------------------------------- reading
-def read_points(path: str | os.PathLike) -> np.ndarray:
+def read_points(path: str | os.PathLike, *, scalars: bool = False):
     """Read the points of a point-cloud or mesh file.
 
     Parameters
@@ -99,11 +108,19 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     path : str or path-like
         File to read; the format is chosen by its extension (see the module
         docstring): ``.ply .vtk .vtp .stl .obj .xyz .txt .csv .pts .npy .pcd``.
+    scalars : bool, default: False
+        Also return the file's per-point scalars (see :func:`write_points`):
+        a PLY file's vertex properties other than ``x y z``, a VTK file's
+        one-component point arrays, a CSV file's named columns after the
+        first three; ``{}`` for a format that holds none.
 
     Returns
     -------
     points : (N, 3) ndarray of float64
         C-contiguous, finite, ``N >= 1``.
+    scalars : dict of str to (N,) ndarray
+        Only with ``scalars=True``: name to values, in the file's order and
+        type (a PLY ``int`` property is int32; text columns are float64).
 
     Raises
     ------
@@ -135,15 +152,21 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         raise _fail(
             path, f"unknown point-file format ({got}); expected one of {', '.join(READ_EXTENSIONS)}."
         )
+    extra: dict[str, np.ndarray] = {}
     if ext in _PYVISTA_READ:
-        arr = _read_pyvista(p)
+        arr, point_data = _read_pyvista(p)
+        if scalars:
+            extra = _read_ply_scalars(p, arr.shape[0]) if ext == ".ply" else point_data
     elif ext == ".npy":
         arr = _read_npy(p)
     elif ext == ".pcd":
         arr = _read_pcd(p)
     else:
-        arr = _read_text(p)
-    return _check_points(arr, path)
+        arr, names = _read_text(p)
+        if scalars and names is not None and arr.ndim == 2:
+            extra = {name: np.ascontiguousarray(arr[:, k]) for k, name in enumerate(names) if k >= 3}
+    points = _check_points(arr, path)
+    return (points, extra) if scalars else points
 
 
 def _check_points(arr: np.ndarray, path) -> np.ndarray:
@@ -209,7 +232,13 @@ def _read_pyvista(p: Path) -> np.ndarray:
         if errors:
             reason = f"the {p.suffix.lower()} reader reported an error"
         raise _fail(p, f"contains no points ({reason}).")
-    return np.asarray(points)
+    n = len(points)
+    point_data = {}
+    for name, array in mesh.point_data.items():
+        values = np.asarray(array)
+        if values.shape == (n,) and values.dtype.kind in "biuf":
+            point_data[str(name)] = values
+    return np.asarray(points), point_data
 
 
 def _read_npy(p: Path) -> np.ndarray:
@@ -225,7 +254,8 @@ def _read_npy(p: Path) -> np.ndarray:
 _SPLIT = re.compile(r"[,;\s]+")
 
 
-def _read_text(p: Path) -> np.ndarray:
+def _read_text(p: Path) -> tuple[np.ndarray, list[str] | None]:
+    """The rows of numbers, and the header line's column names (None without one)."""
     try:
         text = p.read_text(encoding="utf-8", errors="strict")
     except UnicodeDecodeError as exc:
@@ -235,6 +265,7 @@ def _read_text(p: Path) -> np.ndarray:
     rows: list[list[float]] = []
     width = None
     first_data = True
+    names = None
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
@@ -245,6 +276,7 @@ def _read_text(p: Path) -> np.ndarray:
         except ValueError:
             if first_data:  # a header such as "x,y,z"
                 first_data = False
+                names = fields
                 continue
             raise _fail(p, f"line {lineno} is not a row of numbers: {raw.strip()[:60]!r}.") from None
         first_data = False
@@ -255,7 +287,127 @@ def _read_text(p: Path) -> np.ndarray:
         rows.append(values)
     if not rows:
         raise _fail(p, "contains no points.")
-    return np.asarray(rows, dtype=np.float64)
+    if names is not None and len(names) != width:
+        names = None  # not a header of these columns
+    return np.asarray(rows, dtype=np.float64), names
+
+
+# ------------------------------------------------------------------------ PLY
+#: PLY property types (both spellings) and the NumPy type of each.
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+              "f4": "float", "f8": "double"}
+
+
+def _read_ply_scalars(p: Path, n_points: int) -> dict[str, np.ndarray]:
+    """The vertex properties of a PLY file other than ``x y z``, name to values.
+
+    Reads the header (``format ascii`` or ``binary_little/big_endian``),
+    skips the elements before ``vertex`` (fixed-size ones only) and reads the
+    vertex table.  PyVista's reader keeps only the coordinates, normals,
+    colours and texture coordinates of a PLY file.
+    """
+    raw = p.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise _fail(p, "cannot read its vertex properties: not a PLY header.")
+    start = raw.index(b"\n", end) + 1
+    fmt, elements = None, []
+    for line in raw[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if not words or words[0] in ("ply", "comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            kind = "list" if len(words) >= 2 and words[1] == "list" else words[1] if len(words) == 3 else None
+            if kind != "list" and kind not in _PLY_TYPES:
+                raise _fail(p, f"cannot read its vertex properties: property line {line.strip()!r}.")
+            elements[-1][2].append((words[-1], kind))
+    order = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
+    if fmt not in order:
+        raise _fail(p, f"cannot read its vertex properties: PLY format {fmt!r}.")
+    body, offset = raw[start:], 0
+    lines = body.split(b"\n") if fmt == "ascii" else None
+    for name, count, props in elements:
+        if any(kind == "list" for _, kind in props):
+            raise _fail(p, f"cannot read its vertex properties: element {name!r} has list properties.")
+        dtype = np.dtype([(prop, (order[fmt] or "<") + _PLY_TYPES[kind]) for prop, kind in props])
+        if name != "vertex":
+            offset += count * (1 if fmt == "ascii" else dtype.itemsize)
+            continue
+        if count != n_points:
+            raise _fail(p, f"has {count} vertices in its header, {n_points} points read.")
+        if fmt == "ascii":
+            try:
+                table = np.array([row.split() for row in lines[offset:offset + count]], dtype=np.float64)
+            except ValueError:
+                raise _fail(p, "cannot read its vertex properties: ascii rows are not numbers.") from None
+            if table.shape != (count, len(props)):
+                raise _fail(p, f"cannot read its vertex properties: expected {count} rows of {len(props)} values.")
+            return {prop: table[:, k].astype(dtype[prop].newbyteorder("=")) for k, (prop, _) in enumerate(props)
+                    if prop not in ("x", "y", "z")}
+        if len(body) < offset + count * dtype.itemsize:
+            raise _fail(p, "is truncated: its vertex table is shorter than the header says.")
+        rec = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
+        return {prop: rec[prop].astype(dtype[prop].newbyteorder("=")) for prop, _ in props
+                if prop not in ("x", "y", "z")}
+    raise _fail(p, "has no vertex element.")
+
+
+def _write_ply(tmp: Path, pts: np.ndarray, scalars: dict[str, np.ndarray]) -> None:
+    """Binary little-endian PLY: float32 ``x y z`` and one property per scalar, its type kept."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    fields += [(name, "<" + values.dtype.kind + str(values.dtype.itemsize)) for name, values in scalars.items()]
+    rows = np.empty(pts.shape[0], dtype=fields)
+    rows["x"], rows["y"], rows["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    for name, values in scalars.items():
+        rows[name] = values
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {pts.shape[0]}"]
+    header += [f"property {_PLY_NAMES[code[1:]]} {name}" for name, code in fields]
+    header.append("end_header\n")
+    with open(tmp, "wb") as fh:
+        fh.write("\n".join(header).encode("ascii"))
+        fh.write(rows.tobytes())
+
+
+def _check_scalars(scalars, n: int) -> dict[str, np.ndarray]:
+    """``scalars`` as name to (n,) arrays of a type PLY, VTK and CSV all hold."""
+    if scalars is None:
+        return {}
+    if not isinstance(scalars, Mapping):
+        raise InputError(f"Expected `scalars` to be a mapping of names to per-point values (e.g. "
+                         f"{{'motion': labels}}), got {type(scalars).__name__}.")
+    out = {}
+    for name, values in scalars.items():
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            raise InputError(f"Expected every name in `scalars` to be a word of letters, digits and _, "
+                             f"got {name!r}.")
+        if name.lower() in ("x", "y", "z") or name.lower() in {k.lower() for k in out}:
+            raise InputError(f"`scalars` cannot hold {name!r}: x, y, z are the coordinates and names must differ "
+                             "(ignoring case).")
+        arr = np.asarray(values)
+        if arr.dtype.kind == "b":
+            arr = arr.astype(np.uint8)
+        if arr.dtype.kind not in "iuf":
+            raise InputError(f"Expected `scalars[{name!r}]` to hold numbers, got dtype {arr.dtype}.")
+        if arr.shape != (n,):
+            raise InputError(f"Expected `scalars[{name!r}]` to hold one value per point, shape ({n},), "
+                             f"got {arr.shape}.")
+        if arr.dtype.kind in "iu" and arr.dtype.itemsize > 4:  # PLY has no 64-bit integers
+            small = np.int32 if arr.dtype.kind == "i" else np.uint32
+            if arr.size and (arr.min() < np.iinfo(small).min or arr.max() > np.iinfo(small).max):
+                raise InputError(f"Expected `scalars[{name!r}]` to fit in 32-bit integers (PLY has no wider "
+                                 f"ones), got values in [{arr.min()}, {arr.max()}]; pass them as floats.")
+            arr = arr.astype(small)
+        elif arr.dtype.kind == "f" and arr.dtype.itemsize not in (4, 8):
+            arr = arr.astype(np.float64)
+        out[name] = np.ascontiguousarray(arr)
+    return out
 
 
 # ------------------------------------------------------------------------ PCD
@@ -457,7 +609,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double: bool = False) -> None:
+def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double: bool = False,
+                 scalars: Mapping | None = None) -> None:
     """Write points atomically; the format is chosen by the extension.
 
     Parameters
@@ -474,13 +627,21 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
     double : bool, default: False
         ``.pcd`` only: float64 coordinates (``SIZE 8``; exact) instead of
         float32 (what PCL's ``PointXYZ`` and Open3D read and write).
+    scalars : mapping of str to (N,) array_like, optional
+        Per-point values written with the points, e.g. ``{"motion": labels}``
+        (``.ply .vtk .vtp .csv``, :data:`SCALAR_EXTENSIONS`): a PLY vertex
+        property each (``int`` for int32 labels, what PyVista, Open3D's tensor
+        API, CloudCompare and MeshLab read as a scalar field), a VTK point
+        array, a named CSV column.  Names are words (letters, digits, ``_``)
+        other than ``x y z``; integers must fit in 32 bits (PLY has no wider).
 
     Raises
     ------
     ValueError
-        For bad ``points`` (shape, NaN); :class:`PointFileError` for an
-        unsupported extension or a missing destination folder. Nothing is
-        written in either case.
+        For bad ``points`` (shape, NaN) or ``scalars`` (names, lengths,
+        types); :class:`PointFileError` for an unsupported extension, scalars
+        for a format that cannot hold them, or a missing destination folder.
+        Nothing is written in any case.
     """
     from ._validation import as_points
 
@@ -493,11 +654,19 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
             f"cannot write points as {p.suffix or 'a file without extension'!r}; "
             f"expected one of {', '.join(WRITE_EXTENSIONS)}.",
         )
+    extra = _check_scalars(scalars, pts.shape[0])
+    if extra and ext not in SCALAR_EXTENSIONS:
+        raise _fail(path, f"cannot write `scalars` in {ext} (it has no named per-point values); "
+                          f"use one of {', '.join(SCALAR_EXTENSIONS)}.")
     with atomic_path(p) as tmp:
-        if ext in _PYVISTA_WRITE:
+        if ext == ".ply":
+            _write_ply(tmp, pts, extra)
+        elif ext in _PYVISTA_WRITE:
             import pyvista as pv
 
             cloud = pv.PolyData(pts)
+            for name, values in extra.items():
+                cloud.point_data[name] = values
             with _quiet_vtk():
                 cloud.save(tmp, binary=True)
         elif ext == ".npy":
@@ -507,8 +676,13 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
             _write_pcd(tmp, pts, ascii=bool(ascii), double=bool(double))
         else:
             sep = "," if ext == ".csv" else " "
-            header = "x,y,z" if ext == ".csv" else ""
-            np.savetxt(tmp, pts, fmt="%.17g", delimiter=sep, header=header, comments="")
+            header = ",".join(["x", "y", "z", *extra]) if ext == ".csv" else ""
+            if extra:
+                table = np.column_stack([pts, *(v.astype(np.float64) for v in extra.values())])
+                fmt = ["%.17g"] * 3 + ["%d" if v.dtype.kind in "iu" else "%.17g" for v in extra.values()]
+            else:
+                table, fmt = pts, "%.17g"
+            np.savetxt(tmp, table, fmt=fmt, delimiter=sep, header=header, comments="")
 
 
 def to_jsonable(obj, _default: Callable | None = None):

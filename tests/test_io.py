@@ -5,7 +5,10 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from gatv.errors import InputError
 from gatv.io import PointFileError, atomic_path, read_points, write_json, write_points
 
 
@@ -247,3 +250,86 @@ def test_matrix_and_log_round_trip(tmp_path):
     (tmp_path / "short.log").write_text("0 1 2\n1 0 0 0\n")
     with pytest.raises(PointFileError, match="blocks of 5 lines"):
         read_log(tmp_path / "short.log")
+
+
+# ------------------------------------------------------------ per-point scalars
+@pytest.mark.parametrize("ext", [".ply", ".vtk", ".vtp", ".csv"])
+def test_scalars_round_trip(tmp_path, points, ext):
+    labels = np.arange(len(points), dtype=np.int64) % 4 - 1  # -1 = unexplained, as segment writes
+    weight = np.random.default_rng(1).uniform(0, 1, len(points))
+    path = tmp_path / f"labelled{ext}"
+    write_points(path, points, scalars={"motion": labels, "weight": weight})
+    back, scalars = read_points(path, scalars=True)
+    np.testing.assert_allclose(back, points, rtol=1e-6, atol=1e-6)  # PLY: float32 coordinates
+    assert list(scalars) == ["motion", "weight"]
+    np.testing.assert_array_equal(scalars["motion"], labels)
+    np.testing.assert_array_equal(scalars["weight"], weight)  # float64 kept exactly
+    if ext != ".csv":  # text holds numbers, binary formats keep the type
+        assert scalars["motion"].dtype == np.int32
+    np.testing.assert_array_equal(read_points(path), back)  # without scalars=: the points alone
+
+
+@settings(max_examples=25, deadline=None)
+@given(labels=st.lists(st.integers(-(2**31), 2**31 - 1), min_size=1, max_size=40),
+       kind=st.sampled_from(["int8", "uint8", "int16", "int32", "float32", "float64"]))
+def test_ply_scalars_keep_every_value_and_type(tmp_path_factory, labels, kind):
+    values = np.array(labels, dtype=np.int64)
+    info = np.iinfo(kind) if kind.startswith(("int", "uint")) else None
+    if info is not None:
+        values = np.clip(values, info.min, info.max)
+    values = values.astype(kind)
+    pts = np.column_stack([np.arange(len(values), dtype=float)] * 3)
+    path = tmp_path_factory.mktemp("ply") / "s.ply"
+    write_points(path, pts, scalars={"v": values})
+    _, scalars = read_points(path, scalars=True)
+    assert scalars["v"].dtype == values.dtype
+    np.testing.assert_array_equal(scalars["v"], values)
+
+
+def test_ply_scalars_from_other_writers(tmp_path):
+    """An ascii PLY with a face element after the vertices, and a big-endian binary one."""
+    path = tmp_path / "a.ply"
+    path.write_text("ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 3\nproperty float x\n"
+                    "property float y\nproperty float z\nproperty uchar red\nproperty int motion\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0 255 2\n1 0 0 0 -1\n0 1 0 7 0\n3 0 1 2\n")
+    pts, scalars = read_points(path, scalars=True)
+    np.testing.assert_array_equal(pts, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(scalars["motion"], [2, -1, 0])
+    np.testing.assert_array_equal(scalars["red"], [255, 0, 7])
+    rows = np.array([(0.0, 0.0, 0.0, 5), (1.0, 2.0, 3.0, -4)], dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"),
+                                                                      ("motion", ">i4")])
+    path = tmp_path / "b.ply"
+    path.write_bytes(b"ply\nformat binary_big_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                     b"property float z\nproperty int motion\nend_header\n" + rows.tobytes())
+    pts, scalars = read_points(path, scalars=True)
+    np.testing.assert_array_equal(pts, [[0, 0, 0], [1, 2, 3]])
+    np.testing.assert_array_equal(scalars["motion"], [5, -4])
+
+
+@pytest.mark.parametrize("ext", [".xyz", ".npy", ".pcd"])
+def test_formats_without_named_scalars(tmp_path, points, ext):
+    path = tmp_path / f"p{ext}"
+    with pytest.raises(PointFileError, match="`scalars`"):
+        write_points(path, points, scalars={"motion": np.zeros(len(points), int)})
+    assert not path.exists()
+    write_points(path, points)
+    back, scalars = read_points(path, scalars=True)
+    assert scalars == {} and back.shape == points.shape
+
+
+@pytest.mark.parametrize("scalars, match", [
+    ([1, 2, 3], "mapping"),
+    ({"motion": np.zeros(29)}, r"scalars\['motion'\].*\(30,\).*\(29,\)"),
+    ({"motion": np.zeros((30, 2))}, r"scalars\['motion'\]"),
+    ({"x": np.zeros(30)}, "coordinates"),
+    ({"two words": np.zeros(30)}, "letters, digits"),
+    ({"m": np.zeros(30), "M": np.ones(30)}, "differ"),
+    ({"motion": np.array(["a"] * 30)}, "numbers"),
+    ({"motion": np.full(30, 2**40)}, "32-bit"),
+])
+def test_bad_scalars_name_the_argument_and_write_nothing(tmp_path, points, scalars, match):
+    path = tmp_path / "out.ply"
+    with pytest.raises(InputError, match=match):
+        write_points(path, points, scalars=scalars)
+    assert not path.exists() and not list(tmp_path.iterdir())

@@ -367,22 +367,30 @@ def trial_motions(
 
 
 def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
-    """``triples`` with each one's vertices reordered so that its first side has the fewest target pairs.
+    """``triples`` with each one's vertices reordered: the rarest side first, the rarer of the others second.
 
     The congruent listing scans the target pairs as long as the first side
     ``(0, 1)`` within ``eps`` (or, when they outnumber the target's points,
     every point's neighbours at that length), so the rarest length in the
-    target's sorted pair lengths ``plen`` makes the shortest scan.  The
-    triangle and its matches are the same; only the order of the work
-    changes.
+    target's sorted pair lengths ``plen`` makes the shortest scan.  For
+    each pair ``(k, l)`` it scanned, the listing then tries the third
+    points in ``k``'s neighbours at the length of side ``(0, 2)`` (those
+    ``|bc|`` from ``l`` are kept): about ``2 w / n`` of them for a side
+    whose length has ``w`` target pairs, so the rarer of the other two
+    sides there tries fewer.  The triangle and its matches are the same;
+    only the order of the work changes.
     """
     t = np.asarray(triples)
     if t.shape[0] == 0:
         return t
-    # Side (0, 2) first: swap vertices 1 and 2; side (1, 2) first: rotate to (1, 2, 0).
-    perms = np.array([[0, 1, 2], [0, 2, 1], [1, 2, 0]])
-    order = perms[np.argmin(_side_widths(points, t, plen, eps), axis=1)]
-    return np.take_along_axis(t, order, axis=1)
+    w = _side_widths(points, t, plen, eps)  # sides (0, 1), (0, 2), (1, 2)
+    # Each vertex order's sides (0, 1) and (0, 2), as indices into ``w``.
+    perms = np.array([[0, 1, 2], [1, 0, 2], [0, 2, 1], [2, 0, 1], [1, 2, 0], [2, 1, 0]])
+    first = np.array([0, 0, 1, 1, 2, 2])
+    second = np.array([1, 2, 0, 2, 0, 1])
+    width = w.astype(np.float64)
+    key = width[:, first] * (float(w.max(initial=0)) + 1.0) + width[:, second]
+    return np.take_along_axis(t, perms[np.argmin(key, axis=1)], axis=1)
 
 
 def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:

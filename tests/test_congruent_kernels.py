@@ -271,7 +271,8 @@ def test_both_listings_give_every_congruent_match(seed, eps, n2):
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.05, 0.3, 1.0]))
 def test_rarest_side_first_keeps_the_triangles(seed, eps):
-    """Same vertex sets and side lengths, first side the one with fewest target pairs; the matches follow."""
+    """Same vertex sets and side lengths, the sides ordered by their target pairs (fewest first, the
+    third-point side (0, 2) next); the matches follow."""
     rng = np.random.default_rng(seed)
     x = rng.uniform(-3, 3, (12, 3))
     y = rng.uniform(-3, 3, (15, 3))
@@ -284,8 +285,8 @@ def test_rarest_side_first_keeps_the_triangles(seed, eps):
         d = np.linalg.norm(x[t[:, u]] - x[t[:, v]], axis=1)
         return np.searchsorted(index.plen, d + eps) - np.searchsorted(index.plen, d - eps)
 
-    first = width(out, 0, 1)
-    assert np.all(first <= width(out, 0, 2)) and np.all(first <= width(out, 1, 2))
+    first, second = width(out, 0, 1), width(out, 0, 2)
+    assert np.all(first <= second) and np.all(second <= width(out, 1, 2))
     # The reordered triple's matches are the original's, relabelled.
     q = int(np.argmax(first))
     perm = [list(tri[q]).index(v) for v in out[q]]

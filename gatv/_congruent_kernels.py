@@ -18,6 +18,7 @@ from ._fit_kernels import triangle_pose, umeyama3
 # Defaults of the optional array arguments (no visiting order, no occupancy grid).
 _NO_VISIT = np.zeros(0, np.int64)
 _NO_OCC = np.zeros(0, np.uint8)
+_ALL_HALF = np.zeros(0, np.uint8)
 _ORIGIN = np.zeros(3)
 _DIMS = np.ones(3, np.int64)
 
@@ -456,21 +457,23 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
 
 @njit(cache=True)
 def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated, max_matches,
-                   src_normals, tgt_normals, feature_tol, use_normals):
+                   src_normals, tgt_normals, feature_tol, use_normals, half_first=True):
     """The ``max_matches`` tightest of at most ``max_enumerated`` congruent matches of ``(a, b, c)``.
 
     Returns ``(k, l, m, n_listed, n_probes)`` (``n_probes``: the listing's
     cost, see :func:`_congruent_matches`).  When more are listed than
-    scored, the matches within ``eps / 2`` of every side are listed first:
-    if the last of their ``max_matches`` tightest has a discrepancy (sum of
-    squared side errors) of at most ``(eps / 2)²``, no match outside that
-    half box can be tighter, and these are the tightest of all for about a
-    quarter of the listing work (the listing's inner loop grows like
-    ``eps²``); otherwise the full ``eps`` box is listed.
+    scored (and ``half_first``), the matches within ``eps / 2`` of every
+    side are listed first: if the last of their ``max_matches`` tightest
+    has a discrepancy (sum of squared side errors) of at most ``(eps /
+    2)²``, no match outside that half box can be tighter, and these are
+    the tightest of all for about a quarter of the listing work (the
+    listing's inner loop grows like ``eps²``); otherwise the full ``eps``
+    box is listed.  ``half_first=False`` skips the half box, for a triple
+    whose full box holds too few matches for it to answer.
     """
     listed = 0
     probes = 0
-    if max_enumerated > max_matches:
+    if max_enumerated > max_matches and half_first:
         ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
                                                   0.5 * eps, max_enumerated, src_normals, tgt_normals, feature_tol,
                                                   use_normals)
@@ -521,6 +524,7 @@ def triple_hypotheses(
     occ_origin=_ORIGIN,
     occ_cell=1.0,
     occ_dims=_DIMS,
+    half_first=_ALL_HALF,
 ):
     """Best congruent match of each source triple, scored by inlier count.
 
@@ -548,7 +552,9 @@ def triple_hypotheses(
     triple (``n_matches`` counts the scored matches, ``n_listed`` the listed
     ones, ``n_visited`` the source points visited in scoring them,
     ``n_probes`` the listing's binary searches and candidates); ``score =
-    -1`` when no congruent triple exists.
+    -1`` when no congruent triple exists.  ``half_first`` (one flag a
+    triple; empty: all set) says which triples list the half box first
+    (:func:`scored_matches`).
     """
     nt = triples.shape[0]
     scores = np.full(nt, -1, np.int64)
@@ -562,9 +568,10 @@ def triple_hypotheses(
     n_enum = max(max_enumerated, max_matches)
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
+        half = half_first.shape[0] != nt or half_first[q] != 0
         ks, ls, ms, listed, probes = scored_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist,
                                                     nidx, eps, n_enum, max_matches, src_normals, tgt_normals,
-                                                    feature_tol, use_normals)
+                                                    feature_tol, use_normals, half)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
         gather_rows(src, source, a, b, c)

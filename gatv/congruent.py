@@ -33,6 +33,7 @@ from .models.base import homogeneous
 from .stats import ball_measure, chance_support, samples_needed
 
 __all__ = [
+    "HALF_BOX_FROM",
     "MISS_RATE",
     "TargetIndex",
     "TrialMotions",
@@ -41,6 +42,7 @@ __all__ = [
     "chance_support",
     "expected_matches",
     "n_triples_needed",
+    "predicted_matches",
     "rarest_side_first",
     "sample_triples",
     "sequential_boundary",
@@ -205,6 +207,28 @@ def expected_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex
     return np.prod(_side_widths(source, triples, index.plen, eps), axis=1, dtype=np.float64)
 
 
+def predicted_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
+    """About how many target triples each source triple matches within ``eps``: ``8 w₁ w₂ w₃ / n³``.
+
+    A random ordered target triple ``(k, l, m)`` has each side in a side's
+    window with probability ``2 wᵢ / n²`` (``wᵢ`` of the ``n² / 2`` target
+    pairs, :func:`expected_matches`); taken as independent, the ``n³``
+    triples give this many matches.  Within a factor ~2.5 of the count on
+    uniform points (the sides of a triangle are not independent).
+    """
+    n = float(index.target.shape[0])
+    return 8.0 * expected_matches(source, triples, index, eps) / (n * n * n)
+
+
+#: Matches a triple is predicted to have (:func:`predicted_matches`), in
+#: units of the matches scored, from which the listing tries the half box
+#: first (:func:`gatv._congruent_kernels.scored_matches`): the half box
+#: holds ~1/8 of the matches and answers only when the tightest scored ones
+#: all lie within its inscribed ball (~half of it), about 16 times the
+#: scored in the full box; a quarter of that allows for the prediction's error.
+HALF_BOX_FROM = 4.0
+
+
 def _side_widths(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
     """(M, 3) target pairs in the sorted lengths ``plen`` within ``eps`` of each side ``(0, 1), (0, 2), (1, 2)``."""
     width = np.empty((triples.shape[0], 3), np.int64)
@@ -343,6 +367,7 @@ def trial_motions(
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
         tri = rarest_side_first(source, tri, index.plen, eps)
+        half_first = (predicted_matches(source, tri, index, eps) >= HALF_BOX_FROM * max_matches).astype(np.uint8)
         offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
         # A fresh visiting order a batch: the sequential test's misses of one
         # true motion are then independent between batches.
@@ -351,7 +376,7 @@ def trial_motions(
             source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
             index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
-            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims,
+            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims, half_first,
         )
         n_congruent += int(nm.sum())
         n_listed += int(nl.sum())

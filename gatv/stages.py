@@ -642,6 +642,13 @@ LIST_COST = 0.2
 PROBE_COST = 0.05
 #: Samples of the first chunk at each tolerance, before its cost is measured.
 FIRST_CHUNK = 2
+#: Samples at least in the costliest level's chunk: the model scores a
+#: chunk's samples in parallel, and a coarse level whose samples cost
+#: milliseconds each would otherwise run two or three to a chunk, leaving
+#: threads idle while the slowest finishes.  Every level's share of a round
+#: grows alike, so the levels still get equal work.  A constant, not the
+#: thread count, so that a seed gives the same result on every machine.
+MIN_CHUNK = 8
 #: Matches listed per sample from which :func:`search` passes its
 #: ``trial_options`` (ways of coping with many matches) to the model.
 OPTIONS_FROM = 8
@@ -735,6 +742,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     listed_total = [0] * len(levels)
     work = 0.0
     while any(d < c for d, c in zip(done, caps)):
+        measured = [p for p, rec in zip(per_triple, records) if rec["triples"] > 0]
+        share = max(SEARCH_SHARE, MIN_CHUNK * max(measured, default=0.0))
         for level, tol in enumerate(levels):
             if done[level] >= caps[level]:
                 continue
@@ -746,7 +755,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 if tried is not None:
                     tried.append({"stopped": "time limit", "work": work})
                 return None
-            m = int(min(caps[level] - done[level], max(2, min(4096, SEARCH_SHARE / per_triple[level]))))
+            m = int(min(caps[level] - done[level], max(2, min(4096, share / per_triple[level]))))
             done[level] += m
             rec = records[level]
             report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")

@@ -229,9 +229,11 @@ def _congruent_by_discrepancy(source, target, tri, eps):
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.3, 0.6, 1.0]), keep=st.sampled_from([2, 8, 20]))
-def test_scored_matches_are_the_tightest_of_all(seed, eps, keep):
-    """With more matches listed than scored, the scored ones are the tightest of all, whichever pass."""
+@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.3, 0.6, 1.0]), keep=st.sampled_from([2, 8, 20]),
+       half_first=st.booleans())
+def test_scored_matches_are_the_tightest_of_all(seed, eps, keep, half_first):
+    """With more matches listed than scored, the scored ones are the tightest of all, whichever pass
+    (the half box first or not)."""
     rng = np.random.default_rng(seed)
     x = rng.uniform(-3, 3, (10, 3))
     y = rng.uniform(-3, 3, (14, 3))
@@ -239,7 +241,7 @@ def test_scored_matches_are_the_tightest_of_all(seed, eps, keep):
     a, b, c = sample_triples(10, 1, rng)[0]
     ks, ls, ms, listed, _ = k.scored_matches(x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen,
                                              index.pi, index.pj, index.ndist, index.nidx, eps, 10**5, keep,
-                                             np.zeros((0, 3)), np.zeros((0, 3)), 0.15, False)
+                                             np.zeros((0, 3)), np.zeros((0, 3)), 0.15, False, half_first)
     want = _congruent_by_discrepancy(x, y, (a, b, c), eps)[:keep]
     assert sorted(zip(ks.tolist(), ls.tolist(), ms.tolist())) == sorted(want)
     assert listed >= len(want)
@@ -292,3 +294,23 @@ def test_rarest_side_first_keeps_the_triangles(seed, eps):
     perm = [list(tri[q]).index(v) for v in out[q]]
     before = {tuple(m[p] for p in perm) for m in _congruent_by_discrepancy(x, y, tuple(tri[q]), eps)}
     assert set(_congruent_by_discrepancy(x, y, tuple(out[q]), eps)) == before
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.2, 0.5]))
+def test_predicted_matches_follow_the_count(seed, eps):
+    """``predicted_matches`` (independent sides, 8 w1 w2 w3 / n^3) against the listed count on uniform
+    points: the totals over many triples agree within a factor of 2."""
+    from gatv.congruent import predicted_matches
+
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-3, 3, (40, 3))
+    y = rng.uniform(-3, 3, (60, 3))
+    index = TargetIndex(y, 0.1)
+    tri = sample_triples(40, 60, rng)
+    none = np.zeros((0, 3))
+    counted = sum(k._congruent_matches(x, y, a, b, c, 0, index.plen, index.pi, index.pj, index.ndist,
+                                       index.nidx, eps, 10**6, none, none, 0.15, False)[0].shape[0]
+                  for a, b, c in tri)
+    predicted = predicted_matches(x, tri, index, eps).sum()
+    assert 0.5 < counted / predicted < 2.0

@@ -151,10 +151,62 @@ def test_noisy_peel_finds_a_small_motion_beside_a_large_one(seed):
     _check_one_to_one(seg)
 
 
-def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled_noise(monkeypatch):
-    """A round that returns a wrong motion: at the noise pooled over all motions it does not beat chance."""
+def _noisy_schedule():
+    from gatv.motions.segmentation import NOISY_FROM
+
+    return [r for r in stages.NOISY_SCHEDULE if r >= NOISY_FROM]  # segment's, the probe finding no exact motion
+
+
+def test_noisy_peel_rejects_a_wrong_motion_at_its_own_noise_and_searches_the_finer_levels(monkeypatch):
+    """A first round that returns a wrong motion at a coarse level: at its measured noise it does not beat chance.
+
+    It is rejected in the round (its points stay in the search), the next rounds search only the levels below the
+    one it came from, and both true motions follow.
+    """
     scene = _noisy_two_motions(5, 0.1)
     P = stages.prepare(scene.source, scene.target)
+    real = stages.search
+    calls = []
+
+    def search(problem, levels, **kw):
+        calls.append(list(levels))
+        if len(calls) > 1:
+            return real(problem, levels, **kw)
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()  # no true motion rotates so
+        wrong = stages.regate(problem, stages.Fit(M, np.empty((0, 2), np.int64)), stages.gate(levels[-2]))
+        return stages.Found(wrong, levels[-2], stages.Judged(wrong, wrong.support, 1.0), wrong.support, 3)
+
+    monkeypatch.setattr(stages, "search", search)
+    schedule = _noisy_schedule()
+    seg = peel(P, seed=0, noisy=True, schedule=schedule)
+    first = seg.info["rounds"][0]
+    assert first["points"] == (P.source.shape[0], P.target.shape[0]) and "rejected" in first
+    rej = first["rejected"]
+    assert rej["support"] < rej["chance"] and rej["tolerance"] == pytest.approx(schedule[-2] * P.spacing)
+    assert calls[1] == calls[0][:-2]  # the levels below the one that gave a wrong motion
+    assert seg.info["rounds"][1]["points"] == first["points"]  # its points stayed in the search
+    assert len(seg) == 2 and not seg.info["dropped"], seg.info["reason"]
+    for truth in scene.true_pairs:
+        assert max(_overlap(m.correspondences, truth) for m in seg) >= 0.9 * len(truth)
+    assert sorted(m.info["round"] for m in seg) == [1, 2]
+
+
+def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled_noise(monkeypatch):
+    """A wrong first-round motion whose few residuals are tight passes the round's check at its own (small) noise;
+    at the noise pooled over all motions it does not beat chance, and is dropped."""
+    scene = _noisy_two_motions(5, 0.1)
+    src, tgt = scene.source.copy(), scene.target.copy()
+    true_s = set(np.concatenate([p[:, 0] for p in scene.true_pairs]).tolist())
+    true_t = set(np.concatenate([p[:, 1] for p in scene.true_pairs]).tolist())
+    free_s = [i for i in range(len(src)) if i not in true_s][:5]
+    free_t = [j for j in range(len(tgt)) if j not in true_t][:5]
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()
+    # five outlier pairs moved by M, at a quarter of the scene's noise
+    tgt[free_t] = src[free_s] @ M[:3, :3].T + np.random.default_rng(5).normal(0.0, 0.025, (5, 3))
+    planted = np.column_stack([free_s, free_t]).astype(np.int64)
+    P = stages.prepare(src, tgt)
     real = stages.search
     calls = []
 
@@ -162,14 +214,12 @@ def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled
         calls.append(len(levels))
         if len(calls) > 1:
             return real(problem, levels, **kw)
-        M = np.eye(4)
-        M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()  # no true motion rotates so
-        # at the middle level: its pairs lie within that gate, so its own noise comes out moderate
-        wrong = stages.regate(problem, stages.Fit(M, np.empty((0, 2), np.int64)), stages.gate(levels[-2]))
-        return stages.Found(wrong, levels[-2], stages.Judged(wrong, wrong.support, 1.0), wrong.support, 3)
+        fit = stages.Fit(M, planted)
+        return stages.Found(fit, levels[0], stages.Judged(fit, 5, 1.0), 5, 3)
 
     monkeypatch.setattr(stages, "search", search)
-    seg = peel(P, seed=0, noisy=True)
+    seg = peel(P, seed=0, noisy=True, schedule=_noisy_schedule())
+    assert not any("rejected" in r for r in seg.info["rounds"])  # it passed at its own noise
     assert [d["round"] for d in seg.info["dropped"]] == [0]
     assert all(d["within"] < d["chance"] for d in seg.info["dropped"])
     assert len(seg) == 2, seg.info["reason"]

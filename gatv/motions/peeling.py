@@ -19,7 +19,12 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
 3. **Keep** the motion when its support beats the chance level
    (``problem.chance(gate, n_tests)``), after ICP refinement and growing the
    tolerance while the support grows beyond chance; **remove** its source
-   and target points; repeat.
+   and target points; repeat.  A noisy peel (noise unknown) measures each
+   motion's noise and keeps it only when its pairs within that gate still
+   beat chance there (a wrong motion's residuals spread over the gate it was
+   found at); one rejected from a tolerance above the finest shows that the
+   density test's chance level is breached there in these data, so later
+   rounds search the finer tolerances only (``info["rounds"][k]["rejected"]``).
 
 It stops when no trial beats chance, ``max_motions`` motions were found,
 or too few points are left (``info["reason"]`` says which).
@@ -426,6 +431,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     round_levels = list(levels)
     measured_noise = 0.0
     fit_rounds: list[int] = []
+    rejected = 0
     used_s = np.zeros(n1, bool)
     used_t = np.zeros(n2, bool)
     fits: list[Fit] = []
@@ -496,8 +502,39 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         fit, tol = found.fit, found.tolerance
         if noisy:
-            fit, tol = stages.settle_noise(S, fit, round_levels, round_levels.index(tol),
+            level = round_levels.index(tol)
+            fit, tol = stages.settle_noise(S, fit, round_levels, level,
                                            floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
+            # Kept only when, at its measured noise, it still beats chance as the
+            # judge asks (its pairs within gate(σ) against the chance level there,
+            # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
+            # there, while a wrong motion's residuals spread over the gate it was
+            # found at, so its pairs thin out as the gate's volume.
+            g_noise = stages.gate(tol)
+            within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
+            chance = S.chance(g_noise, N_JUDGED)
+            if within < chance:
+                record = {"support": within, "noise": float(tol), "chance": int(chance),
+                          "tolerance": float(round_levels[level]), "matrix": fit.matrix}
+                if level > 0:
+                    # A random motion beat the density test's chance level at this
+                    # tolerance: in these data (points not uniform over the box the
+                    # chance level assumes) the level and the coarser ones find
+                    # wrong motions, so the next rounds search the finer ones only.
+                    round_levels = round_levels[:level]
+                else:
+                    # Its points leave the search, so the next round draws anew
+                    # (the kept motions are re-gated over all points at the end).
+                    used_s[src[fit.correspondences[:, 0]]] = True
+                    used_t[tgt[fit.correspondences[:, 1]]] = True
+                record["levels_next"] = [float(x) for x in round_levels]
+                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
+                            "smallest": need_min, "points": (int(src.size), int(tgt.size)), "rejected": record})
+                rejected += 1
+                if rejected > N_JUDGED or fit.support == 0:
+                    reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
+                    break
+                continue
             # One sensor: the next rounds search at the noise measured so far
             # (pooled over the motions found, weighted by support as in
             # pool_noise), not the whole schedule.

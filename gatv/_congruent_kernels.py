@@ -18,7 +18,7 @@ from ._fit_kernels import triangle_pose, umeyama3
 # Defaults of the optional array arguments (no visiting order, no occupancy grid).
 _NO_VISIT = np.zeros(0, np.int64)
 _NO_OCC = np.zeros(0, np.uint8)
-_ALL_HALF = np.zeros(0, np.uint8)
+_HALF_BOX = np.zeros(0)
 _ORIGIN = np.zeros(3)
 _DIMS = np.ones(3, np.int64)
 
@@ -457,32 +457,36 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
 
 @njit(cache=True)
 def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated, max_matches,
-                   src_normals, tgt_normals, feature_tol, use_normals, half_first=True):
+                   src_normals, tgt_normals, feature_tol, use_normals, first_box=0.5):
     """The ``max_matches`` tightest of at most ``max_enumerated`` congruent matches of ``(a, b, c)``.
 
     Returns ``(k, l, m, n_listed, n_probes)`` (``n_probes``: the listing's
     cost, see :func:`_congruent_matches`).  When more are listed than
-    scored (and ``half_first``), the matches within ``eps / 2`` of every
-    side are listed first: if the last of their ``max_matches`` tightest
-    has a discrepancy (sum of squared side errors) of at most ``(eps /
-    2)²``, no match outside that half box can be tighter, and these are
-    the tightest of all for about a quarter of the listing work (the
-    listing's inner loop grows like ``eps²``); otherwise the full ``eps``
-    box is listed.  ``half_first=False`` skips the half box, for a triple
-    whose full box holds too few matches for it to answer.
+    scored, the matches within ``e = first_box eps`` of every side are
+    listed first (``0 < first_box < 1``): if the last of their
+    ``max_matches`` tightest has a discrepancy (sum of squared side
+    errors) of at most ``e²``, no match outside that box can be tighter,
+    and these are the tightest of all for about ``first_box²`` of the
+    listing work (the listing's inner loop grows like ``eps²``); otherwise
+    the box doubles, up to the full ``eps``.  ``first_box = 0`` lists the
+    full box at once, for a triple whose full box holds too few matches
+    for a smaller one to answer.
     """
     listed = 0
     probes = 0
-    if max_enumerated > max_matches and half_first:
+    frac = first_box
+    while max_enumerated > max_matches and 0.0 < frac < 1.0:
+        e = frac * eps
         ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
-                                                  0.5 * eps, max_enumerated, src_normals, tgt_normals, feature_tol,
+                                                  e, max_enumerated, src_normals, tgt_normals, feature_tol,
                                                   use_normals)
         listed += ks.shape[0]
         probes += pr
         if ks.shape[0] > max_matches:
             pick = np.argsort(disc, kind="mergesort")[:max_matches]
-            if ks.shape[0] >= max_enumerated or disc[pick[-1]] <= 0.25 * eps * eps:
+            if ks.shape[0] >= max_enumerated or disc[pick[-1]] <= e * e:
                 return ks[pick], ls[pick], ms[pick], listed, probes
+        frac *= 2.0
     ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
                                               max(max_enumerated, max_matches), src_normals, tgt_normals,
                                               feature_tol, use_normals)
@@ -524,7 +528,7 @@ def triple_hypotheses(
     occ_origin=_ORIGIN,
     occ_cell=1.0,
     occ_dims=_DIMS,
-    half_first=_ALL_HALF,
+    first_box=_HALF_BOX,
 ):
     """Best congruent match of each source triple, scored by inlier count.
 
@@ -552,8 +556,8 @@ def triple_hypotheses(
     triple (``n_matches`` counts the scored matches, ``n_listed`` the listed
     ones, ``n_visited`` the source points visited in scoring them,
     ``n_probes`` the listing's binary searches and candidates); ``score =
-    -1`` when no congruent triple exists.  ``half_first`` (one flag a
-    triple; empty: all set) says which triples list the half box first
+    -1`` when no congruent triple exists.  ``first_box`` (one a triple;
+    empty: 0.5 for all) is the share of ``eps`` each triple lists first
     (:func:`scored_matches`).
     """
     nt = triples.shape[0]
@@ -568,10 +572,10 @@ def triple_hypotheses(
     n_enum = max(max_enumerated, max_matches)
     for q in prange(nt):
         a, b, c = triples[q, 0], triples[q, 1], triples[q, 2]
-        half = half_first.shape[0] != nt or half_first[q] != 0
+        box = first_box[q] if first_box.shape[0] == nt else 0.5
         ks, ls, ms, listed, probes = scored_matches(source, target, a, b, c, offsets[q], plen, pi, pj, ndist,
                                                     nidx, eps, n_enum, max_matches, src_normals, tgt_normals,
-                                                    feature_tol, use_normals, half)
+                                                    feature_tol, use_normals, box)
         src = np.empty((3, 3))
         dst = np.empty((3, 3))
         gather_rows(src, source, a, b, c)

@@ -33,6 +33,7 @@ from .models.base import homogeneous
 from .stats import ball_measure, chance_support, samples_needed
 
 __all__ = [
+    "FIRST_BOX_MATCHES",
     "HALF_BOX_FROM",
     "MISS_RATE",
     "TargetIndex",
@@ -41,6 +42,7 @@ __all__ = [
     "accept_level",
     "chance_support",
     "expected_matches",
+    "first_boxes",
     "n_triples_needed",
     "predicted_matches",
     "rarest_side_first",
@@ -221,12 +223,32 @@ def predicted_matches(source: np.ndarray, triples: np.ndarray, index: TargetInde
 
 
 #: Matches a triple is predicted to have (:func:`predicted_matches`), in
-#: units of the matches scored, from which the listing tries the half box
-#: first (:func:`gatv._congruent_kernels.scored_matches`): the half box
-#: holds ~1/8 of the matches and answers only when the tightest scored ones
-#: all lie within its inscribed ball (~half of it), about 16 times the
-#: scored in the full box; a quarter of that allows for the prediction's error.
+#: units of the matches scored, from which the listing tries a smaller box
+#: first (:func:`first_boxes`).
 HALF_BOX_FROM = 4.0
+#: Matches, in units of the matches scored, that the first box is sized to
+#: hold: the scored tightest must all lie within its inscribed ball (~half
+#: of it), and the prediction is good to a factor ~2.5.
+FIRST_BOX_MATCHES = 4.0
+
+
+def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
+    """Share of ``eps`` of the box each triple's listing tries first (0: the full box at once).
+
+    The tightest ``max_matches`` of a triple's matches lie in a box ``f``
+    times as wide as the listing's that holds about ``f³`` of them: a
+    triple predicted to have ``P`` matches lists the box holding
+    :data:`FIRST_BOX_MATCHES` × ``max_matches`` (``f = (that / P)^(1/3)``,
+    at most 1/2), at about ``f²`` of the listing's work, and doubles it
+    until it answers (:func:`gatv._congruent_kernels.scored_matches`).
+    Below :data:`HALF_BOX_FROM` × ``max_matches`` no smaller box answers
+    and the full one is listed at once.
+    """
+    p = np.asarray(predicted, dtype=np.float64)
+    box = np.minimum(0.5, np.cbrt(FIRST_BOX_MATCHES * max_matches / np.maximum(p, 1e-300)))
+    return np.where(p >= HALF_BOX_FROM * max_matches, box, 0.0)
+
+
 
 
 def _side_widths(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
@@ -367,7 +389,7 @@ def trial_motions(
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
         tri = rarest_side_first(source, tri, index.plen, eps)
-        half_first = (predicted_matches(source, tri, index, eps) >= HALF_BOX_FROM * max_matches).astype(np.uint8)
+        first_box = first_boxes(predicted_matches(source, tri, index, eps), max_matches)
         offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
         # A fresh visiting order a batch: the sequential test's misses of one
         # true motion are then independent between batches.
@@ -376,7 +398,7 @@ def trial_motions(
             source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
             float(eps), index.start, index.order, index.origin, index.cell, index.dims,
             index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
-            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims, half_first,
+            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims, first_box,
         )
         n_congruent += int(nm.sum())
         n_listed += int(nl.sum())

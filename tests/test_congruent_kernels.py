@@ -230,10 +230,10 @@ def _congruent_by_discrepancy(source, target, tri, eps):
 
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), eps=st.sampled_from([0.3, 0.6, 1.0]), keep=st.sampled_from([2, 8, 20]),
-       half_first=st.booleans())
-def test_scored_matches_are_the_tightest_of_all(seed, eps, keep, half_first):
+       first_box=st.sampled_from([0.0, 0.1, 0.25, 0.5]))
+def test_scored_matches_are_the_tightest_of_all(seed, eps, keep, first_box):
     """With more matches listed than scored, the scored ones are the tightest of all, whichever pass
-    (the half box first or not)."""
+    (whichever box first)."""
     rng = np.random.default_rng(seed)
     x = rng.uniform(-3, 3, (10, 3))
     y = rng.uniform(-3, 3, (14, 3))
@@ -241,7 +241,7 @@ def test_scored_matches_are_the_tightest_of_all(seed, eps, keep, half_first):
     a, b, c = sample_triples(10, 1, rng)[0]
     ks, ls, ms, listed, _ = k.scored_matches(x, y, a, b, c, int(rng.integers(0, 1 << 30)), index.plen,
                                              index.pi, index.pj, index.ndist, index.nidx, eps, 10**5, keep,
-                                             np.zeros((0, 3)), np.zeros((0, 3)), 0.15, False, half_first)
+                                             np.zeros((0, 3)), np.zeros((0, 3)), 0.15, False, first_box)
     want = _congruent_by_discrepancy(x, y, (a, b, c), eps)[:keep]
     assert sorted(zip(ks.tolist(), ls.tolist(), ms.tolist())) == sorted(want)
     assert listed >= len(want)
@@ -314,3 +314,20 @@ def test_predicted_matches_follow_the_count(seed, eps):
                   for a, b, c in tri)
     predicted = predicted_matches(x, tri, index, eps).sum()
     assert 0.5 < counted / predicted < 2.0
+
+
+@given(predicted=st.lists(st.floats(0.0, 1e9), min_size=1, max_size=20), max_matches=st.sampled_from([64, 512]))
+def test_first_boxes_hold_the_scored_matches(predicted, max_matches):
+    """The first box: none below HALF_BOX_FROM x the scored matches, else at most half the listing's,
+    sized to hold FIRST_BOX_MATCHES x them where smaller, and never larger for a triple with more."""
+    from gatv.congruent import FIRST_BOX_MATCHES, HALF_BOX_FROM, first_boxes
+
+    p = np.asarray(predicted)
+    box = first_boxes(p, max_matches)
+    small = p < HALF_BOX_FROM * max_matches
+    assert np.all(box[small] == 0.0)
+    assert np.all((box[~small] > 0.0) & (box[~small] <= 0.5))
+    sized = ~small & (box < 0.5)
+    assert np.allclose(p[sized] * box[sized] ** 3, FIRST_BOX_MATCHES * max_matches)
+    order = np.argsort(p[~small])
+    assert np.all(np.diff(box[~small][order]) <= 1e-12)

@@ -249,8 +249,6 @@ def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
     return np.where(p >= HALF_BOX_FROM * max_matches, box, 0.0)
 
 
-
-
 def _side_widths(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
     """(M, 3) target pairs in the sorted lengths ``plen`` within ``eps`` of each side ``(0, 1), (0, 2), (1, 2)``."""
     width = np.empty((triples.shape[0], 3), np.int64)

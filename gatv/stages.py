@@ -675,12 +675,14 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     early), so the same seed gives the same result.  The ``keep`` best
     trials of a chunk that reach the density test's chance level
     (:func:`density_tests` with ``judged_wrong``; ``None``: family-wise
-    over every match) are judged by tensor voting (:func:`judge`); the
+    over every match) are judged by tensor voting (:func:`judge`), behind
+    the screen only those whose own polish beats the judge's level within
+    some gate up to theirs (:func:`beats_chance_at_some_level`); the
     first whose support reaches the chance level of the gate (family-wise
     over ``threshold_tests`` × ``judged_wrong`` judged trials; or
-    ``min_support``) is
-    refined (``polish``, :func:`refine`), kept when (behind the screen) its
-    refined pairs within its level's gate or a finer one's also beat
+    ``min_support``) is refined (``polish``, :func:`refine`), kept when
+    (behind the screen) its refined pairs within its level's gate or a
+    finer one's also beat
     chance family-wise over every match the budget scores
     (:func:`beats_chance_at_some_level`), and its tolerance grown while its
     support grows beyond chance (``grow``, :func:`grow_tolerance`).
@@ -803,9 +805,20 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             final = threshold
             if judged_wrong is not None and min_support is None:
                 final = max(threshold, problem.chance(g, threshold_tests * float(budget) * max_matches))
+            n_final = threshold_tests * float(budget) * max_matches
             for k, matrix in enumerate(trials.matrices):
                 if trials.support[k] < accept[level]:
                     break
+                # Behind the screen, before the judge: the trial polished by
+                # itself must beat the judge's own level within some gate up to
+                # this one.  Coarse gates let many wrong trials through the
+                # screen; polished, their pairs scatter over the gate and fail
+                # every finer one, at the cost of a few nearest-neighbour
+                # queries instead of a tensor-voting pass.
+                if final > threshold and not beats_chance_at_some_level(
+                        problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
+                        levels[:level + 1], threshold_tests * (judged_wrong or 1.0)):
+                    continue
                 judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
                 if judged is None or judged.fit.support < threshold:
                     continue
@@ -814,8 +827,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     fit = refine(problem, fit, g)
                 if final > threshold:
                     # At its own gate or a finer level's (a true motion's pairs stay tight).
-                    if not beats_chance_at_some_level(problem, fit, levels[:level + 1],
-                                                      threshold_tests * float(budget) * max_matches):
+                    if not beats_chance_at_some_level(problem, fit, levels[:level + 1], n_final):
                         continue
                 elif fit.support < final:
                     continue

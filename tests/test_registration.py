@@ -184,3 +184,29 @@ def test_final_level_keeps_a_noisy_true_motion_and_rejects_a_random_one(seed, an
     wrong[:3, :3] = Rotor.from_axis_angle((1.0, -2.0, 0.5), np.radians(angle)).as_matrix() @ trial.rotation
     polished = stages.refine(P, stages.Fit(wrong, trial.true_pairs[:3]), stages.gate(levels[-1]))
     assert not stages.beats_chance_at_some_level(P, polished, levels, n_tests)
+
+
+def test_only_trials_that_beat_chance_once_polished_reach_the_judge(monkeypatch):
+    """Behind the density screen the search judges (tensor voting) only trials whose own polish beats the
+    judge's level within some gate up to theirs; the noisy motion is still found (f = 0.5, 3% noise,
+    100 inliers, where coarse gates let wrong trials through the screen)."""
+    from gatv import stages
+
+    trial = table2_trial(0.5, n_inliers=100, noise=0.03, seed=2)
+    P = stages.prepare(trial.source, trial.target)
+    judged = []
+    real = stages.judge
+
+    def judge(problem, matrix, tolerance, **kw):
+        judged.append((matrix, tolerance))
+        return real(problem, matrix, tolerance, **kw)
+
+    monkeypatch.setattr(stages, "judge", judge)
+    m = register(trial.source, trial.target, seed=2)
+    assert m and rotation_error_deg(m.rotation, trial.rotation) < 2.0
+    levels = stages.tolerance_levels(P, None, stages.NOISY_SCHEDULE)
+    empty = np.empty((0, 2), np.int64)
+    for matrix, tol in judged:
+        upto = levels[: levels.index(tol) + 1]
+        polished = stages.refine(P, stages.Fit(matrix, empty), stages.gate(tol))
+        assert stages.beats_chance_at_some_level(P, polished, upto, stages.JUDGED_WRONG)

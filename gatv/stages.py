@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from math import erf
 
 import numpy as np
+from numba.core import event as numba_event
 from scipy.spatial import cKDTree
 
 from .candidates import median_spacing, one_to_one
@@ -607,6 +608,11 @@ def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: floa
     return False
 
 
+def _duration(listener: numba_event.TimingListener) -> float:
+    """Seconds a numba event listener has measured so far (0 before the first event)."""
+    return float(listener.duration) if listener.done else 0.0
+
+
 def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -> float:
     """The ``n_tests`` of the density test's chance level when ``n_matches`` matches are scored.
 
@@ -697,7 +703,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     noise; ``trial_options`` go to the model's ``trial_motions``;
     ``deadline`` (a :func:`time.perf_counter` reading) stops the search
     between chunks once passed, a wall-clock bound for callers that promise
-    one (unlike the work bound, it depends on the machine's speed).
+    one (unlike the work bound, it depends on the machine's speed); the
+    time numba spends compiling kernels on a first call moves it on.
 
     A sample's congruent matches are listed within ``listing`` standard
     deviations of a side's length error at the level's tolerance ``τ``
@@ -720,12 +727,16 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     report = progress if progress is not None else (lambda fraction, message="": None)
     n, n2 = problem.source.shape[0], problem.target.shape[0]
     # One index of the target's samples; one scoring grid per tolerance.
-    base = model.index(problem.target, gate(levels[0]), memory_budget=memory_budget)
-    indexes = []
-    for tol in levels:
-        idx = copy.copy(base)
-        idx.set_radius(gate(tol))
-        indexes.append(idx)
+    # A first call compiles the kernels (a minute on a loaded machine): that
+    # time is not the search's, and the deadline moves by it.
+    compiling = numba_event.TimingListener()
+    with numba_event.install_listener("numba:compile", compiling):
+        base = model.index(problem.target, gate(levels[0]), memory_budget=memory_budget)
+        indexes = []
+        for tol in levels:
+            idx = copy.copy(base)
+            idx.set_radius(gate(tol))
+            indexes.append(idx)
     accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
               for idx in indexes]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
@@ -743,99 +754,103 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     options = dict(trial_options or {})
     listed_total = [0] * len(levels)
     work = 0.0
-    while any(d < c for d, c in zip(done, caps)):
-        measured = [p for p, rec in zip(per_triple, records) if rec["triples"] > 0]
-        share = max(SEARCH_SHARE, MIN_CHUNK * max(measured, default=0.0))
-        for level, tol in enumerate(levels):
-            if done[level] >= caps[level]:
-                continue
-            if max_work is not None and work >= max_work:
-                if tried is not None:
-                    tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
-                return None
-            if deadline is not None and time.perf_counter() >= deadline:
-                if tried is not None:
-                    tried.append({"stopped": "time limit", "work": work})
-                return None
-            m = int(min(caps[level] - done[level], max(2, min(4096, share / per_triple[level]))))
-            done[level] += m
-            rec = records[level]
-            report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")
-            g = gate(tol)
-            # Side-length tolerance: a side's length error is the noise of four
-            # points projected on it (standard deviation 2 tol); ``listing`` of those.
-            eps = 2.0 * listing * tol
-            # The model's options for many matches a sample (``trial_options``)
-            # only where the samples so far had many: they cost more than they
-            # save on exact data.
-            busy = rec["triples"] > 0 and listed_total[level] >= OPTIONS_FROM * rec["triples"]
-            trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
-                                         keep=keep, max_matches=max_matches, accept=accept[level],
-                                         **(options if busy else {}))
-            rec["triples"] += trials.n_triples
-            rec["congruent"] += trials.n_congruent
-            cost = triple_cost(n2) if triple_cost is not None else 0.0
-            # A scored match costs its pose plus its visited source points (all
-            # of them unless the model counts fewer, see its sequential test).
-            visited = getattr(trials, "n_visited", -1)
-            rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
-            per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
-            listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
-            listed_total[level] += listed
-            rec["listed"] += listed
-            probes = getattr(trials, "n_probes", 0)
-            per_triple[level] += (LIST_COST * listed + PROBE_COST * probes) / max(trials.n_triples, 1)
-            chunk = ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
-                     + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed
-                     + PROBE_COST * probes)
-            rec["work"] += chunk
-            work += chunk
-            if len(trials):
-                rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
-            if not len(trials) or trials.support[0] < accept[level]:
-                continue
-            # Family-wise over the judge's calls too: up to judged_wrong wrong ones.
-            threshold = (min_support if min_support is not None
-                         else problem.chance(g, threshold_tests * (judged_wrong or 1.0)))
-            # But the judge's count of a trial is not independent of the screen's
-            # (same points, and the judge refits): a wrong trial that passed a
-            # lenient screen is already near its level.  So behind a screen the
-            # polished support must also beat chance family-wise over every
-            # match scored, the level the density test has without the screen.
-            final = threshold
-            if judged_wrong is not None and min_support is None:
-                final = max(threshold, problem.chance(g, threshold_tests * float(budget) * max_matches))
-            n_final = threshold_tests * float(budget) * max_matches
-            for k, matrix in enumerate(trials.matrices):
-                if trials.support[k] < accept[level]:
-                    break
-                # Behind the screen, before the judge: the trial polished by
-                # itself must beat the judge's own level within some gate up to
-                # this one.  Coarse gates let many wrong trials through the
-                # screen; polished, their pairs scatter over the gate and fail
-                # every finer one, at the cost of a few nearest-neighbour
-                # queries instead of a tensor-voting pass.
-                if final > threshold and not beats_chance_at_some_level(
-                        problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
-                        levels[:level + 1], threshold_tests * (judged_wrong or 1.0)):
+    numba_event.register("numba:compile", compiling)
+    try:
+        while any(d < c for d, c in zip(done, caps)):
+            measured = [p for p, rec in zip(per_triple, records) if rec["triples"] > 0]
+            share = max(SEARCH_SHARE, MIN_CHUNK * max(measured, default=0.0))
+            for level, tol in enumerate(levels):
+                if done[level] >= caps[level]:
                     continue
-                judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
-                if judged is None or judged.fit.support < threshold:
+                if max_work is not None and work >= max_work:
+                    if tried is not None:
+                        tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
+                    return None
+                if deadline is not None and time.perf_counter() - _duration(compiling) >= deadline:
+                    if tried is not None:
+                        tried.append({"stopped": "time limit", "work": work})
+                    return None
+                m = int(min(caps[level] - done[level], max(2, min(4096, share / per_triple[level]))))
+                done[level] += m
+                rec = records[level]
+                report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")
+                g = gate(tol)
+                # Side-length tolerance: a side's length error is the noise of four
+                # points projected on it (standard deviation 2 tol); ``listing`` of those.
+                eps = 2.0 * listing * tol
+                # The model's options for many matches a sample (``trial_options``)
+                # only where the samples so far had many: they cost more than they
+                # save on exact data.
+                busy = rec["triples"] > 0 and listed_total[level] >= OPTIONS_FROM * rec["triples"]
+                trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
+                                             keep=keep, max_matches=max_matches, accept=accept[level],
+                                             **(options if busy else {}))
+                rec["triples"] += trials.n_triples
+                rec["congruent"] += trials.n_congruent
+                cost = triple_cost(n2) if triple_cost is not None else 0.0
+                # A scored match costs its pose plus its visited source points (all
+                # of them unless the model counts fewer, see its sequential test).
+                visited = getattr(trials, "n_visited", -1)
+                rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
+                per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
+                listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
+                listed_total[level] += listed
+                rec["listed"] += listed
+                probes = getattr(trials, "n_probes", 0)
+                per_triple[level] += (LIST_COST * listed + PROBE_COST * probes) / max(trials.n_triples, 1)
+                chunk = ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
+                         + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed
+                         + PROBE_COST * probes)
+                rec["work"] += chunk
+                work += chunk
+                if len(trials):
+                    rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
+                if not len(trials) or trials.support[0] < accept[level]:
                     continue
-                fit = judged.fit
-                if polish:
-                    fit = refine(problem, fit, g)
-                if final > threshold:
-                    # At its own gate or a finer level's (a true motion's pairs stay tight).
-                    if not beats_chance_at_some_level(problem, fit, levels[:level + 1], n_final):
+                # Family-wise over the judge's calls too: up to judged_wrong wrong ones.
+                threshold = (min_support if min_support is not None
+                             else problem.chance(g, threshold_tests * (judged_wrong or 1.0)))
+                # But the judge's count of a trial is not independent of the screen's
+                # (same points, and the judge refits): a wrong trial that passed a
+                # lenient screen is already near its level.  So behind a screen the
+                # polished support must also beat chance family-wise over every
+                # match scored, the level the density test has without the screen.
+                final = threshold
+                if judged_wrong is not None and min_support is None:
+                    final = max(threshold, problem.chance(g, threshold_tests * float(budget) * max_matches))
+                n_final = threshold_tests * float(budget) * max_matches
+                for k, matrix in enumerate(trials.matrices):
+                    if trials.support[k] < accept[level]:
+                        break
+                    # Behind the screen, before the judge: the trial polished by
+                    # itself must beat the judge's own level within some gate up to
+                    # this one.  Coarse gates let many wrong trials through the
+                    # screen; polished, their pairs scatter over the gate and fail
+                    # every finer one, at the cost of a few nearest-neighbour
+                    # queries instead of a tensor-voting pass.
+                    if final > threshold and not beats_chance_at_some_level(
+                            problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
+                            levels[:level + 1], threshold_tests * (judged_wrong or 1.0)):
                         continue
-                elif fit.support < final:
-                    continue
-                if grow:
-                    fit, grown = grow_tolerance(problem, fit, levels, level)
-                    tol = levels[grown]
-                return Found(fit, tol, judged, int(trials.support[k]), int(final))
-    return None
+                    judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
+                    if judged is None or judged.fit.support < threshold:
+                        continue
+                    fit = judged.fit
+                    if polish:
+                        fit = refine(problem, fit, g)
+                    if final > threshold:
+                        # At its own gate or a finer level's (a true motion's pairs stay tight).
+                        if not beats_chance_at_some_level(problem, fit, levels[:level + 1], n_final):
+                            continue
+                    elif fit.support < final:
+                        continue
+                    if grow:
+                        fit, grown = grow_tolerance(problem, fit, levels, level)
+                        tol = levels[grown]
+                    return Found(fit, tol, judged, int(trials.support[k]), int(final))
+        return None
+    finally:
+        numba_event.unregister("numba:compile", compiling)
 
 
 # ------------------------------------------------------------------- result

@@ -210,3 +210,30 @@ def test_only_trials_that_beat_chance_once_polished_reach_the_judge(monkeypatch)
         upto = levels[: levels.index(tol) + 1]
         polished = stages.refine(P, stages.Fit(matrix, empty), stages.gate(tol))
         assert stages.beats_chance_at_some_level(P, polished, upto, stages.JUDGED_WRONG)
+
+
+def test_time_limit_leaves_out_numba_compilation(monkeypatch):
+    """A first call compiles the kernels, a minute on a loaded machine: that time must not use up
+    ``time_limit``.  A compilation of 1.5 s (a numba compile event around a sleep, at the first trial
+    chunk) under a 1 s limit still gives the exact motion."""
+    import time as _time
+
+    from numba.core import event as numba_event
+
+    from gatv.models import rigid as rigid_model
+
+    src, tgt, R, t, _ = _scene(120.0)
+    real = rigid_model.Rigid.trial_motions
+    calls = []
+
+    def trial_motions(self, source, index, **options):
+        if not calls:
+            with numba_event.trigger_event("numba:compile"):
+                _time.sleep(1.5)
+        calls.append(1)
+        return real(self, source, index, **options)
+
+    monkeypatch.setattr(rigid_model.Rigid, "trial_motions", trial_motions)
+    m = register(src, tgt, time_limit=1.0)
+    assert m, m.info.get("reason")
+    assert np.allclose(m.rotation, R, atol=1e-8)

@@ -348,7 +348,9 @@ def register(
         Seconds of wall-clock time the exact search may take; past it the
         call returns a falsy result whose ``info["reason"]`` says so.
         Unlike ``max_work`` it depends on the machine's speed and load, so
-        a run stopped by it may not repeat exactly.  ``None``: no limit.
+        a run stopped by it may not repeat exactly.  The first call of a
+        process may also compile the kernels (numba, up to a minute); that
+        time is not counted.  ``None``: no limit.
     scan_options : dict, optional
         Options of the scans pipeline only (``n_points``, ``voxel``,
         ``min_overlap``, ``feature_tol``, ``clutter``; see

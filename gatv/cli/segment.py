@@ -100,31 +100,15 @@ def render_segmentation(source, target, segmentation, path) -> None:
 def write_labelled(path, points, labels) -> None:
     """Write ``points`` with an int ``motion`` scalar per point (``labels``) to ``path``.
 
-    ``.ply``: binary little-endian PLY, ``float x, y, z`` and ``int motion``
-    per vertex (what PyVista, Open3D's tensor API, CloudCompare and
-    MeshLab read as a scalar field).  ``.vtk``/``.vtp``: PyVista PolyData
-    with a ``motion`` point array.  ``gatv.io.write_points`` writes
-    coordinates only.
+    :func:`gatv.io.write_points` with ``scalars={"motion": labels}``:
+    ``.ply`` a binary little-endian PLY with ``float x, y, z`` and ``int
+    motion`` per vertex (what PyVista, Open3D's tensor API, CloudCompare
+    and MeshLab read as a scalar field), ``.vtk``/``.vtp`` a ``motion``
+    point array.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    lab = np.asarray(labels, dtype=np.int32)
-    p = Path(path)
-    if p.suffix.lower() == ".ply":
-        rows = np.empty(pts.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("motion", "<i4")])
-        rows["x"], rows["y"], rows["z"], rows["motion"] = pts[:, 0], pts[:, 1], pts[:, 2], lab
-        header = ("ply\nformat binary_little_endian 1.0\ncomment gatv segment: motion = index of the "
-                  "point's motion, -1 unexplained\n"
-                  f"element vertex {pts.shape[0]}\nproperty float x\nproperty float y\nproperty float z\n"
-                  "property int motion\nend_header\n")
-        with open(p, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(rows.tobytes())
-        return
-    import pyvista as pv
+    from ..io import write_points
 
-    cloud = pv.PolyData(pts)
-    cloud.point_data["motion"] = lab
-    cloud.save(str(p))
+    write_points(path, np.asarray(points, dtype=np.float64), scalars={"motion": np.asarray(labels, dtype=np.int32)})
 
 
 def _check_labelled(args, inputs) -> None:

@@ -792,7 +792,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 # of them unless the model counts fewer, see its sequential test).
                 visited = getattr(trials, "n_visited", -1)
                 rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
-                per_triple[level] = (1.0 + cost) + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1)
+                per_triple[level] = ((1.0 + cost)
+                                     + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1))
                 listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
                 listed_total[level] += listed
                 rec["listed"] += listed

@@ -157,6 +157,24 @@ def _noisy_schedule():
     return [r for r in stages.NOISY_SCHEDULE if r >= NOISY_FROM]  # segment's, the probe finding no exact motion
 
 
+def _first_search_returns(monkeypatch, first):
+    """Make ``stages.search`` return ``first(problem, levels)`` on its first call and search for real after.
+
+    Returns the list of each call's levels.
+    """
+    real = stages.search
+    calls = []
+
+    def search(problem, levels, **kw):
+        calls.append(list(levels))
+        if len(calls) > 1:
+            return real(problem, levels, **kw)
+        return first(problem, levels)
+
+    monkeypatch.setattr(stages, "search", search)
+    return calls
+
+
 def test_noisy_peel_rejects_a_wrong_motion_at_its_own_noise_and_searches_the_finer_levels(monkeypatch):
     """A first round that returns a wrong motion at a coarse level: at its measured noise it does not beat chance.
 
@@ -165,19 +183,14 @@ def test_noisy_peel_rejects_a_wrong_motion_at_its_own_noise_and_searches_the_fin
     """
     scene = _noisy_two_motions(5, 0.1)
     P = stages.prepare(scene.source, scene.target)
-    real = stages.search
-    calls = []
 
-    def search(problem, levels, **kw):
-        calls.append(list(levels))
-        if len(calls) > 1:
-            return real(problem, levels, **kw)
+    def wrong_motion(problem, levels):
         M = np.eye(4)
         M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()  # no true motion rotates so
         wrong = stages.regate(problem, stages.Fit(M, np.empty((0, 2), np.int64)), stages.gate(levels[-2]))
         return stages.Found(wrong, levels[-2], stages.Judged(wrong, wrong.support, 1.0), wrong.support, 3)
 
-    monkeypatch.setattr(stages, "search", search)
+    calls = _first_search_returns(monkeypatch, wrong_motion)
     schedule = _noisy_schedule()
     seg = peel(P, seed=0, noisy=True, schedule=schedule)
     first = seg.info["rounds"][0]
@@ -207,17 +220,12 @@ def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled
     tgt[free_t] = src[free_s] @ M[:3, :3].T + np.random.default_rng(5).normal(0.0, 0.025, (5, 3))
     planted = np.column_stack([free_s, free_t]).astype(np.int64)
     P = stages.prepare(src, tgt)
-    real = stages.search
-    calls = []
 
-    def search(problem, levels, **kw):
-        calls.append(len(levels))
-        if len(calls) > 1:
-            return real(problem, levels, **kw)
+    def planted_motion(problem, levels):
         fit = stages.Fit(M, planted)
         return stages.Found(fit, levels[0], stages.Judged(fit, 5, 1.0), 5, 3)
 
-    monkeypatch.setattr(stages, "search", search)
+    _first_search_returns(monkeypatch, planted_motion)
     seg = peel(P, seed=0, noisy=True, schedule=_noisy_schedule())
     assert not any("rejected" in r for r in seg.info["rounds"])  # it passed at its own noise
     assert [d["round"] for d in seg.info["dropped"]] == [0]

@@ -737,25 +737,27 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             idx = copy.copy(base)
             idx.set_radius(gate(tol))
             indexes.append(idx)
-    accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
-              for idx in indexes]
-    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
-    # Each side of a true sample stays within the listing's tolerance with
-    # probability erf(listing / sqrt(2)): one factor a point of the sample.
-    side_kept = float(erf(listing / np.sqrt(2.0)))
-    caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
-    records = [{"tolerance": tol, "triples": 0, "congruent": 0, "listed": 0, "visited": 0, "work": 0.0,
-                "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
-    if tried is not None:
-        tried.extend(records)
-    triple_cost = getattr(model, "triple_cost", None)
-    done = [0] * len(levels)
-    per_triple = [SEARCH_SHARE / FIRST_CHUNK] * len(levels)  # first chunk: a few samples, then measured
-    options = dict(trial_options or {})
-    listed_total = [0] * len(levels)
-    work = 0.0
-    numba_event.register("numba:compile", compiling)
-    try:
+        accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
+                  for idx in indexes]
+        k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+        # Each side of a true sample stays within the listing's tolerance with
+        # probability erf(listing / sqrt(2)): one factor a point of the sample.
+        side_kept = float(erf(listing / np.sqrt(2.0)))
+        caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
+        records = [{"tolerance": tol, "triples": 0, "congruent": 0, "listed": 0, "visited": 0, "work": 0.0,
+                    "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
+        if tried is not None:
+            tried.extend(records)
+        triple_cost = getattr(model, "triple_cost", None)
+        done = [0] * len(levels)
+        per_triple = [SEARCH_SHARE / FIRST_CHUNK] * len(levels)  # first chunk: a few samples, then measured
+        options = dict(trial_options or {})
+        listed_total = [0] * len(levels)
+        work = 0.0
+        # Tests the judge's level counts (its calls, up to ``judged_wrong`` wrong
+        # ones), and the final level's (every match the budget scores).
+        n_judge_tests = threshold_tests * (judged_wrong or 1.0)
+        n_final = threshold_tests * float(budget) * max_matches
         while any(d < c for d, c in zip(done, caps)):
             measured = [p for p, rec in zip(per_triple, records) if rec["triples"] > 0]
             share = max(SEARCH_SHARE, MIN_CHUNK * max(measured, default=0.0))
@@ -809,8 +811,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 if not len(trials) or trials.support[0] < accept[level]:
                     continue
                 # Family-wise over the judge's calls too: up to judged_wrong wrong ones.
-                threshold = (min_support if min_support is not None
-                             else problem.chance(g, threshold_tests * (judged_wrong or 1.0)))
+                threshold = min_support if min_support is not None else problem.chance(g, n_judge_tests)
                 # But the judge's count of a trial is not independent of the screen's
                 # (same points, and the judge refits): a wrong trial that passed a
                 # lenient screen is already near its level.  So behind a screen the
@@ -818,8 +819,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 # match scored, the level the density test has without the screen.
                 final = threshold
                 if judged_wrong is not None and min_support is None:
-                    final = max(threshold, problem.chance(g, threshold_tests * float(budget) * max_matches))
-                n_final = threshold_tests * float(budget) * max_matches
+                    final = max(threshold, problem.chance(g, n_final))
                 for k, matrix in enumerate(trials.matrices):
                     if trials.support[k] < accept[level]:
                         break
@@ -831,7 +831,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     # queries instead of a tensor-voting pass.
                     if final > threshold and not beats_chance_at_some_level(
                             problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
-                            levels[:level + 1], threshold_tests * (judged_wrong or 1.0)):
+                            levels[:level + 1], n_judge_tests):
                         continue
                     judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
                     if judged is None or judged.fit.support < threshold:
@@ -850,8 +850,6 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         tol = levels[grown]
                     return Found(fit, tol, judged, int(trials.support[k]), int(final))
         return None
-    finally:
-        numba_event.unregister("numba:compile", compiling)
 
 
 # ------------------------------------------------------------------- result

@@ -162,28 +162,46 @@ def test_a_mesh_among_outliers_gives_its_motion_not_a_partial_self_match(seed):
     assert correspondence_stats(m.correspondences, trial.true_pairs) == (1.0, 1.0)
 
 
-@settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 10**6), angle=st.floats(20.0, 180.0))
-def test_final_level_keeps_a_noisy_true_motion_and_rejects_a_random_one(seed, angle):
-    """``stages.beats_chance_at_some_level``: a true motion polished at a gate many noise deviations
-    wide beats chance within a finer level's gate (its pairs stay tight, chance falls as the gate
-    cubed), and a random motion polished the same way beats it at none of the levels."""
+def _polished_at_the_final_level(seed, rotation_error=None):
+    """A Table-2 trial (f = 0.9, 1% noise), the noisy schedule up to the level where register's
+    searches find its motion, and the true motion (or one ``rotation_error`` off it) polished at that
+    level's gate from three true pairs."""
     from gatv import stages
 
     trial = table2_trial(0.9, noise=0.01, seed=seed)
     P = stages.prepare(trial.source, trial.target)
-    # The noisy schedule up to the level where register's searches find these motions.
     levels = stages.tolerance_levels(P, None, stages.NOISY_SCHEDULE)[:5]
-    n_tests = 5e7
-    true = np.eye(4)
-    true[:3, :3], true[:3, 3] = trial.rotation, trial.translation
-    fit = stages.refine(P, stages.Fit(true, trial.true_pairs[:3]), stages.gate(levels[-1]))
-    assert stages.beats_chance_at_some_level(P, fit, levels, n_tests)
-    # A random motion of the same pose size, polished at the same gate.
-    wrong = true.copy()
-    wrong[:3, :3] = Rotor.from_axis_angle((1.0, -2.0, 0.5), np.radians(angle)).as_matrix() @ trial.rotation
-    polished = stages.refine(P, stages.Fit(wrong, trial.true_pairs[:3]), stages.gate(levels[-1]))
-    assert not stages.beats_chance_at_some_level(P, polished, levels, n_tests)
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = trial.rotation, trial.translation
+    if rotation_error is not None:
+        matrix[:3, :3] = rotation_error @ trial.rotation
+    fit = stages.refine(P, stages.Fit(matrix, trial.true_pairs[:3]), stages.gate(levels[-1]))
+    return P, fit, levels
+
+
+def test_final_level_keeps_noisy_true_motions():
+    """``stages.beats_chance_at_some_level``: a true motion polished at a gate many noise deviations
+    wide beats chance within a finer level's gate (its pairs stay tight, chance falls as the gate
+    cubed).  Not every draw: the levels are 2.5 apart and the noise can fall between them (11 of
+    5,000 seeds miss, see docs/design-notes.md), so fixed seeds, all of which must pass."""
+    from gatv import stages
+
+    for seed in range(24):
+        P, fit, levels = _polished_at_the_final_level(seed)
+        assert stages.beats_chance_at_some_level(P, fit, levels, 5e7), seed
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10**6), angle=st.floats(20.0, 180.0),
+       axis=st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(lambda a: np.linalg.norm(a) > 0.1))
+def test_final_level_rejects_a_wrong_motion(seed, angle, axis):
+    """A wrong motion of the same pose size, polished the same way as a true one, beats chance at none
+    of the levels: its pairs scatter over the wide gate and thin out as the gate cubed."""
+    from gatv import stages
+
+    wrong = Rotor.from_axis_angle(axis, np.radians(angle)).as_matrix()
+    P, polished, levels = _polished_at_the_final_level(seed, wrong)
+    assert not stages.beats_chance_at_some_level(P, polished, levels, 5e7)
 
 
 def test_only_trials_that_beat_chance_once_polished_reach_the_judge(monkeypatch):

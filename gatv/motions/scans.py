@@ -11,6 +11,9 @@ found"):
 1. **The identity first.** A static part of the scene (background, a
    table) is a motion like any other; it is tried explicitly, since a
    search draws its trials from the moving parts as readily as from it.
+   Its points then join the parts' connectivity only: explained, they are
+   neither searched with an object resting on them nor counted by a later
+   motion or by the chance level (a floor slides on itself).
 2. **Peel.** The surface registration of ``register(pipeline="scans")``
    (:func:`register_part`) on the unexplained points, with each scan's
    surface points and normals voted once (:func:`scan_surfaces`); its
@@ -427,15 +430,20 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     free_t = np.ones(n2, bool)
     rounds, degenerate = [], []
 
-    def judge(R, t, kind, src, extra):
-        """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones."""
+    def judge(R, t, kind, src, extra, least=4):
+        """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones.
+
+        A plane is reported degenerate only when its support reaches ``least``,
+        the size a part needs to be searched at all (fewer thin points are a
+        sliver of some surface, not a plane of the scene).
+        """
         tgt = np.flatnonzero(free_t)
         tree = cKDTree(Y[tgt])
         inl = _support(X[src], tree, R, t, gate)
         support = int(np.count_nonzero(inl))
         searched = kind != "identity"
-        chance = chance_support(X[np.flatnonzero(free_s)], Y[tgt], gate, seed=seed + len(rounds), tree=tree,
-                                tangent=searched, polish=10 if searched else 0)
+        chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
+                                tree=tree, tangent=searched, polish=10 if searched else 0)
         flat = thickness(X[src[inl]]) if support >= 4 else 0.0
         pairs = _pairs(X, Y, R, t, gate, src, tgt, tree)
         pick = pairs if pairs.shape[0] <= NOISE_SAMPLE else pairs[np.random.default_rng(seed).choice(
@@ -443,9 +451,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         fit_noise = residual_noise(X, Y, R, t, pick, tree=tree_y)
         scan_noise = local_noise(X, pick[:, 0], tree=tree_x) if pick.shape[0] else float("nan")
         rec = dict(extra, kind=kind, support=support, chance=chance, thickness=flat, noise=fit_noise,
-                   scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s)), int(tgt.size)))
+                   scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s & ~static_s)), int(tgt.size)))
         rounds.append(rec)
-        if searched and support > 3 and flat <= PLANE_THICKNESS * scan_noise:
+        if searched and support >= least and flat <= PLANE_THICKNESS * scan_noise:
             verdict = "degenerate"
             degenerate.append({"points": support, "thickness": flat,
                                "centroid": X[src[inl]].mean(axis=0).tolist()})
@@ -472,8 +480,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                 free_s[mine] = False
                 free_t[tgt[np.isfinite(d)]] = False
             else:
-                # The static part stays in the pool: moving objects cross their old place and
-                # would be cut where they do; the parts it explains for the most part leave it.
+                # The static part stays in the pool, for the connectivity of the parts only: moving
+                # objects cross their old place and would be cut where they do.  It is explained,
+                # so it is no evidence for any later motion (neither searched nor counted).
                 static_s[mine] = True
         rec["verdict"] = verdict
         return verdict
@@ -490,11 +499,15 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             break
         open_s = np.flatnonzero(free_s & ~tried)
         tgt = np.flatnonzero(free_t)
-        # a part smaller than the chance level of the unexplained points cannot beat it
-        smallest = max(10, chance_support(X[np.flatnonzero(free_s)], Y[tgt], gate, seed=seed, n_draws=16,
-                                          polish=0) if tgt.size >= 4 else 10)
-        parts = [open_s[r] for r in regions(X[open_s], gate, min_points=smallest)] if open_s.size else []
-        parts = [p for p in parts if np.mean(static_s[p]) < 0.5]
+        # a part whose unexplained points are fewer than the chance level among them cannot beat it
+        smallest = max(10, chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed,
+                                          n_draws=16, polish=0) if tgt.size >= 4 else 10)
+        # Parts are connected over the pool (the static part included, so that an object resting
+        # on it or crossing its old place stays whole); each is searched on the points of it that
+        # no kept motion explains: an identity-explained floor under an object would otherwise be
+        # searched (and counted) with it, and its slides compete with the object's motion.
+        regs = [open_s[r] for r in regions(X[open_s], gate, min_points=smallest)] if open_s.size else []
+        parts = sorted((p for p in (r[~static_s[r]] for r in regs) if p.size >= smallest), key=len, reverse=True)
         if not parts or tgt.size < 10:
             reason = ("no unexplained part of the scene is left that a motion could explain beyond the "
                       "chance level" if tgt.size >= 10 else "too few target points left")
@@ -511,7 +524,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             tried[part] = True
             continue
         extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
-        if judge(*found, "search", part, extra) in ("chance", "noise"):
+        if judge(*found, "search", part, extra, least=smallest) in ("chance", "noise"):
             tried[part] = True
 
     # Labels: each point to the kept motion that brings it closest to the other scan.

@@ -26,15 +26,20 @@ found"):
    brings some of the scene's surfaces within the gate where they cross;
    :func:`chance_support` measures the largest support of such motions on
    the points still unexplained (the sampling and clutter found in the
-   data).  A motion is kept when its support exceeds it; otherwise the
-   peeling stops (``info["reason"]``), so leftovers of partial overlap and
-   clutter give nothing.
+   data), and on the searched part alone (a small or thin part fits some
+   target surface whole).  A motion is kept when its support exceeds both;
+   otherwise the peeling stops (``info["reason"]``), so leftovers of
+   partial overlap and clutter give nothing.
 4. **Degenerate surfaces.** A motion whose supporting points lie on one
    plane (as thin as the scans' noise) slides along that plane with equal
-   support: it is reported in ``info["degenerate"]`` and its points set
-   aside, not peeled into a set of spurious motions.  A plane that the
-   identity explains (a floor, a wall) is kept as the static part and also
-   listed there: a slide along it would fit as well.
+   support, and a part that the search fits nearly as well by a distinct
+   rival motion (``ambiguous``: it slides on a curved surface, or matches
+   two) has no determined motion either: neither is kept, the plane is
+   reported in ``info["degenerate"]`` (its points set aside, not peeled
+   into a set of spurious motions), the other in ``info["ambiguous"]``.
+   A plane that the identity explains (a floor, a wall) is kept as the
+   static part and also listed as degenerate: a slide along it would fit
+   as well.
 """
 
 from __future__ import annotations
@@ -397,8 +402,10 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         static part); ``source_labels``/``target_labels`` at full
         resolution (``-1``: unexplained); ``tokens`` the correspondences.
         ``info["reason"]`` says why it stopped; ``info["degenerate"]``
-        lists plane-like parts set aside; ``info["rounds"]`` each round's
-        support against its chance level.
+        lists plane-like parts set aside, ``info["ambiguous"]`` parts whose
+        motion a distinct rival fits nearly as well; ``info["rounds"]`` each
+        round's support against its chance levels (``chance``: the
+        unexplained points'; ``part_chance``: the searched part's own).
     """
     t_start = time.perf_counter()
     X = RIGID.check_points(source, "source")
@@ -428,7 +435,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     surf_y = scan_surfaces(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
     free_s = np.ones(n1, bool)
     free_t = np.ones(n2, bool)
-    rounds, degenerate = [], []
+    rounds, degenerate, ambiguous = [], [], []
 
     def judge(R, t, kind, src, extra, least=4):
         """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones.
@@ -453,16 +460,27 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         rec = dict(extra, kind=kind, support=support, chance=chance, thickness=flat, noise=fit_noise,
                    scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s & ~static_s)), int(tgt.size)))
         rounds.append(rec)
+        if searched and support > chance:
+            # The search maximised the support over this part alone: a small or thin part (a strip
+            # of surface that one scan sees, a few clutter points) fits some target surface whole,
+            # which random motions of the whole pool do not show.  Its own chance level does.
+            rec["part_chance"] = chance_support(X[src], Y[tgt], gate, seed=seed + len(rounds), tree=tree)
         if searched and support >= least and flat <= PLANE_THICKNESS * scan_noise:
             verdict = "degenerate"
             degenerate.append({"points": support, "thickness": flat,
                                "centroid": X[src[inl]].mean(axis=0).tolist()})
             free_s[src[inl]] = False
             free_t[pairs[:, 1]] = False
-        elif support <= chance:
+        elif support <= max(chance, rec.get("part_chance", 0)):
             verdict = "chance"
         elif not fit_noise <= NOISE_FACTOR * scan_noise:
             verdict = "noise"
+        elif searched and extra.get("ambiguous"):
+            # A distinct rival motion fits the part nearly as well (gatv.scans.RIVAL_SHARE): the
+            # part slides on a target surface or matches two of them; the data do not fix its motion.
+            verdict = "ambiguous"
+            ambiguous.append({"points": support, "rival_angle_deg": extra.get("rival_angle_deg"),
+                              "centroid": X[src[inl]].mean(axis=0).tolist()})
         else:
             verdict = "kept"
             if not searched and flat <= PLANE_THICKNESS * scan_noise:
@@ -524,7 +542,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             tried[part] = True
             continue
         extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
-        if judge(*found, "search", part, extra, least=smallest) in ("chance", "noise"):
+        if found_info.get("rival"):
+            extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
+        if judge(*found, "search", part, extra, least=smallest) in ("chance", "noise", "ambiguous"):
             tried[part] = True
 
     # Labels: each point to the kept motion that brings it closest to the other scan.
@@ -551,7 +571,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         tokens.append(c)
         token_labels.append(np.full(c.shape[0], k, np.int64))
     info = {"pipeline": "scans", "n_source": int(n1), "n_target": int(n2), "spacing": spacing, "gate": gate,
-            "reason": reason, "rounds": rounds, "degenerate": degenerate,
+            "reason": reason, "rounds": rounds, "degenerate": degenerate, "ambiguous": ambiguous,
             "static": bool(motions) and motions[0].info.get("kind") == "identity",
             "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")

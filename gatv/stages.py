@@ -25,10 +25,11 @@ from numba.core import event as numba_event
 from scipy.spatial import cKDTree
 
 from .candidates import median_spacing, one_to_one
-from .models import Motion, MotionModel, get_model, split_matrix
-from .stats import ALPHA, chance_count, samples_needed
+from .models import Motion, MotionModel, apply_matrix, get_model, split_matrix
+from .stats import ALPHA, ball_measure, chance_count, samples_needed
 
 __all__ = [
+    "DENSITY_NEIGHBOURS",
     "JUDGED_WRONG",
     "NOISE_SCHEDULE",
     "NOISY_SCHEDULE",
@@ -62,6 +63,11 @@ __all__ = [
     "vote_tokens",
     "weighted_pose",
 ]
+
+#: Target points counted around a moved source point to measure the
+#: target's local density there (:meth:`Problem.landing_radii`): the
+#: estimate's relative error is about ``1 / sqrt(k)``.
+DENSITY_NEIGHBOURS = 16
 
 #: Tolerances tried when the noise is not given, relative to the point spacing.
 NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
@@ -113,6 +119,8 @@ class Problem:
     volume : float
         Measure of the target's bounding box (each side at least ``spacing``):
         the region random motions scatter points over (:meth:`chance`).
+        A given motion's chance level uses the target's density where it
+        puts the source instead (:meth:`chance_under`).
     """
 
     source: np.ndarray
@@ -135,6 +143,43 @@ class Problem:
     def residuals(self, matrix: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """``|target[j] - T(source[i])|`` of candidate pairs ``(i, j)``."""
         return self.model.residuals(matrix, self.source[pairs[:, 0]], self.target[pairs[:, 1]])
+
+    def landing_radii(self, matrix: np.ndarray) -> np.ndarray:
+        """Radius of the ball around each moved source point ``T(x)`` that holds
+        :data:`DENSITY_NEIGHBOURS` target points: the target's local density
+        where ``matrix`` puts the source (:meth:`landing_measure`)."""
+        k = min(DENSITY_NEIGHBOURS, self.target.shape[0])
+        d, _ = self.tree.query(apply_matrix(matrix, self.source), k=k)
+        return np.maximum(d.reshape(len(self.source), -1)[:, -1], 1e-300)
+
+    def landing_measure(self, radii: np.ndarray, gate: float) -> float:
+        """The measure that gives :meth:`chance` the chance pairs of a motion whose
+        moved source points have :meth:`landing_radii` ``radii``.
+
+        :meth:`chance` spreads the target uniformly over its bounding box.
+        Where the target is denser than that mean (the inlier cube of Table 2
+        holds the inliers and its share of the outliers; a scene's objects),
+        a motion that lays the source onto the dense part collects more
+        chance pairs than the box predicts, and a wrong one found there by a
+        search that maximises its support beats the box's level.  A moved
+        point lands within ``gate`` of a target point with probability
+        ``min(1, k (gate / r_k)^d)`` by the ``k``-nearest-neighbour density
+        (``k`` target points in the ball of radius ``r_k``); the box measure
+        with the same expected count over the source is returned.
+        """
+        k = min(DENSITY_NEIGHBOURS, self.target.shape[0])
+        expected = float(np.minimum(1.0, k * (gate / radii) ** self.dim).sum())
+        uniform = self.source.shape[0] * self.target.shape[0] * ball_measure(gate, self.dim)
+        return uniform / max(expected, 1e-300)
+
+    def chance_under(self, matrix: np.ndarray, gate: float, n_tests: float = 1.0, radii=None) -> int:
+        """:meth:`chance` at the target's density where ``matrix`` puts the source.
+
+        ``radii``: :meth:`landing_radii` of ``matrix``, when already known.
+        """
+        radii = self.landing_radii(matrix) if radii is None else radii
+        return self.model.chance(self.source.shape[0], self.target.shape[0],
+                                 self.landing_measure(radii, gate), gate, n_tests)
 
 
 def prepare(source, target, model="rigid") -> Problem:
@@ -364,7 +409,8 @@ def grow_tolerance(problem: Problem, fit: Fit, levels, level: int) -> tuple[Fit,
         wider = refine(problem, fit, g)
         if wider is fit:
             break
-        gain = chance_count(n1, n2, problem.volume, g, dim=problem.dim, alpha=1e-3)
+        measure = problem.landing_measure(problem.landing_radii(wider.matrix), g)
+        gain = chance_count(n1, n2, measure, g, dim=problem.dim, alpha=1e-3)
         if wider.support - fit.support <= max(2.0, gain):
             break
         fit, level = wider, level + 1
@@ -596,14 +642,18 @@ def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: floa
     stay tight (the noise, not the gate), so within a finer level's gate it
     keeps most of them while chance falls as the gate cubed.  Each level's
     count is tested family-wise over ``n_tests`` matches and, Bonferroni,
-    over the ``len(levels)`` gates looked at.  The pairs are ``fit``'s own
+    over the ``len(levels)`` gates looked at, at the target's density
+    where ``fit`` puts the source (:meth:`Problem.chance_under`): a wrong
+    motion that lays the source onto a dense part of the target collects
+    chance pairs at that part's density.  The pairs are ``fit``'s own
     (one-to-one), so a finer gate only drops pairs.
     """
     res = problem.residuals(fit.matrix, fit.correspondences)
+    radii = problem.landing_radii(fit.matrix)
     n_levels = float(len(levels))
     for tol in levels:
         g = gate(tol)
-        if np.count_nonzero(res <= g) >= problem.chance(g, n_tests * n_levels):
+        if np.count_nonzero(res <= g) >= problem.chance_under(fit.matrix, g, n_tests * n_levels, radii):
             return True
     return False
 

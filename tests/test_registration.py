@@ -204,6 +204,46 @@ def test_final_level_rejects_a_wrong_motion(seed, angle, axis):
     assert not stages.beats_chance_at_some_level(P, polished, levels, 5e7)
 
 
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 10**6))
+def test_chance_pairs_follow_the_density_where_the_motion_lands(seed):
+    """``Problem.landing_measure``: random motions that lay the source on the dense part of the target
+    (1,000 points in a 10-cube among 1,000 spread over a box 27 times its volume) collect, within a
+    gate, the chance pairs the local density predicts, ten times what the box's mean density does."""
+    from gatv import stages
+
+    rng = np.random.default_rng(seed)
+    target = np.vstack([rng.uniform(0, 10, (1000, 3)), rng.uniform(-10, 20, (1000, 3))])
+    source = rng.uniform(0, 10, (2000, 3))
+    P = stages.prepare(source, target)
+    g = 0.3 * P.spacing
+    ball = 2000 * 2000 * 4.0 / 3.0 * np.pi * g**3
+    observed, predicted = [], []
+    for _ in range(30):
+        M = np.eye(4)
+        M[:3, :3] = Rotor.from_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi)).as_matrix()
+        M[:3, 3] = 5.0 - M[:3, :3] @ np.full(3, 5.0)  # about the dense cube's centre
+        moved = source @ M[:3, :3].T + M[:3, 3]
+        observed.append(np.count_nonzero(P.tree.query(moved, distance_upper_bound=g)[0] <= g))
+        predicted.append(ball / P.landing_measure(P.landing_radii(M), g))
+    assert abs(np.mean(predicted) / np.mean(observed) - 1.0) < 0.15
+    assert ball / P.volume < 0.2 * np.mean(observed)
+
+
+@pytest.mark.slow
+def test_a_dense_noisy_cube_gives_its_motion_or_none():
+    """2,000 points (a 10-cube of 1,000 inliers, 3% noise, among 1,000 outliers): a wrong motion that
+    lays the dense cube onto itself collects chance pairs at the cube's density, above the box's mean,
+    and once beat the box's level by one pair (120° off).  At the density where it lands it does not."""
+    trial = table2_trial(0.5, n_inliers=1000, noise=0.03,
+                         seed=np.random.SeedSequence([11, 0, sum(map(ord, "cube f.5 3% 2000pts"))]))
+    m = register(trial.source, trial.target, seed=0, time_limit=40)
+    if m:
+        assert rotation_error_deg(m.rotation, trial.rotation) < 2.0
+    else:
+        assert "time limit" in m.info["reason"]
+
+
 def test_only_trials_that_beat_chance_once_polished_reach_the_judge(monkeypatch):
     """Behind the density screen the search judges (tensor voting) only trials whose own polish beats the
     judge's level within some gate up to theirs; the noisy motion is still found (f = 0.5, 3% noise,

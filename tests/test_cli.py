@@ -258,6 +258,25 @@ def test_segment_passes_model_and_prints_generic_summary(tmp_path, files, monkey
     assert data["motions"][0]["model"] == "rigid" and len(data["motions"][0]["matrix"]) == 4
 
 
+def test_segment_prints_degenerate_and_ambiguous_parts(files, monkeypatch, capsys):
+    """Parts a scan segmentation saw and left unexplained on purpose are named, one line each."""
+    def segment(source, target, **kwargs):
+        result = _FakeSegmentation((), np.full(len(source), -1), np.full(len(target), -1))
+        result.info = {"degenerate": [{"points": 120}],
+                       "ambiguous": [{"points": 248, "rival_angle_deg": 31.6},
+                                     {"points": 90, "rival_angle_deg": None}]}
+        return result
+
+    monkeypatch.setattr(segment_cmd, "load_segment", lambda: segment)
+    src, tgt = files
+    cli.main(["segment", str(src), str(tgt)])
+    lines = capsys.readouterr().out.splitlines()
+    assert "degenerate:      a plane-like part of 120 points (a motion could slide along it)" in lines
+    assert ("ambiguous:       a part of 248 points fits two distinct motions (32 deg apart); none reported"
+            in lines)
+    assert "ambiguous:       a part of 90 points fits two distinct motions; none reported" in lines
+
+
 @pytest.mark.parametrize(
     ("option", "name", "fragment"),
     [

@@ -168,6 +168,11 @@ def run(args) -> int:
             print(f"pipeline:        {result.info['pipeline']} ({result.info.get('pipeline_reason', '')})")
         for d in result.info.get("degenerate", []):
             print(f"degenerate:      a plane-like part of {d['points']} points (a motion could slide along it)")
+        for d in result.info.get("ambiguous", []):
+            apart = d.get("rival_angle_deg")
+            apart = f" ({apart:.0f} deg apart)" if apart is not None else ""
+            print(f"ambiguous:       a part of {d['points']} points fits two distinct motions{apart}; "
+                  "none reported")
         if result.info.get("reason"):
             print(f"stopped:         {result.info['reason']}")
         print(f"time:            {seconds:.3f} s")

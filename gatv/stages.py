@@ -676,9 +676,17 @@ def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -
     ``n_tests`` (at least 1) to the chance level, family-wise at ``ALPHA``;
     ``judged_wrong=None`` keeps the level family-wise over all the matches
     (``n_matches``).
+
+    Raises
+    ------
+    ValueError
+        ``judged_wrong`` not positive (give ``None`` for the family-wise level).
     """
     if judged_wrong is None:
         return float(n_matches)
+    if not judged_wrong > 0:
+        raise ValueError(f"`judged_wrong` must be positive, got {judged_wrong!r}; "
+                         "None keeps the level family-wise over all the matches.")
     return max(1.0, ALPHA * float(n_matches) / float(judged_wrong))
 
 

@@ -151,3 +151,10 @@ def test_density_test_lets_through_at_most_the_judged_wrong_motions(mu, n_matche
     # and not much stricter than needed: one count less would let more through
     if tests > 1.0 and level > 0:
         assert n_matches * poisson.sf(level - 1, mu) > stages.JUDGED_WRONG * (1 - 1e-9)
+
+
+@pytest.mark.parametrize("judged_wrong", [0.0, -1.0, float("nan")])
+def test_density_tests_needs_a_positive_judged_wrong(judged_wrong):
+    with pytest.raises(ValueError, match="judged_wrong"):
+        stages.density_tests(1e6, judged_wrong)
+    assert stages.density_tests(1e6, None) == 1e6

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import SCALAR_EXTENSIONS
 from ._common import (
     EXIT_FAILED,
     EXIT_OK,
@@ -40,8 +41,9 @@ __all__ = [
 ]
 
 #: Files ``--labelled`` writes: PLY (binary, float32 x y z and an int32
-#: ``motion`` property per vertex), or VTK PolyData through PyVista.
-LABELLED_EXTENSIONS = (".ply", ".vtk", ".vtp")
+#: ``motion`` property per vertex), or VTK PolyData through PyVista; the
+#: formats of :data:`gatv.io.SCALAR_EXTENSIONS` that hold a point cloud.
+LABELLED_EXTENSIONS = tuple(e for e in SCALAR_EXTENSIONS if e != ".csv")
 
 NAME = "segment"
 

@@ -247,8 +247,9 @@ def test_segment_passes_model_and_prints_generic_summary(tmp_path, files, monkey
     src, tgt = files
     out = tmp_path / "s.json"
     assert cli.main(["segment", str(src), str(tgt), "--out", str(out)]) == 0
-    assert cli.main(["segment", str(src), str(tgt), "-q", "--model", "similarity"]) == 0
+    assert cli.main(["segment", str(src), str(tgt), "-q", "--model", "similarity", "--time-limit", "5"]) == 0
     assert "model" not in calls[0] and calls[1]["model"] == "similarity"
+    assert "time_limit" not in calls[0] and calls[1]["time_limit"] == 5.0
     stdout = capsys.readouterr().out
     assert "model:           rigid" in stdout and "motions:         1" in stdout
     assert f"motion 0:        {trial.angle_deg:.4f} deg about axis" in stdout

@@ -405,3 +405,41 @@ def test_likelihood_gate_is_where_a_true_partner_and_a_random_point_are_equally_
     else:
         assert peak * np.exp(-r * r / (2.0 * s2)) == pytest.approx(density, rel=1e-6)
         assert likelihood_gate(sigma, density / 10.0, dim) > r  # sparser targets, wider gate
+
+
+def test_a_noisy_segmentation_stops_at_its_time_limit_and_keeps_what_it_found(monkeypatch):
+    """``segment(time_limit=)`` bounds the peel: every round's search gets the call's deadline, and a round
+    the time stops ends the peeling with that reason, the motions found before it kept."""
+    rng = np.random.default_rng(3)
+    rots = Rotation.random(2, random_state=3).as_matrix()
+    scene = multi_motion_scene(rots, rng.uniform(-5, 5, (2, 3)), [60, 40], n_outliers=60, noise=0.1, seed=rng)
+    real = stages.search
+    deadlines = []
+
+    def search(problem, levels, *, deadline=None, tried=None, **kw):
+        deadlines.append(deadline)
+        if len(deadlines) > 1:  # the second round runs out of time
+            tried.append({"stopped": "time limit", "work": 0.0})
+            return None
+        return real(problem, levels, deadline=deadline, tried=tried, **kw)
+
+    monkeypatch.setattr(stages, "search", search)
+    import time
+
+    t0 = time.perf_counter()
+    seg = segment(scene.source, scene.target, time_limit=30.0)
+    assert len(seg) == 1 and "time limit (`time_limit`, " in seg.info["reason"]
+    # the call's 30 s, counted from its start (up to the microseconds between clock reads)
+    assert len(deadlines) == 2 and all(t0 + 29.0 < d < t0 + 30.01 for d in deadlines)
+    assert len(set(deadlines)) == 1  # one deadline for the whole call
+    _check_one_to_one(seg)
+
+
+def test_a_time_limit_already_spent_gives_no_motion_and_says_so():
+    rng = np.random.default_rng(4)
+    rots = Rotation.random(2, random_state=4).as_matrix()
+    scene = multi_motion_scene(rots, rng.uniform(-5, 5, (2, 3)), [60, 40], n_outliers=60, noise=0.1, seed=rng)
+    seg = segment(scene.source, scene.target, time_limit=1e-9)
+    assert not seg and "time limit" in seg.info["reason"]
+    with pytest.raises(InputError, match="time_limit"):
+        segment(scene.source, scene.target, time_limit=-1.0)

@@ -72,6 +72,10 @@ def add_parser(subparsers):
         help="exact: sets whose inliers are the same points in both (noisy or not); scans: dense, "
              "differently sampled range scans (the identity first, motions peeled with the surface "
              "pipeline, each kept only above the chance level); auto: chosen from the data (default)")
+    p.add_argument(
+        "--time-limit", type=float, metavar="SECONDS",
+        help="wall-clock bound on the noisy point-set search (default: 60); past it the motions found "
+             "so far are returned, with the reason")
     p.add_argument("--labelled", type=Path, metavar="PLY",
                    help="write the source points with a per-point `motion` scalar (-1: unexplained; "
                         ".ply .vtk .vtp)")
@@ -150,7 +154,8 @@ def run(args) -> int:
     segment = load_segment()
 
     options = {k: v for k, v in (("max_motions", args.max_motions), ("min_support", args.min_support),
-                                 ("noise", args.noise)) if v is not None}
+                                 ("noise", args.noise), ("time_limit", getattr(args, "time_limit", None)))
+               if v is not None}
     options.update(model_options(args))
     if getattr(args, "pipeline", "auto") != "auto":
         options["pipeline"] = args.pipeline

@@ -333,7 +333,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
          noise: float | None = None, refine: bool = True, min_inlier_share: float = 0.03,
          confidence: float = 0.999, max_triples: int | None = None, sigma: float | None = None,
          max_candidates: int = 8, memory_budget: float | None = None, noisy: bool | None = None,
-         max_work: float | None = None, schedule=None, progress=None) -> Segmentation:
+         max_work: float | None = None, schedule=None, progress=None,
+         time_limit: float | None = None) -> Segmentation:
     """Find several motions of ``problem.model``, one at a time (section 5).
 
     Parameters
@@ -381,6 +382,11 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         otherwise.  A round that runs out stops the peeling with that reason.
     progress : callable, optional
         ``progress(fraction, message)``.
+    time_limit : float, optional
+        Seconds of wall-clock time for the whole peel (numba's compilation
+        not counted, as in :func:`gatv.stages.search`); a round's search
+        that runs past it stops the peeling with that reason, and the
+        motions found so far are returned.  ``None``: no bound.
 
     Returns
     -------
@@ -404,6 +410,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     if sigma is not None:
         sigma = check_positive(sigma, "sigma")
     max_candidates = check_int(max_candidates, "max_candidates", 1)
+    time_limit = check_positive(time_limit, "time_limit", allow_none=True)
+    deadline = None if time_limit is None else t_start + time_limit
     report = check_progress(progress)
     rng = as_rng(seed)
     if noisy is None:
@@ -492,13 +500,18 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                               # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
                               # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
                               judged_wrong=None,
-                              memory_budget=memory_budget, tried=tried, **options)
+                              memory_budget=memory_budget, tried=tried, deadline=deadline, **options)
         if found is None:
             log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
                         "smallest": need_min, "points": (int(src.size), int(tgt.size))})
-            stopped = any("stopped" in rec for rec in tried)
-            reason = ("the work bound (`max_work`) ran out before a trial motion beat the chance level"
-                      if stopped else "no trial motion beat the chance level")
+            stopped = {rec["stopped"] for rec in tried if "stopped" in rec}
+            if "time limit" in stopped:
+                reason = (f"the time limit (`time_limit`, {time_limit:g} s) ran out before a trial motion "
+                          "beat the chance level")
+            elif stopped:
+                reason = "the work bound (`max_work`) ran out before a trial motion beat the chance level"
+            else:
+                reason = "no trial motion beat the chance level"
             break
         fit, tol = found.fit, found.tolerance
         if noisy:

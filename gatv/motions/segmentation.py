@@ -76,6 +76,7 @@ from ..ga import (
 )
 from ..models.base import homogeneous
 from ..motion import RigidMotion
+from ..registration import TIME_LIMIT
 from ..stages import Fit, Problem
 
 __all__ = ["Segmentation", "joint_space_residuals", "segment", "segment_points"]
@@ -461,6 +462,7 @@ def segment(
     memory_budget: float | None = None,
     scan_options: dict | None = None,
     progress=None,
+    time_limit: float | None = TIME_LIMIT,
 ) -> Segmentation:
     """Find every motion between ``source`` and ``target``, K unknown (section 5).
 
@@ -498,6 +500,13 @@ def segment(
         (:data:`gatv.motions.scans.PART_OPTIONS`: ``n_points``, ``voxel``,
         ``min_overlap``, ``feature_tol``, ``clutter``, as in
         :func:`gatv.scans.register_surfaces`).
+    time_limit : float or None, default: :data:`gatv.registration.TIME_LIMIT`
+        Seconds of wall-clock time for the noisy point-set search
+        (``grouping="peel"``, or ``"auto"`` on noisy sets), counted from
+        the call; past it the motions found so far are returned and
+        ``info["reason"]`` says that the time ran out.  As in
+        :func:`gatv.register`, numba's compilation is not counted.
+        ``None``: no bound.
 
     Other parameters are those of the exact pipeline's graph grouping
     (:func:`segment_points`); ``max_motions``, ``seed``, ``confidence``,
@@ -526,6 +535,8 @@ def segment(
     """
     from ..registration import reject_exact_options, resolve_pipeline
 
+    t_call = time.perf_counter()
+    time_limit = check_positive(time_limit, "time_limit", allow_none=True)
     chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
     if grouping not in GROUPINGS + ("auto", "peel"):
         raise InputError(f"Expected `grouping` to be one of {('auto',) + GROUPINGS + ('peel',)}, "
@@ -569,7 +580,9 @@ def segment(
             out = peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
                        refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
                        max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
-                       memory_budget=memory_budget, noisy=True, schedule=schedule, progress=progress)
+                       memory_budget=memory_budget, noisy=True, schedule=schedule, progress=progress,
+                       time_limit=None if time_limit is None
+                       else max(time_limit - (time.perf_counter() - t_call), 1e-9))
             out.info["grouping"] = "peel"
         if grouping == "auto":
             out.info["probe_s"] = probe_s

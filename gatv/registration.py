@@ -454,15 +454,7 @@ def register(
                           deadline=None if time_limit is None else t_start + time_limit)
     if found is None:
         info.update(trials=tried, time_s=time.perf_counter() - t_start)
-        stopped = {rec["stopped"] for rec in tried if "stopped" in rec}
-        if "time limit" in stopped:
-            reason = (f"the time limit (`time_limit`, {time_limit:g} s) ran out before a trial motion beat "
-                      "the chance level")
-        elif stopped:
-            reason = "the work bound (`max_work`) ran out before a trial motion beat the chance level"
-        else:
-            reason = "no trial motion beat the chance level"
-        return stages.failure(P.model, reason, info)
+        return stages.failure(P.model, stages.search_failure(tried, time_limit), info)
     fit, tolerance = found.fit, found.tolerance
     if noise is None and rigid:
         fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])

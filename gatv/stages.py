@@ -57,6 +57,7 @@ __all__ = [
     "refine",
     "regate",
     "search",
+    "search_failure",
     "select_one_to_one",
     "settle_noise",
     "tolerance_levels",
@@ -656,6 +657,22 @@ def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: floa
         if np.count_nonzero(res <= g) >= problem.chance_under(fit.matrix, g, n_tests * n_levels, radii):
             return True
     return False
+
+
+def search_failure(tried: list, time_limit: float | None = None) -> str:
+    """Why :func:`search` returned ``None``, from its ``tried`` records.
+
+    The time limit (``deadline``, given as ``time_limit`` seconds), the
+    work bound (``max_work``), or the samples spent without a motion
+    beating the chance level.
+    """
+    stopped = {rec["stopped"] for rec in tried if "stopped" in rec}
+    if "time limit" in stopped:
+        return (f"the time limit (`time_limit`, {time_limit:g} s) ran out before a trial motion beat "
+                "the chance level")
+    if stopped:
+        return "the work bound (`max_work`) ran out before a trial motion beat the chance level"
+    return "no trial motion beat the chance level"
 
 
 def _duration(listener: numba_event.TimingListener) -> float:

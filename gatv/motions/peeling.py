@@ -504,14 +504,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         if found is None:
             log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
                         "smallest": need_min, "points": (int(src.size), int(tgt.size))})
-            stopped = {rec["stopped"] for rec in tried if "stopped" in rec}
-            if "time limit" in stopped:
-                reason = (f"the time limit (`time_limit`, {time_limit:g} s) ran out before a trial motion "
-                          "beat the chance level")
-            elif stopped:
-                reason = "the work bound (`max_work`) ran out before a trial motion beat the chance level"
-            else:
-                reason = "no trial motion beat the chance level"
+            reason = stages.search_failure(tried, time_limit)
             break
         fit, tol = found.fit, found.tolerance
         if noisy:

@@ -71,10 +71,12 @@ from ._validation import (
 from .candidates import bounded_pairs
 from .congruent import n_triples_needed
 from .errors import InputError
+from .ga import rotation_angle_deg
 from .models import Motion, get_model
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
-__all__ = ["NOISE_SCHEDULE", "NOISY_SCHEDULE", "choose_pipeline", "register", "reject_exact_options", "resolve_pipeline", "surface_likeness"]
+__all__ = ["NOISE_SCHEDULE", "NOISY_SCHEDULE", "choose_pipeline", "register", "reject_exact_options", "resolve_pipeline", "surface_likeness",
+           "symmetry_rival"]
 
 #: Matches scored per source triple in the rigid search (the chance level
 #: counts them as tests).  Exact data rarely has more than a few; under noise
@@ -363,7 +365,10 @@ def register(
     RigidMotion or SimilarityMotion
         ``target ≈ source @ rotation.T + translation`` with one-to-one
         ``correspondences``. Falsy, with ``info["reason"]``, when no motion
-        beats the chance level.
+        beats the chance level.  ``info["ambiguous"]`` is true when a
+        distinct motion explains the data nearly as well (a symmetric
+        object; :func:`symmetry_rival` on the exact path, the surface
+        rivals on the scans path), with ``info["rival"]`` describing it.
 
     Raises
     ------
@@ -460,6 +465,47 @@ def register(
         fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])
     info.update(tolerance=tolerance, noise=tolerance, sigma=found.judged.sigma,
                 n_tokens=found.judged.n_tokens, trials=tried, trial_support=found.trial_support,
-                chance_support=found.threshold, time_s=time.perf_counter() - t_start)
+                chance_support=found.threshold)
+    if rigid:
+        info.update(symmetry_rival(P, fit, tolerance, rng))
+    info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {fit.support} correspondences")
     return stages.make_result(P, fit, info)
+
+
+#: Source triples of the found inliers matched among themselves by
+#: :func:`symmetry_rival`: on a symmetric set nearly every triple has a
+#: moved copy, so a few dozen show the symmetry.
+RIVAL_SAMPLES = 64
+
+
+def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.random.Generator) -> dict:
+    """Whether a distinct motion explains the found pairs nearly as well (a symmetric set).
+
+    A motion ``M`` whose inliers ``X`` map onto themselves by a rigid
+    motion ``Q`` that moves some of them beyond twice the gate (a symmetry
+    of the set) has a rival ``M Q`` with the support of ``Q`` on ``X``:
+    the data cannot tell them apart.  ``Q`` is searched as any motion is
+    (congruent triples of ``X`` matched among ``X``, scored within the
+    gate of ``tolerance``).  Returns ``{"ambiguous": bool}``, with
+    ``"rival"`` (its support, the found one's, the angle between them)
+    when its support reaches :data:`gatv.scans.RIVAL_SHARE` of the found
+    motion's.
+    """
+    from .congruent import TargetIndex, trial_motions
+    from .scans import RIVAL_SHARE
+
+    X = problem.source[fit.correspondences[:, 0]]
+    if X.shape[0] < 4:
+        return {"ambiguous": False}
+    g = stages.gate(tolerance)
+    trials = trial_motions(X, TargetIndex(X, g), eps=2.0 * stages.LISTING * tolerance,
+                           max_triples=RIVAL_SAMPLES, rng=rng, keep=32, accept=0)
+    best, angle = 0, 0.0
+    for matrix, support in zip(trials.matrices, trials.support):
+        moved = X @ matrix[:3, :3].T + matrix[:3, 3]
+        if np.linalg.norm(moved - X, axis=1).max() > 2.0 * g and support > best:
+            best, angle = int(support), rotation_angle_deg(matrix[:3, :3])
+    if best < RIVAL_SHARE * fit.support:
+        return {"ambiguous": False}
+    return {"ambiguous": True, "rival": {"support": best, "best_support": int(fit.support), "angle_deg": angle}}

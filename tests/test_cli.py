@@ -259,6 +259,18 @@ def test_segment_passes_model_and_prints_generic_summary(tmp_path, files, monkey
     assert data["motions"][0]["model"] == "rigid" and len(data["motions"][0]["matrix"]) == 4
 
 
+def test_register_summary_names_an_ambiguous_motion():
+    from gatv.cli.register import summary
+
+    motion = RigidMotion(np.eye(3), np.zeros(3), np.array([[0, 0], [1, 1], [2, 2]]), score=3.0, rms=0.0,
+                         info={"ambiguous": True, "rival": {"angle_deg": 90.0}})
+    assert "ambiguous:       a distinct motion 90 deg away fits nearly as well (a symmetric object?)" in summary(
+        motion, 0.1)
+    plain = RigidMotion(np.eye(3), np.zeros(3), np.array([[0, 0], [1, 1], [2, 2]]), score=3.0, rms=0.0,
+                        info={"ambiguous": False})
+    assert not any(line.startswith("ambiguous") for line in summary(plain, 0.1))
+
+
 def test_segment_prints_degenerate_and_ambiguous_parts(files, monkeypatch, capsys):
     """Parts a scan segmentation saw and left unexplained on purpose are named, one line each."""
     def segment(source, target, **kwargs):

@@ -295,3 +295,24 @@ def test_time_limit_leaves_out_numba_compilation(monkeypatch):
     m = register(src, tgt, time_limit=1.0)
     assert m, m.info.get("reason")
     assert np.allclose(m.rotation, R, atol=1e-8)
+
+
+@pytest.mark.parametrize("angle", [40.0, 130.0])
+def test_a_symmetric_set_is_reported_ambiguous(angle):
+    """A 5×5×5 grid maps onto itself by 90° turns: whichever motion the search returns, a distinct one
+    explains every point as well, and the result says so instead of a confident single motion."""
+    grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    R = Rotor.from_axis_angle((0.3, -0.5, 0.8), np.radians(angle)).as_matrix()
+    m = register(grid, grid @ R.T + np.array([1.0, 2.0, -0.5]))
+    assert m.support == 125 and m.info["ambiguous"]
+    rival = m.info["rival"]
+    assert rival["support"] == rival["best_support"] == 125
+    assert rival["angle_deg"] > 45.0  # a symmetry of the grid, not a jitter of the found motion
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10**6), noise=st.sampled_from([0.0, 0.02]))
+def test_a_generic_set_is_not_ambiguous(seed, noise):
+    trial = table2_trial(0.5, noise=noise, seed=seed)
+    m = register(trial.source, trial.target, seed=seed)
+    assert m and m.info["ambiguous"] is False and "rival" not in m.info

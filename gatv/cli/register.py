@@ -117,6 +117,10 @@ def summary(motion, seconds: float) -> list[str]:
     lines += [f"{label + ':':<17}{text}" for label, text in motion_lines(motion)]
     lines.append(f"correspondences: {motion.support}")
     lines.append(f"rms:             {motion.rms:.6g}")
+    if motion.info.get("ambiguous"):
+        angle = (motion.info.get("rival") or {}).get("angle_deg")
+        away = f" {angle:.0f} deg away" if angle is not None else ""
+        lines.append(f"ambiguous:       a distinct motion{away} fits nearly as well (a symmetric object?)")
     lines.append(f"time:            {seconds:.3f} s")
     return lines
 

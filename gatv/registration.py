@@ -467,7 +467,7 @@ def register(
                 n_tokens=found.judged.n_tokens, trials=tried, trial_support=found.trial_support,
                 chance_support=found.threshold)
     if rigid:
-        info.update(symmetry_rival(P, fit, tolerance, rng))
+        info.update(symmetry_rival(P, fit, tolerance, rng, memory_budget=memory_budget))
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {fit.support} correspondences")
     return stages.make_result(P, fit, info)
@@ -479,7 +479,8 @@ def register(
 RIVAL_SAMPLES = 64
 
 
-def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.random.Generator) -> dict:
+def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.random.Generator, *,
+                   memory_budget=None) -> dict:
     """Whether a distinct motion explains the found pairs nearly as well (a symmetric set).
 
     A motion ``M`` whose inliers ``X`` map onto themselves by a rigid
@@ -490,7 +491,8 @@ def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.
     gate of ``tolerance``).  Returns ``{"ambiguous": bool}``, with
     ``"rival"`` (its support, the found one's, the angle between them)
     when its support reaches :data:`gatv.scans.RIVAL_SHARE` of the found
-    motion's.
+    motion's.  The inliers are at most the target's points, so their
+    index fits the ``memory_budget`` the search's did.
     """
     from .congruent import TargetIndex, trial_motions
     from .scans import RIVAL_SHARE
@@ -499,7 +501,7 @@ def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.
     if X.shape[0] < 4:
         return {"ambiguous": False}
     g = stages.gate(tolerance)
-    trials = trial_motions(X, TargetIndex(X, g), eps=2.0 * stages.LISTING * tolerance,
+    trials = trial_motions(X, TargetIndex(X, g, memory_budget=memory_budget), eps=2.0 * stages.LISTING * tolerance,
                            max_triples=RIVAL_SAMPLES, rng=rng, keep=32, accept=0)
     best, angle = 0, 0.0
     for matrix, support in zip(trials.matrices, trials.support):

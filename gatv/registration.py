@@ -72,7 +72,7 @@ from .candidates import bounded_pairs
 from .congruent import n_triples_needed
 from .errors import InputError
 from .ga import rotation_angle_deg
-from .models import Motion, get_model
+from .models import Motion, apply_matrix, get_model
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 
 __all__ = ["NOISE_SCHEDULE", "NOISY_SCHEDULE", "choose_pipeline", "register", "reject_exact_options", "resolve_pipeline", "surface_likeness",
@@ -505,8 +505,7 @@ def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.
                            max_triples=RIVAL_SAMPLES, rng=rng, keep=32, accept=0)
     best, angle = 0, 0.0
     for matrix, support in zip(trials.matrices, trials.support):
-        moved = X @ matrix[:3, :3].T + matrix[:3, 3]
-        if np.linalg.norm(moved - X, axis=1).max() > 2.0 * g and support > best:
+        if np.linalg.norm(apply_matrix(matrix, X) - X, axis=1).max() > 2.0 * g and support > best:
             best, angle = int(support), rotation_angle_deg(matrix[:3, :3])
     if best < RIVAL_SHARE * fit.support:
         return {"ambiguous": False}

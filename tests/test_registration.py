@@ -182,8 +182,9 @@ def _polished_at_the_final_level(seed, rotation_error=None):
 def test_final_level_keeps_noisy_true_motions():
     """``stages.beats_chance_at_some_level``: a true motion polished at a gate many noise deviations
     wide beats chance within a finer level's gate (its pairs stay tight, chance falls as the gate
-    cubed).  Not every draw: the levels are 2.5 apart and the noise can fall between them (11 of
-    5,000 seeds miss, see docs/design-notes.md), so fixed seeds, all of which must pass."""
+    cubed).  Not every draw: the levels are 2.5 apart and the noise can fall between them (2 of
+    seeds 0-4999 miss, 11 with the box's density; see docs/design-notes.md), so fixed seeds, all of
+    which must pass."""
     from gatv import stages
 
     for seed in range(24):

@@ -90,6 +90,99 @@ def _lower_bound(a, x):
 
 
 @njit(cache=True)
+def _lower_bound_in(a, x, lo, hi):
+    """:func:`_lower_bound` of ``x`` in ``a``, known to lie in ``[lo, hi]``."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def length_lookup(plen, per_bucket=16):
+    """Bucket table of the sorted lengths ``plen``: ``(bounds, step)``.
+
+    ``bounds[b]`` is the first index of ``plen`` at or above ``b * step``,
+    with buckets holding ``per_bucket`` lengths on average: a lower bound
+    then searches one bucket's range (:func:`_lower_bound_lookup`) instead
+    of the whole table, whose random reads miss the cache when it holds
+    10⁵–10⁶ lengths.
+    """
+    n = plen.shape[0]
+    buckets = max(1, n // per_bucket)
+    top = plen[n - 1] if n > 0 else 0.0
+    step = top / buckets if top > 0.0 else 1.0
+    bounds = np.empty(buckets + 1, np.int64)
+    for b in range(buckets + 1):
+        bounds[b] = _lower_bound(plen, b * step)
+    return bounds, step
+
+
+@njit(cache=True)
+def _lower_bound_lookup(plen, x, bounds, step):
+    """:func:`_lower_bound` of ``x`` in ``plen`` through its :func:`length_lookup` table (same answer)."""
+    if x <= 0.0:  # lengths are never negative
+        return 0
+    last = bounds.shape[0] - 1
+    fb = x / step
+    if fb >= last:
+        return _lower_bound_in(plen, x, bounds[last - 1] if last > 0 else 0, plen.shape[0])
+    b = int(fb)
+    # One bucket's margin on each side: ``x / step`` may round across a bound.
+    lo = bounds[b - 1] if b > 0 else 0
+    hi = bounds[b + 2] if b + 2 <= last else plen.shape[0]
+    return _lower_bound_in(plen, x, lo, hi)
+
+
+@njit(cache=True, parallel=True)
+def side_widths(points, triples, plen, bounds, step, eps):
+    """(M, 3) number of lengths in the sorted ``plen`` within ``eps`` of each triple's sides.
+
+    Sides in the order ``(0, 1), (0, 2), (1, 2)``; a length ``d`` counts the
+    entries in ``[d - eps, d + eps)`` (two lower bounds through the
+    :func:`length_lookup` table ``bounds, step``), the window of target
+    pairs the congruent listing scans for that side.
+    """
+    m = triples.shape[0]
+    width = np.empty((m, 3), np.int64)
+    for r in prange(m):
+        for q in range(3):
+            u = 0 if q < 2 else 1
+            v = 1 if q == 0 else 2
+            d = _dist(points, triples[r, u], points, triples[r, v])
+            w = (_lower_bound_lookup(plen, d + eps, bounds, step)
+                 - _lower_bound_lookup(plen, d - eps, bounds, step))
+            width[r, q] = max(w, 0)
+    return width
+
+
+@njit(cache=True, parallel=True)
+def triangle_heights(points, triples):
+    """Smallest height of each triangle ``points[triples]``: twice its area over its longest side."""
+    m = triples.shape[0]
+    out = np.empty(m)
+    tiny = np.finfo(np.float64).tiny
+    for r in prange(m):
+        a, b, c = triples[r, 0], triples[r, 1], triples[r, 2]
+        ux = points[b, 0] - points[a, 0]
+        uy = points[b, 1] - points[a, 1]
+        uz = points[b, 2] - points[a, 2]
+        vx = points[c, 0] - points[a, 0]
+        vy = points[c, 1] - points[a, 1]
+        vz = points[c, 2] - points[a, 2]
+        cx = uy * vz - uz * vy
+        cy = uz * vx - ux * vz
+        cz = ux * vy - uy * vx
+        area2 = np.sqrt(cx * cx + cy * cy + cz * cz)
+        longest = max(_dist(points, a, points, b), _dist(points, a, points, c), _dist(points, b, points, c))
+        out[r] = area2 / max(longest, tiny)
+    return out
+
+
+@njit(cache=True)
 def gather_rows(out, points, i, j, k):
     """Rows ``i, j, k`` of ``points`` into the (3, 3) array ``out`` (a sample triangle)."""
     for r in range(3):

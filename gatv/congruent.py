@@ -70,6 +70,7 @@ class TargetIndex:
         check_memory(20.0 * n * n, f"the congruent-triple index of {n} target points", memory_budget)
         self.target = target
         self.plen, self.pi, self.pj = _k.pair_table(target)
+        self.plen_bounds, self.plen_step = _k.length_lookup(self.plen)
         self.ndist, self.nidx = _k.sorted_neighbours(target)
         self.set_radius(radius)
 
@@ -122,6 +123,7 @@ class TrialMotions:
     n_listed: int = 0  # congruent matches listed (of which n_congruent were scored)
     n_visited: int = -1  # source points visited in scoring them (-1: not counted)
     n_probes: int = 0  # binary searches and candidate points of the listing (its cost)
+    n_candidates: int = 0  # candidate triples of the wide draws (``wide`` a sample drawn)
 
     def __len__(self) -> int:
         return int(self.support.shape[0])
@@ -206,7 +208,7 @@ def expected_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex
     grow with it.  Long sides, where the target's pair lengths are sparse,
     give few matches.
     """
-    return np.prod(_side_widths(source, triples, index.plen, eps), axis=1, dtype=np.float64)
+    return np.prod(_side_widths(source, triples, index, eps), axis=1, dtype=np.float64)
 
 
 def predicted_matches(source: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
@@ -249,13 +251,10 @@ def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
     return np.where(p >= HALF_BOX_FROM * max_matches, box, 0.0)
 
 
-def _side_widths(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
-    """(M, 3) target pairs in the sorted lengths ``plen`` within ``eps`` of each side ``(0, 1), (0, 2), (1, 2)``."""
-    width = np.empty((triples.shape[0], 3), np.int64)
-    for q, (u, v) in enumerate(((0, 1), (0, 2), (1, 2))):
-        d = np.linalg.norm(points[triples[:, u]] - points[triples[:, v]], axis=1)
-        width[:, q] = np.maximum(np.searchsorted(plen, d + eps) - np.searchsorted(plen, d - eps), 0)
-    return width
+def _side_widths(points: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
+    """(M, 3) target pairs of ``index`` within ``eps`` of the length of each side ``(0, 1), (0, 2), (1, 2)``."""
+    return _k.side_widths(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triples, np.int64),
+                          index.plen, index.plen_bounds, index.plen_step, float(eps))
 
 
 def sample_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -365,9 +364,11 @@ def trial_motions(
     slope, offset = _sequential_test(n, index, accept, min_share) if sequential else (0.0, 0.0)
     n_visited = 0
     n_probes = 0
+    n_candidates = 0
     while drawn < max_triples:
         m = min(batch, max_triples - drawn)
         if wide > 1:
+            n_candidates += m * int(wide)
             pool_tri = sample_triples(n, m * int(wide), rng).reshape(m, int(wide), 3)
             cost = expected_matches(source, pool_tri.reshape(-1, 3), index, eps).reshape(m, int(wide))
             height = triangle_heights(source, pool_tri.reshape(-1, 3)).reshape(m, int(wide))
@@ -386,7 +387,7 @@ def trial_motions(
             if tri.shape[0] == 0:
                 tri = sample_triples(n, m, rng)
         drawn += tri.shape[0]
-        tri = rarest_side_first(source, tri, index.plen, eps)
+        tri = rarest_side_first(source, tri, index, eps)
         first_box = first_boxes(predicted_matches(source, tri, index, eps), max_matches)
         offsets = rng.integers(0, np.iinfo(np.int32).max, tri.shape[0])
         # A fresh visiting order a batch: the sequential test's misses of one
@@ -408,16 +409,17 @@ def trial_motions(
         if pool.best >= accept:
             break
     trials = pool.trials(index.radius, threshold, drawn, n_congruent)
-    return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited, n_probes=n_probes)
+    return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited, n_probes=n_probes,
+                               n_candidates=n_candidates)
 
 
-def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray, eps: float) -> np.ndarray:
+def rarest_side_first(points: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
     """``triples`` with each one's vertices reordered: the rarest side first, the rarer of the others second.
 
     The congruent listing scans the target pairs as long as the first side
     ``(0, 1)`` within ``eps`` (or, when they outnumber the target's points,
     every point's neighbours at that length), so the rarest length in the
-    target's sorted pair lengths ``plen`` makes the shortest scan.  For
+    target's sorted pair lengths (``index.plen``) makes the shortest scan.  For
     each pair ``(k, l)`` it scanned, the listing then tries the third
     points in ``k``'s neighbours at the length of side ``(0, 2)`` (those
     ``|bc|`` from ``l`` are kept): about ``2 w / n`` of them for a side
@@ -428,7 +430,7 @@ def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray,
     t = np.asarray(triples)
     if t.shape[0] == 0:
         return t
-    w = _side_widths(points, t, plen, eps)  # sides (0, 1), (0, 2), (1, 2)
+    w = _side_widths(points, t, index, eps)  # sides (0, 1), (0, 2), (1, 2)
     # Each vertex order's sides (0, 1) and (0, 2), as indices into ``w``.
     perms = np.array([[0, 1, 2], [1, 0, 2], [0, 2, 1], [2, 0, 1], [1, 2, 0], [2, 1, 0]])
     first = np.array([0, 0, 1, 1, 2, 2])
@@ -440,11 +442,7 @@ def rarest_side_first(points: np.ndarray, triples: np.ndarray, plen: np.ndarray,
 
 def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:
     """Smallest height of each triangle ``points[triples]``: twice its area over its longest side."""
-    a, b, c = (points[triples[:, q]] for q in range(3))
-    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    longest = np.maximum(np.maximum(np.linalg.norm(b - a, axis=1), np.linalg.norm(c - a, axis=1)),
-                         np.linalg.norm(c - b, axis=1))
-    return area2 / np.maximum(longest, np.finfo(np.float64).tiny)
+    return _k.triangle_heights(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triples, np.int64))
 
 
 def _min_height(source: np.ndarray) -> float:

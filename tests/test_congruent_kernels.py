@@ -131,6 +131,55 @@ def test_triangle_height_of_a_3_4_5_triangle():
 
 
 @settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 80), per_bucket=st.sampled_from([1, 3, 16, 1000]),
+       ties=st.booleans())
+def test_length_lookup_gives_numpys_lower_bound(seed, n, per_bucket, ties):
+    """Every lower bound through the bucket table equals ``np.searchsorted`` (side ``left``), at
+    lengths on, between and beyond the table's entries and its buckets' bounds."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-5, 5, (n, 3))
+    if ties:
+        p = np.round(p)  # repeated lengths, lengths on bucket bounds
+    plen = k.pair_table(p)[0]
+    bounds, step = k.length_lookup(plen, per_bucket)
+    assert bounds[0] == 0 and np.all(np.diff(bounds) >= 0)
+    queries = np.concatenate([plen, np.nextafter(plen, np.inf), np.nextafter(plen, -np.inf),
+                              step * np.arange(bounds.shape[0] + 2), rng.uniform(-1.0, plen[-1] + 1.0, 50),
+                              [-1.0, 0.0]])
+    got = np.array([k._lower_bound_lookup(plen, float(q), bounds, step) for q in queries])
+    assert np.array_equal(got, np.searchsorted(plen, queries))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(3, 60), eps=st.sampled_from([1e-9, 0.01, 0.3, 3.0]))
+def test_side_widths_against_numpy(seed, n, eps):
+    """The kernel's window of target pairs a side, against searchsorted on the sorted lengths."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(-5, 5, (n, 3)), rng.uniform(-5, 5, (n, 3))
+    index = TargetIndex(y, 0.1)
+    tri = sample_triples(n, 40, rng)
+    ref = np.empty((40, 3), np.int64)
+    for q, (u, v) in enumerate(((0, 1), (0, 2), (1, 2))):
+        d = np.linalg.norm(x[tri[:, u]] - x[tri[:, v]], axis=1)
+        ref[:, q] = np.maximum(np.searchsorted(index.plen, d + eps) - np.searchsorted(index.plen, d - eps), 0)
+    got = k.side_widths(x, tri, index.plen, index.plen_bounds, index.plen_step, eps)
+    assert np.array_equal(got, ref)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_triangle_heights_against_numpy(seed):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(15, 3))
+    tri = np.concatenate([sample_triples(15, 30, rng), [[0, 1, 1], [2, 2, 2]]])
+    a, b, c = (pts[tri[:, q]] for q in range(3))
+    longest = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - a, axis=1),
+                               np.linalg.norm(c - b, axis=1)]), axis=0)
+    ref = np.linalg.norm(np.cross(b - a, c - a), axis=1) / np.maximum(longest, np.finfo(np.float64).tiny)
+    assert np.allclose(triangle_heights(pts, tri), ref, rtol=1e-12, atol=0.0)
+
+
+@settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10**6), scale=st.floats(0.01, 100.0))
 def test_triangle_heights_are_rigid_invariant_and_scale_linearly(seed, scale):
     rng = np.random.default_rng(seed)
@@ -280,7 +329,7 @@ def test_rarest_side_first_keeps_the_triangles(seed, eps):
     y = rng.uniform(-3, 3, (15, 3))
     index = TargetIndex(y, 0.1)
     tri = sample_triples(12, 20, rng)
-    out = rarest_side_first(x, tri, index.plen, eps)
+    out = rarest_side_first(x, tri, index, eps)
     assert np.array_equal(np.sort(out, axis=1), np.sort(tri, axis=1))
 
     def width(t, u, v):

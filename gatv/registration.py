@@ -95,9 +95,10 @@ WIDE = 128
 #: :func:`gatv.congruent.trial_motions`).
 RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
 #: Default work bound of a search, in the search's work units (about a
-#: microsecond each on one core): a call fails with a reason instead of
-#: running on.  Deterministic: the same seed stops at the same point.
-MAX_WORK = 6e7
+#: microsecond of CPU each, :func:`gatv.stages.chunk_work`): a call fails
+#: with a reason instead of running on, after about 100 s of CPU, under a
+#: minute on two cores.  Deterministic: the same seed stops at the same point.
+MAX_WORK = 1e8
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
 #: machine the work bound alone can take minutes.
 TIME_LIMIT = 60.0

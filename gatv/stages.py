@@ -715,12 +715,45 @@ LISTING = 2.5
 SEARCH_SHARE = 20000.0
 #: Best model matches scored per trial sample.
 MAX_MATCHES = 64
+# Work units of :func:`search`, about a microsecond of CPU each: the costs
+# below were fitted (non-negative least squares) to the CPU time each
+# tolerance level took in whole searches, so that the round robin's equal
+# work is about equal CPU at fine and coarse levels alike (see the design
+# notes).
+#: Work units per sample drawn: its draw, reordering and share of the batch.
+SAMPLE_COST = 2.5
+#: Work units per candidate triple of a wide draw (its side windows and
+#: height, :func:`gatv.congruent.trial_motions`' ``wide``).
+CANDIDATE_COST = 0.5
 #: Work units per congruent match listed but not necessarily scored.
 LIST_COST = 0.2
 #: Work units per probe of the listing (a binary search in a sorted length
 #: list or a candidate third point): at fine tolerances a sample lists a
 #: few matches but still probes hundreds of target pairs.
-PROBE_COST = 0.05
+PROBE_COST = 0.1
+#: Work units per match scored (its pose), and per source point its count visited.
+SCORE_COST = 2.0
+VISIT_COST = 0.02
+
+
+def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
+    """Work units of one chunk of a search: the model's trial motions ``trials`` on ``n_source`` points.
+
+    Counted from what the chunk did, never from the clock, so that a seed
+    gives the same search everywhere: samples drawn (plus the model's own
+    ``triple_cost`` a sample) and the candidates of a wide draw, matches
+    listed and the listing's probes, matches scored and the source points
+    their counts visited (all ``n_source`` a match unless the model counts
+    fewer, see its sequential test).
+    """
+    visited = getattr(trials, "n_visited", -1)
+    if visited < 0:
+        visited = n_source * trials.n_congruent
+    listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
+    return ((SAMPLE_COST + triple_cost) * trials.n_triples
+            + CANDIDATE_COST * getattr(trials, "n_candidates", 0)
+            + LIST_COST * listed + PROBE_COST * getattr(trials, "n_probes", 0)
+            + SCORE_COST * trials.n_congruent + VISIT_COST * visited)
 #: Samples of the first chunk at each tolerance, before its cost is measured.
 FIRST_CHUNK = 2
 #: Samples at least in the costliest level's chunk: the model scores a
@@ -749,11 +782,10 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     the whole ``budget`` of samples of the finer, fruitless ones, and a
     coarse tolerance (many matching but wrong samples, each scored on every
     point) does not slow down an exact one.  Work is counted
-    deterministically, in microsecond-like units: 1 per sample drawn (plus
-    the model's ``triple_cost``), 0.2 per match listed, 0.05 per probe of
-    the listing (:data:`PROBE_COST`), 2 per match scored
-    and 0.03 per source point it visited (all ``n`` unless the model stops
-    early), so the same seed gives the same result.  The ``keep`` best
+    deterministically, in microsecond-like units (:func:`chunk_work`: the
+    samples drawn and their candidates, the matches listed and the
+    listing's probes, the matches scored and the points their counts
+    visited), so the same seed gives the same result.  The ``keep`` best
     trials of a chunk that reach the density test's chance level
     (:func:`density_tests` with ``judged_wrong``; ``None``: family-wise
     over every match) are judged by tensor voting (:func:`judge`), behind
@@ -768,8 +800,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     (:func:`beats_chance_at_some_level`), and its tolerance grown while its
     support grows beyond chance (``grow``, :func:`grow_tolerance`).
 
-    ``tried`` (a list) receives one record per tolerance: samples drawn,
-    matches scored and listed, points visited, work units spent, best trial
+    ``tried`` (a list) receives one record per tolerance: samples drawn and
+    their wide draws' candidates, matches scored and listed, points visited, work units spent, best trial
     support, the density test's threshold.
     ``max_matches`` caps the matches scored per sample (under noise a sample
     matches many target samples; the model scans them from a random start,
@@ -819,7 +851,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         # probability erf(listing / sqrt(2)): one factor a point of the sample.
         side_kept = float(erf(listing / np.sqrt(2.0)))
         caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
-        records = [{"tolerance": tol, "triples": 0, "congruent": 0, "listed": 0, "visited": 0, "work": 0.0,
+        records = [{"tolerance": tol, "triples": 0, "candidates": 0, "congruent": 0, "listed": 0, "visited": 0,
+                    "work": 0.0,
                     "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
         if tried is not None:
             tried.extend(records)
@@ -863,24 +896,17 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                                              keep=keep, max_matches=max_matches, accept=accept[level],
                                              **(options if busy else {}))
                 rec["triples"] += trials.n_triples
+                rec["candidates"] += getattr(trials, "n_candidates", 0)
                 rec["congruent"] += trials.n_congruent
-                cost = triple_cost(n2) if triple_cost is not None else 0.0
-                # A scored match costs its pose plus its visited source points (all
-                # of them unless the model counts fewer, see its sequential test).
                 visited = getattr(trials, "n_visited", -1)
                 rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
-                per_triple[level] = ((1.0 + cost)
-                                     + (2.0 * rec["congruent"] + 0.03 * rec["visited"]) / max(rec["triples"], 1))
                 listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
                 listed_total[level] += listed
                 rec["listed"] += listed
-                probes = getattr(trials, "n_probes", 0)
-                per_triple[level] += (LIST_COST * listed + PROBE_COST * probes) / max(trials.n_triples, 1)
-                chunk = ((1.0 + cost) * trials.n_triples + 2.0 * trials.n_congruent
-                         + 0.03 * (visited if visited >= 0 else n * trials.n_congruent) + LIST_COST * listed
-                         + PROBE_COST * probes)
+                chunk = chunk_work(trials, n, triple_cost(n2) if triple_cost is not None else 0.0)
                 rec["work"] += chunk
                 work += chunk
+                per_triple[level] = rec["work"] / max(rec["triples"], 1)
                 if len(trials):
                     rec["best_support"] = max(rec["best_support"], int(trials.support[0]))
                 if not len(trials) or trials.support[0] < accept[level]:

@@ -114,16 +114,18 @@ def test_hinge_gives_both_rigid_parts():
 
 
 def test_bent_bar_among_half_outliers_is_found_by_local_windows():
-    """A bar bent through 60 degrees and turned has no dominant rigid motion: the rigid start
-    recovers only part of it, a local window registered rigidly and grown ring by ring follows
-    the bend over the whole bar (section 5.1's local mode)."""
+    """A bar bent through 60 degrees and turned has no dominant rigid motion: a local window
+    registered rigidly and grown ring by ring follows the bend over the whole bar (section 5.1's
+    local mode).  The rigid start's coarse-to-fine growth may follow it too, from some first
+    motions of the search and not others; the local windows must reach the whole bar either way."""
     bar = deform.sample_plane(200, 10.0, seed=0) * [1.0, 0.3, 1.0]
     y = deform.rigid(deform.bend(bar, 60.0), 20.0, translation=(1.0, 2.0, 1.0))
     trial = deform.nonrigid_trial(bar, y, 0.5, seed=10)
     m = register(trial.source, trial.target)
-    assert m.info["hypothesis"] == "local"
     scores = m.info["hypotheses"]
-    assert scores["local"]["support"] > scores["rigid"]["support"]
+    assert scores["local"]["support"] >= 0.98 * len(bar)
+    assert m.info["hypothesis"] in ("local", "rigid")
+    assert scores[m.info["hypothesis"]]["support"] == max(h["support"] for h in scores.values())
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.98 and recall >= 0.95
     assert trial.warp_error(m.warp) < 0.05

@@ -19,6 +19,7 @@ from gatv.datasets import (
 from gatv.registration import (
     NOISY_MAX_MATCHES,
     RIGID_TRIALS,
+    WIDE,
     choose_pipeline,
     surface_likeness,
 )
@@ -98,13 +99,16 @@ def test_trial_motions_stay_under_their_bound_as_noise_grows(noise, seed):
     scored = sum(r["congruent"] for r in levels)
     triples = sum(r["triples"] for r in levels)
     assert scored <= NOISY_MAX_MATCHES * triples
-    # The bound is checked between chunks of samples: at most one chunk (>= 16 samples) per level past it.
-    per_match = 2.0 + 0.03 * n
-    one_chunk = 4096 * (1.0 + per_match * NOISY_MAX_MATCHES)
-    assert scored * per_match + triples <= max_work + len(levels) * one_chunk
-    # Each level's work record counts at least its samples and scored matches, and all of it stays bounded.
+    # The bound is checked between chunks of samples: at most one chunk (<= 4096 samples) per level past it.
+    per_match = stages.SCORE_COST + stages.VISIT_COST * n
+    one_chunk = 4096 * (stages.SAMPLE_COST + stages.CANDIDATE_COST * WIDE + per_match * NOISY_MAX_MATCHES)
+    assert scored * per_match + triples * stages.SAMPLE_COST <= max_work + len(levels) * one_chunk
+    # Each level's work record counts at least its samples, their wide draws and its scored matches,
+    # and all of it stays bounded.
     work = [r["work"] for r in levels]
-    assert all(w >= r["triples"] + 2.0 * r["congruent"] for w, r in zip(work, levels))
+    assert all(r["candidates"] <= WIDE * r["triples"] for r in levels)
+    assert all(w >= stages.SAMPLE_COST * r["triples"] + stages.CANDIDATE_COST * r["candidates"]
+               + stages.SCORE_COST * r["congruent"] for w, r in zip(work, levels))
     assert sum(work) <= max_work + len(levels) * one_chunk
     if not m:
         assert "reason" in m.info
@@ -125,7 +129,10 @@ def test_a_narrower_listing_lists_fewer_matches_a_sample(seed):
         rec = tried[0]
         listed[listing] = rec["listed"] / max(rec["triples"], 1)
         assert rec["congruent"] <= min(rec["listed"], NOISY_MAX_MATCHES * rec["triples"])
-        assert rec["work"] >= rec["triples"] + 2.0 * rec["congruent"] + 0.2 * rec["listed"]
+        assert rec["work"] >= (stages.SAMPLE_COST * rec["triples"] + stages.SCORE_COST * rec["congruent"]
+                               + stages.LIST_COST * rec["listed"] + stages.CANDIDATE_COST * rec["candidates"])
+        # After its first chunk this busy level draws its samples wide, and the candidates are counted.
+        assert 0 < rec["candidates"] <= WIDE * rec["triples"]
     assert listed[1.0] < listed[2.5]
 
 

@@ -78,8 +78,8 @@ def sorted_neighbours(points):
 
 
 @njit(cache=True)
-def _lower_bound(a, x):
-    lo, hi = 0, a.shape[0]
+def _lower_bound_in(a, x, lo, hi):
+    """First index ``i`` in ``[lo, hi]`` with ``a[i] >= x`` (``a`` ascending; the answer known to lie there)."""
     while lo < hi:
         mid = (lo + hi) >> 1
         if a[mid] < x:
@@ -90,15 +90,9 @@ def _lower_bound(a, x):
 
 
 @njit(cache=True)
-def _lower_bound_in(a, x, lo, hi):
-    """:func:`_lower_bound` of ``x`` in ``a``, known to lie in ``[lo, hi]``."""
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if a[mid] < x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
+def _lower_bound(a, x):
+    """First index of the ascending ``a`` with ``a[i] >= x`` (``np.searchsorted``, side ``left``)."""
+    return _lower_bound_in(a, x, 0, a.shape[0])
 
 
 @njit(cache=True)

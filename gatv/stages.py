@@ -41,6 +41,7 @@ __all__ = [
     "Votes",
     "beats_chance_at_some_level",
     "candidate_tokens",
+    "chunk_work",
     "constraint",
     "density_tests",
     "failure",
@@ -731,9 +732,22 @@ LIST_COST = 0.2
 #: list or a candidate third point): at fine tolerances a sample lists a
 #: few matches but still probes hundreds of target pairs.
 PROBE_COST = 0.1
-#: Work units per match scored (its pose), and per source point its count visited.
+#: Work units per match scored (its pose).
 SCORE_COST = 2.0
+#: Work units per source point a match's count visits.
 VISIT_COST = 0.02
+#: Samples of the first chunk at each tolerance, before its cost is measured.
+FIRST_CHUNK = 2
+#: Samples at least in the costliest level's chunk: the model scores a
+#: chunk's samples in parallel, and a coarse level whose samples cost
+#: milliseconds each would otherwise run two or three to a chunk, leaving
+#: threads idle while the slowest finishes.  Every level's share of a round
+#: grows alike, so the levels still get equal work.  A constant, not the
+#: thread count, so that a seed gives the same result on every machine.
+MIN_CHUNK = 8
+#: Matches listed per sample from which :func:`search` passes its
+#: ``trial_options`` (ways of coping with many matches) to the model.
+OPTIONS_FROM = 8
 
 
 def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
@@ -754,18 +768,6 @@ def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
             + CANDIDATE_COST * getattr(trials, "n_candidates", 0)
             + LIST_COST * listed + PROBE_COST * getattr(trials, "n_probes", 0)
             + SCORE_COST * trials.n_congruent + VISIT_COST * visited)
-#: Samples of the first chunk at each tolerance, before its cost is measured.
-FIRST_CHUNK = 2
-#: Samples at least in the costliest level's chunk: the model scores a
-#: chunk's samples in parallel, and a coarse level whose samples cost
-#: milliseconds each would otherwise run two or three to a chunk, leaving
-#: threads idle while the slowest finishes.  Every level's share of a round
-#: grows alike, so the levels still get equal work.  A constant, not the
-#: thread count, so that a seed gives the same result on every machine.
-MIN_CHUNK = 8
-#: Matches listed per sample from which :func:`search` passes its
-#: ``trial_options`` (ways of coping with many matches) to the model.
-OPTIONS_FROM = 8
 
 
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
@@ -801,8 +803,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     support grows beyond chance (``grow``, :func:`grow_tolerance`).
 
     ``tried`` (a list) receives one record per tolerance: samples drawn and
-    their wide draws' candidates, matches scored and listed, points visited, work units spent, best trial
-    support, the density test's threshold.
+    their wide draws' candidates, matches scored and listed, points
+    visited, work units spent, best trial support, the density test's
+    threshold.
     ``max_matches`` caps the matches scored per sample (under noise a sample
     matches many target samples; the model scans them from a random start,
     so a capped scan is an unbiased share of them); ``max_work`` caps the
@@ -852,8 +855,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         side_kept = float(erf(listing / np.sqrt(2.0)))
         caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
         records = [{"tolerance": tol, "triples": 0, "candidates": 0, "congruent": 0, "listed": 0, "visited": 0,
-                    "work": 0.0,
-                    "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
+                    "work": 0.0, "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
         if tried is not None:
             tried.extend(records)
         triple_cost = getattr(model, "triple_cost", None)

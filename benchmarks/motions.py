@@ -62,6 +62,7 @@ Prints a markdown table; writes ``motions.csv`` and ``motions_trials.csv``.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -414,10 +415,7 @@ def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB (Linux)
 
 
-#: Whether this process has made its untimed first calls (:func:`warm_up`).
-_WARM = False
-
-
+@functools.cache
 def warm_up() -> None:
     """Untimed small calls, once a process, so that no trial's time holds the kernels' compilation.
 
@@ -425,9 +423,6 @@ def warm_up() -> None:
     on a clean clone) or loads them from numba's cache: a small noisy
     two-motion scene through ``segment`` and a small noisy ``register``.
     """
-    global _WARM
-    if _WARM:
-        return
     from gatv import register
     from gatv.datasets import table2_trial
 
@@ -440,7 +435,6 @@ def warm_up() -> None:
     segment(source, target)
     trial = table2_trial(0.5, noise=0.01, seed=12345)
     register(trial.source, trial.target, seed=0)
-    _WARM = True
 
 
 def run_task(task: tuple) -> list[dict]:

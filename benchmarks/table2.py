@@ -36,6 +36,7 @@ gatv's kernels.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -123,10 +124,7 @@ NOISE_FRACTIONS = (0.5, 0.75, 0.9)
 NOISE_MAX_ANGLE = 2.0
 
 
-#: Whether this process has made its untimed first call (:func:`warm_up`).
-_WARM = False
-
-
+@functools.cache
 def warm_up() -> None:
     """One untimed call on a small exact and a small noisy trial, once a process.
 
@@ -134,9 +132,6 @@ def warm_up() -> None:
     more) or loads them from numba's cache; without this, the first trial of
     a table carries that time, on the clean clone the most of all.
     """
-    global _WARM
-    if _WARM:
-        return
     import numpy as np
 
     from gatv.registration import register
@@ -144,7 +139,6 @@ def warm_up() -> None:
     for noise in (0.0, 0.01):
         trial = table2_trial(0.5, noise=noise, seed=np.random.SeedSequence([12345, 1]))
         register(trial.source, trial.target, seed=0)
-    _WARM = True
 
 
 def noise_trial(task: tuple) -> dict:

@@ -750,6 +750,15 @@ MIN_CHUNK = 8
 OPTIONS_FROM = 8
 
 
+def _listed_and_visited(trials, n_source: int) -> tuple[int, int]:
+    """Matches a chunk listed (at least those it scored) and source points its counts visited
+    (all ``n_source`` a scored match when the model does not count them)."""
+    visited = getattr(trials, "n_visited", -1)
+    if visited < 0:
+        visited = n_source * trials.n_congruent
+    return max(getattr(trials, "n_listed", 0), trials.n_congruent), visited
+
+
 def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
     """Work units of one chunk of a search: the model's trial motions ``trials`` on ``n_source`` points.
 
@@ -760,10 +769,7 @@ def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
     their counts visited (all ``n_source`` a match unless the model counts
     fewer, see its sequential test).
     """
-    visited = getattr(trials, "n_visited", -1)
-    if visited < 0:
-        visited = n_source * trials.n_congruent
-    listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
+    listed, visited = _listed_and_visited(trials, n_source)
     return ((SAMPLE_COST + triple_cost) * trials.n_triples
             + CANDIDATE_COST * getattr(trials, "n_candidates", 0)
             + LIST_COST * listed + PROBE_COST * getattr(trials, "n_probes", 0)
@@ -862,7 +868,6 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         done = [0] * len(levels)
         per_triple = [SEARCH_SHARE / FIRST_CHUNK] * len(levels)  # first chunk: a few samples, then measured
         options = dict(trial_options or {})
-        listed_total = [0] * len(levels)
         work = 0.0
         # Tests the judge's level counts (its calls, up to ``judged_wrong`` wrong
         # ones), and the final level's (every match the budget scores).
@@ -893,18 +898,16 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 # The model's options for many matches a sample (``trial_options``)
                 # only where the samples so far had many: they cost more than they
                 # save on exact data.
-                busy = rec["triples"] > 0 and listed_total[level] >= OPTIONS_FROM * rec["triples"]
+                busy = rec["triples"] > 0 and rec["listed"] >= OPTIONS_FROM * rec["triples"]
                 trials = model.trial_motions(problem.source, indexes[level], eps=eps, max_triples=m, rng=rng,
                                              keep=keep, max_matches=max_matches, accept=accept[level],
                                              **(options if busy else {}))
                 rec["triples"] += trials.n_triples
                 rec["candidates"] += getattr(trials, "n_candidates", 0)
                 rec["congruent"] += trials.n_congruent
-                visited = getattr(trials, "n_visited", -1)
-                rec["visited"] += visited if visited >= 0 else n * trials.n_congruent
-                listed = max(getattr(trials, "n_listed", 0), trials.n_congruent)
-                listed_total[level] += listed
+                listed, visited = _listed_and_visited(trials, n)
                 rec["listed"] += listed
+                rec["visited"] += visited
                 chunk = chunk_work(trials, n, triple_cost(n2) if triple_cost is not None else 0.0)
                 rec["work"] += chunk
                 work += chunk

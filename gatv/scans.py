@@ -50,8 +50,17 @@ from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
-__all__ = ["register_scans", "register_surfaces", "match_surfaces", "SurfaceMatch", "voxel_downsample",
-           "surface_points", "refine_point_to_plane", "plane_noise"]
+__all__ = [
+    "SurfaceMatch",
+    "match_surfaces",
+    "matching_voxel",
+    "plane_noise",
+    "refine_point_to_plane",
+    "register_scans",
+    "register_surfaces",
+    "surface_points",
+    "voxel_downsample",
+]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -250,7 +259,9 @@ def register_surfaces(
         The scans, possibly with clutter; they need only overlap partly.
     n_points : int, default: 600
         Points left in the target after voxel downsampling; sets the voxel
-        size when ``voxel`` is not given.
+        size when ``voxel`` is not given (at least :data:`SAMPLING_VOXELS`
+        point spacings of the more coarsely sampled scan, see
+        :func:`matching_voxel`).
     voxel : float, optional
         Voxel size (data units); the matching tolerance scale.
     seed : int or numpy.random.Generator, default: 0
@@ -350,6 +361,32 @@ class SurfaceMatch:
 #: Source points of the point-to-plane polish (a random subsample of larger scans).
 FINE_SAMPLE = 8000
 
+#: Smallest voxel of :func:`match_surfaces`, in median point spacings of the
+#: more coarsely sampled scan: a voxel holds a few of its points (about four
+#: on a surface), so both scans' voxel centroids are local means of their
+#: surfaces, not of one scan's sample positions.
+SAMPLING_VOXELS = 2.0
+
+
+def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int) -> float:
+    """Voxel of :func:`match_surfaces`: about ``n_points`` occupied target cells, and at least
+    :data:`SAMPLING_VOXELS` median spacings of the more coarsely sampled of the two scans.
+
+    Scans sampled differently (a 40k-point range scan against a 450-vertex
+    mesh) have their congruent triples matched within a voxel: a voxel
+    finer than the coarse scan's spacing leaves its points where they were
+    sampled and the dense scan's centroids elsewhere, and no triple matches.
+    """
+    voxel = _voxel_for(Ys, int(n_points))
+    coarse = max(median_spacing(_sample_rows(Xs)), median_spacing(_sample_rows(Ys)))
+    return max(voxel, SAMPLING_VOXELS * coarse)
+
+
+def _sample_rows(points: np.ndarray, n: int = 20000) -> np.ndarray:
+    """At most ``n`` evenly strided rows of ``points`` (a spacing estimate needs no more)."""
+    step = max(1, points.shape[0] // n)
+    return points[::step]
+
 
 def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float | None = None, seed: int = 0,
                    min_overlap: float = MIN_OVERLAP, confidence: float = 0.999, max_triples: int | None = None,
@@ -362,7 +399,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     :func:`surface_points`) and ``target_normals`` the target's unit normals
     there, so that a caller registering many subsets of two scans (motion
     segmentation) votes on each scan once.  Downsampling on one voxel grid
-    of about ``n_points`` target cells, normal-pruned congruent triples
+    of about ``n_points`` target cells (:func:`matching_voxel`), normal-pruned congruent triples
     (drawn for the share ``min_overlap`` of overlapping points with
     ``confidence``), tensor voting judging the ``n_judged`` best trials,
     rivals polished and compared (:data:`RIVAL_SHARE`), point-to-plane ICP
@@ -377,7 +414,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     info: dict = {}
     none = np.empty((0, 2), np.int64)
     if voxel is None:
-        voxel = _voxel_for(Ys, int(n_points))
+        voxel = matching_voxel(Xs, Ys, n_points)
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
     info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:

@@ -14,7 +14,7 @@ from gatv.scans import surface_points, voxel_downsample
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def _resampled_sphere_pair(seed=0):
+def _resampled_sphere_pair(seed=0, n_source=3000, n_target=3000):
     """Two different random samplings of one bumpy closed surface, moved apart."""
     rng = np.random.default_rng(seed)
 
@@ -26,8 +26,8 @@ def _resampled_sphere_pair(seed=0):
              + 0.15 * np.cos(1.7 * x - 2.3 * y + 1.1 * z + 1.0) + 0.1 * np.sin(3 * z + 0.2))
         return u * r[:, None] * np.array([1.0, 0.8, 0.6])
 
-    src = sample(3000)
-    tgt = sample(3000)
+    src = sample(n_source)
+    tgt = sample(n_target)
     R = Rotor.from_axis_angle([0.3, -1.0, 0.4], np.radians(140.0))
     t = np.array([2.0, -1.0, 0.5])
     return src, (R >> tgt) + t, R.as_matrix(), t
@@ -57,6 +57,26 @@ def test_differently_sampled_surfaces_register():
     m = register_scans(src, tgt, seed=0, n_points=300, max_triples=60)
     assert rotation_error_deg(m.rotation, R) < 0.5
     assert np.linalg.norm(m.translation - t) < 0.01
+    c = m.correspondences
+    assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
+
+
+@pytest.mark.parametrize(("n_source", "n_target"), [(20000, 300), (300, 20000)])
+def test_a_dense_and_a_sparse_sampling_register(n_source, n_target):
+    """A dense scan against a coarse sampling of the same surface (a mesh's few hundred vertices):
+    the matching voxel follows the coarser sampling, so both sets' voxel centroids are local means of
+    the surface.  Fewer target points than ``n_points`` used to give a voxel far below the coarse
+    spacing, and no congruent triple."""
+    from gatv.candidates import median_spacing
+    from gatv.scans import SAMPLING_VOXELS, matching_voxel
+
+    src, tgt, R, t = _resampled_sphere_pair(1, n_source, n_target)
+    coarse = median_spacing(src if n_source < n_target else tgt)
+    assert matching_voxel(src, tgt, 600) >= SAMPLING_VOXELS * coarse
+    m = register_scans(src, tgt, seed=0)
+    assert m, m.info.get("reason")
+    assert rotation_error_deg(m.rotation, R) < 2.0
+    assert np.linalg.norm(m.translation - t) < 0.2 * coarse
     c = m.correspondences
     assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
 

@@ -544,8 +544,14 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
         if found_info.get("rival"):
             extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
-        if judge(*found, "search", part, extra, least=smallest) in ("chance", "noise", "ambiguous"):
+        verdict = judge(*found, "search", part, extra, least=smallest)
+        if verdict in ("chance", "noise", "ambiguous"):
             tried[part] = True
+        elif verdict == "kept":
+            # The parts searched in vain so far are searched again: the kept motion's target
+            # points have left the pool, and with them the surfaces that a part's wrong motion
+            # laid it onto (an object searched before a larger one whose surfaces it also fits).
+            tried[:] = False
 
     # Labels: each point to the kept motion that brings it closest to the other scan.
     src_lab = np.full(n1, -1, np.int64)

@@ -50,6 +50,7 @@ __all__ = [
     "grow_tolerance",
     "joint_spaces",
     "judge",
+    "listed_share",
     "make_result",
     "motion_result",
     "nearest_pairs",
@@ -708,6 +709,22 @@ def density_tests(n_matches: float, judged_wrong: float | None = JUDGED_WRONG) -
     return max(1.0, ALPHA * float(n_matches) / float(judged_wrong))
 
 
+def listed_share(listing: float, sample_points: int = 3) -> float:
+    """Share of all-inlier samples whose true match a congruent listing at ``listing`` keeps.
+
+    A side's length error is Gaussian (four noisy points projected on it);
+    the listing keeps a match when each side is within ``listing`` standard
+    deviations, ``2Φ(listing) − 1`` for one side, about that to the power of
+    the ``sample_points`` sides (taken as independent).  The matches listed
+    per sample grow as ``listing³`` (target triangles within the tolerance
+    of all three sides) while the all-inlier samples listed grow as this
+    share, so the work per motion found goes as ``(listing / (2Φ(listing) −
+    1))³``: 16.2 at 2.5 standard deviations, 3.1 at one, 2.0 at the limit
+    of none, where the samples drawn grow without bound.
+    """
+    return float(erf(float(listing) / np.sqrt(2.0)) ** sample_points)
+
+
 #: Default side-length tolerance of :func:`search`'s congruent listing, in
 #: standard deviations of a side's length error at the level's tolerance.
 LISTING = 2.5
@@ -856,9 +873,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
                   for idx in indexes]
         k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
-        # Each side of a true sample stays within the listing's tolerance with
-        # probability erf(listing / sqrt(2)): one factor a point of the sample.
-        side_kept = float(erf(listing / np.sqrt(2.0)))
+        # Each side of a true sample stays within the listing's tolerance
+        # (listed_share of one side): one factor a point of the sample.
+        side_kept = listed_share(listing, 1)
         caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
         records = [{"tolerance": tol, "triples": 0, "candidates": 0, "congruent": 0, "listed": 0, "visited": 0,
                     "work": 0.0, "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]

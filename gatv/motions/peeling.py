@@ -48,7 +48,7 @@ from .._validation import (
 )
 from ..errors import InputError
 from ..models.base import split_matrix
-from ..stages import Fit, Problem
+from ..stages import Fit, Problem, listed_share
 from .segmentation import Segmentation
 
 __all__ = [
@@ -76,24 +76,6 @@ LISTING = 1.0
 #: costs as much as scoring: on 1%/2% K=4 rounds 32 beat 2, 8 and 128
 #: (:data:`gatv.registration.WIDE`, which suits wide listings).
 LISTING_WIDE = 32
-
-
-def listed_share(listing: float, sample_points: int = 3) -> float:
-    """Share of all-inlier samples whose true match a congruent listing at ``listing`` keeps.
-
-    A side's length error is Gaussian (four noisy points projected on it);
-    the listing keeps a match when each side is within ``listing`` standard
-    deviations, ``2Φ(listing) − 1`` for one side, about that to the power of
-    the ``sample_points`` sides (taken as independent).  The matches listed
-    per sample grow as ``listing³`` (target triangles within the tolerance
-    of all three sides) while the all-inlier samples listed grow as this
-    share, so the work per motion found goes as ``(listing / (2Φ(listing) −
-    1))³``: 16.2 at 2.5 standard deviations, 3.1 at one, 2.0 at the limit
-    of none, where the samples drawn grow without bound.
-    """
-    from scipy.special import erf
-
-    return float(erf(float(listing) / np.sqrt(2.0)) ** sample_points)
 
 
 def _sample_space(model, n: int) -> int:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
@@ -339,42 +338,34 @@ def test_generators_reject_bad_input():
 
 
 # ------------------------------------------------------------------ command line
-def _parse(argv):
-    from gatv.cli.nonrigid import add_parser
-
-    parser = argparse.ArgumentParser(prog="gatv")
-    add_parser(parser.add_subparsers(dest="command"))
-    return parser.parse_args(argv)
-
-
-def test_cli_run_writes_json(tmp_path, capsys):
+def test_cli_run_writes_json(tmp_path, capsys, parse_nonrigid):
     from gatv.cli.nonrigid import run
 
     x = deform.sample_plane(60, 10.0, seed=8)
     np.save(tmp_path / "s.npy", x)
     np.save(tmp_path / "t.npy", deform.twist(x, 45.0)[::-1])
     out = tmp_path / "r.json"
-    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--out", str(out)])
+    args = parse_nonrigid(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--out", str(out)])
     assert run(args) == 0
     record = json.loads(out.read_text())
     assert record["success"] and record["support"] >= 55
     assert len(record["correspondences"]) == record["support"]
     assert "correspondences:" in capsys.readouterr().out
     assert record["options"]["prealign"] == "auto" and record["info"]["hypothesis"] in ("voting", "coarse")
-    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--prealign", "never", "-q"])
+    args = parse_nonrigid(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--prealign", "never", "-q"])
     assert run(args) == 0
 
 
-def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
+def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, parse_nonrigid):
     from gatv.cli.nonrigid import run
 
     np.save(tmp_path / "s.npy", np.zeros((10, 2)))
     np.save(tmp_path / "t.npy", deform.sample_plane(10, seed=0))
     out = tmp_path / "r.json"
-    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--out", str(out)])
+    args = parse_nonrigid(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--out", str(out)])
     assert run(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("gatv: error:")
     assert not out.exists()
-    args = _parse(["nonrigid", str(tmp_path / "missing.npy"), str(tmp_path / "t.npy")])
+    args = parse_nonrigid(["nonrigid", str(tmp_path / "missing.npy"), str(tmp_path / "t.npy")])
     assert run(args) == 2

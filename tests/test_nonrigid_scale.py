@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
@@ -431,15 +430,7 @@ def test_motion_parts_splits_disconnected_and_discontinuous_matches():
 
 
 # ------------------------------------------------------------------ command line
-def _parse(argv):
-    from gatv.cli.nonrigid import add_parser
-
-    parser = argparse.ArgumentParser(prog="gatv")
-    add_parser(parser.add_subparsers(dest="command"))
-    return parser.parse_args(argv)
-
-
-def test_cli_segment_writes_labels(tmp_path, capsys):
+def test_cli_segment_writes_labels(tmp_path, capsys, parse_nonrigid):
     from gatv.cli.nonrigid import run
 
     a = deform.sample_plane(80, 10.0, seed=0)
@@ -447,7 +438,7 @@ def test_cli_segment_writes_labels(tmp_path, capsys):
     np.save(tmp_path / "s.npy", np.vstack([a, b]))
     np.save(tmp_path / "t.npy", np.vstack([deform.twist(a, 45.0), deform.bend(b, 60.0) + [0, 0, 3]]))
     out = tmp_path / "r.json"
-    args = _parse(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--segment",
+    args = parse_nonrigid(["nonrigid", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--segment",
                    "--out", str(out)])
     assert run(args) == 0
     record = json.loads(out.read_text())

@@ -399,11 +399,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     :func:`surface_points`) and ``target_normals`` the target's unit normals
     there, so that a caller registering many subsets of two scans (motion
     segmentation) votes on each scan once.  Downsampling on one voxel grid
-    of about ``n_points`` target cells (:func:`matching_voxel`), normal-pruned congruent triples
-    (drawn for the share ``min_overlap`` of overlapping points with
-    ``confidence``), tensor voting judging the ``n_judged`` best trials,
-    rivals polished and compared (:data:`RIVAL_SHARE`), point-to-plane ICP
-    with a gate shrinking from a voxel to three point spacings.  Options as
+    of about ``n_points`` target cells (:func:`matching_voxel`),
+    normal-pruned congruent triples (drawn for the share ``min_overlap`` of
+    overlapping points with ``confidence``), tensor voting judging the
+    ``n_judged`` best trials, rivals polished and compared
+    (:data:`RIVAL_SHARE`), point-to-plane ICP with a gate shrinking from a
+    voxel to three point spacings.  Options as
     in :func:`register_surfaces`; they are not checked again here.  The
     polish runs on :data:`FINE_SAMPLE` source points, its levels above the
     finest on ``coarse_points`` of them (fewer: faster, but rivals a degree

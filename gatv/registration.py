@@ -369,8 +369,7 @@ def register(
         beats the chance level.  ``info["ambiguous"]`` is true when a
         distinct motion explains the data nearly as well (a symmetric
         object; :func:`symmetry_rival` on the exact path, the surface
-        rivals on the scans path), with ``info["rival"]`` describing it
-        (on the scans path also its motion, ``"matrix"``, 4x4 nested lists).
+        rivals on the scans path), with ``info["rival"]`` describing it.
 
     Raises
     ------

@@ -491,8 +491,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             R, t, g, on, Rr, on_r = Rr, tr, gr, on_r, R, on
         if on_r >= RIVAL_SHARE * on:
             info["ambiguous"] = True
-            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T),
-                             "matrix": homogeneous(Rr, tr).tolist()}
+            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
     pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
     info.update(final_gate=g, on_surface=on)

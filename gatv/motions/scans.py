@@ -34,8 +34,7 @@ found"):
    plane (as thin as the scans' noise) slides along that plane with equal
    support, and a part that the search fits nearly as well by a distinct
    rival motion (``ambiguous``: it slides on a curved surface, or matches
-   two), when the rival's own support beats the chance levels too, has no
-   determined motion either: neither is kept, the plane is
+   two) has no determined motion either: neither is kept, the plane is
    reported in ``info["degenerate"]`` (its points set aside, not peeled
    into a set of spurious motions), the other in ``info["ambiguous"]``.
    A plane that the identity explains (a floor, a wall) is kept as the
@@ -438,7 +437,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     free_t = np.ones(n2, bool)
     rounds, degenerate, ambiguous = [], [], []
 
-    def judge(R, t, kind, src, extra, least=4, rival=None):
+    def judge(R, t, kind, src, extra, least=4):
         """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones.
 
         A plane is reported degenerate only when its support reaches ``least``,
@@ -476,10 +475,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             verdict = "chance"
         elif not fit_noise <= NOISE_FACTOR * scan_noise:
             verdict = "noise"
-        elif searched and extra.get("ambiguous") and rival_beats_chance(rec, rival, src, tree):
-            # A distinct rival motion fits the part nearly as well (gatv.scans.RIVAL_SHARE), and
-            # better than random motions do: the part slides on a target surface or matches two of
-            # them; the data do not fix its motion.
+        elif searched and extra.get("ambiguous"):
+            # A distinct rival motion fits the part nearly as well (gatv.scans.RIVAL_SHARE): the
+            # part slides on a target surface or matches two of them; the data do not fix its motion.
             verdict = "ambiguous"
             ambiguous.append({"points": support, "rival_angle_deg": extra.get("rival_angle_deg"),
                               "centroid": X[src[inl]].mean(axis=0).tolist()})
@@ -506,15 +504,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                 static_s[mine] = True
         rec["verdict"] = verdict
         return verdict
-
-    def rival_beats_chance(rec, rival, src, tree):
-        """Whether the search's ``rival`` motion (4x4) supports the part beyond the chance levels
-        the kept motion had to beat: a rival that random motions match is no evidence that the
-        part's motion is undetermined.  Without the rival's motion, assumed so."""
-        if rival is None:
-            return True
-        rec["rival_support"] = int(np.count_nonzero(_support(X[src], tree, rival[:3, :3], rival[:3, 3], gate)))
-        return rec["rival_support"] > max(rec["chance"], rec.get("part_chance", 0))
 
     kept: list = []
     static_s = np.zeros(n1, bool)
@@ -553,11 +542,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             tried[part] = True
             continue
         extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
-        rival = found_info.get("rival")
-        if rival:
-            extra["rival_angle_deg"] = float(rival["angle_deg"])
-        verdict = judge(*found, "search", part, extra, least=smallest,
-                        rival=np.asarray(rival["matrix"], dtype=np.float64) if rival and "matrix" in rival else None)
+        if found_info.get("rival"):
+            extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
+        verdict = judge(*found, "search", part, extra, least=smallest)
         if verdict in ("chance", "noise", "ambiguous"):
             tried[part] = True
         elif verdict == "kept":

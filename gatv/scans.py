@@ -488,7 +488,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                 and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
             continue  # polishing brought it onto the best motion
         if on_r > on:
-            R, t, g, on, Rr, on_r = Rr, tr, gr, on_r, R, on
+            R, t, g, on, Rr, tr, gr, on_r = Rr, tr, gr, on_r, R, t, g, on
         if on_r >= RIVAL_SHARE * on:
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}

@@ -368,7 +368,7 @@ FINE_SAMPLE = 8000
 SAMPLING_VOXELS = 2.0
 
 
-def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int) -> float:
+def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int, *, target_spacing: float | None = None) -> float:
     """Voxel of :func:`match_surfaces`: about ``n_points`` occupied target cells, and at least
     :data:`SAMPLING_VOXELS` median spacings of the more coarsely sampled of the two scans.
 
@@ -376,16 +376,12 @@ def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int) -> float:
     mesh) have their congruent triples matched within a voxel: a voxel
     finer than the coarse scan's spacing leaves its points where they were
     sampled and the dense scan's centroids elsewhere, and no triple matches.
+    ``target_spacing``: ``median_spacing(Ys)`` when the caller has it.
     """
-    voxel = _voxel_for(Ys, int(n_points))
-    coarse = max(median_spacing(_sample_rows(Xs)), median_spacing(_sample_rows(Ys)))
-    return max(voxel, SAMPLING_VOXELS * coarse)
-
-
-def _sample_rows(points: np.ndarray, n: int = 20000) -> np.ndarray:
-    """At most ``n`` evenly strided rows of ``points`` (a spacing estimate needs no more)."""
-    step = max(1, points.shape[0] // n)
-    return points[::step]
+    if target_spacing is None:
+        target_spacing = median_spacing(Ys)
+    coarse = max(median_spacing(Xs), target_spacing)
+    return max(_voxel_for(Ys, int(n_points)), SAMPLING_VOXELS * coarse)
 
 
 def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float | None = None, seed: int = 0,
@@ -414,8 +410,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     report = progress if progress is not None else (lambda fraction, message="": None)
     info: dict = {}
     none = np.empty((0, 2), np.int64)
+    target_spacing = median_spacing(Ys)
     if voxel is None:
-        voxel = matching_voxel(Xs, Ys, n_points)
+        voxel = matching_voxel(Xs, Ys, n_points, target_spacing=target_spacing)
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
     info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:
@@ -456,7 +453,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     # Polish: point-to-plane ICP with a shrinking gate, using the target's
     # normals.
     report(0.85, "refine")
-    fine = 3.0 * median_spacing(Ys)
+    fine = 3.0 * target_spacing
     tree = cKDTree(Ys)
     rng_sub = np.random.default_rng(seed)
     sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]

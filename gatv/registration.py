@@ -156,6 +156,12 @@ SCAN_MIN_POINTS = 1500
 #: sampled surface (a volume of scattered points gives about 0.1 to 0.2; a
 #: densely sampled surface the squared noise over the squared spacing).
 SURFACE_PLANARITY = 0.03
+#: Largest share of a set in the neighbourhoods that measure its noise
+#: (:func:`gatv.scans.scan_noise`) for the set to count as a noisy surface:
+#: on a surface the plane fits' residual settles at the noise once the
+#: neighbourhoods reach five deviations; in a volume it grows with them
+#: (a ball's points deviate from any plane by 0.45 of its radius) and never does.
+SURFACE_NEIGHBOURHOOD = 0.125
 
 
 def surface_likeness(points: np.ndarray, *, k: int = 12, sample: int = 400, seed: int = 0) -> float:
@@ -188,8 +194,11 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
     Scans when either set has more than :data:`EXACT_MAX_POINTS` points or
     its congruent-triple index would not fit the memory budget, or when
     both sets have at least :data:`SCAN_MIN_POINTS` points lying on surfaces
-    (:func:`surface_likeness` below :data:`SURFACE_PLANARITY`): dense
-    samplings of surfaces, which two scans never sample at the same points.
+    (:func:`surface_likeness` below :data:`SURFACE_PLANARITY`, or, for
+    surfaces noisier than their sampling, a noise that neighbourhoods of at
+    most :data:`SURFACE_NEIGHBOURHOOD` of the points measure,
+    :func:`gatv.scans.scan_noise`): dense samplings of surfaces, which two
+    scans never sample at the same points.
     Exact otherwise.
     """
     from ._validation import memory_budget_limit
@@ -208,6 +217,13 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
         if flat < SURFACE_PLANARITY:
             return "scans", (f"{n1} and {n2} points on surfaces (local planarity {flat:.3g} < "
                              f"{SURFACE_PLANARITY})")
+        # Noisier than the sampling, a surface is not flat at twelve neighbours; at the noise's own scale it is.
+        from .scans import scan_noise
+
+        share = max(scan_noise(X).neighbours / n1, scan_noise(Y).neighbours / n2)
+        if share <= SURFACE_NEIGHBOURHOOD:
+            return "scans", (f"{n1} and {n2} points on noisy surfaces (their noise measured on neighbourhoods of "
+                             f"{share:.1%} of the points)")
     return "exact", f"{n1} and {n2} points, not dense surfaces"
 
 

@@ -24,6 +24,13 @@ dense scans) makes the problem fit the method again:
    one-to-one least-squares fit follows (as :func:`gatv.register`).
 5. **Point-to-plane ICP polish** (with the tensor-voting normals) with a
    gate shrinking from a voxel to a few point spacings.
+
+In stage 1 each scan's noise is measured about its surface points
+(:func:`scan_noise`), and a scan whose noise spans a few point spacings is
+projected onto its surface (:func:`project_to_surface`) before the vote that
+keeps its surface points: the ICP of stage 5 pairs each point with its
+nearest neighbour, which in a noisy shell lies as often across the shell as
+along the surface (:func:`surface_tokens`).
 """
 
 from __future__ import annotations
@@ -45,20 +52,27 @@ from ._validation import (
 )
 from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
+from .errors import InputError
 from .ga import rotation_angle_deg
 from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
 __all__ = [
+    "ScanNoise",
     "SurfaceMatch",
+    "SurfaceProjection",
+    "SurfaceTokens",
     "match_surfaces",
     "matching_voxel",
     "plane_noise",
+    "project_to_surface",
     "refine_point_to_plane",
     "register_scans",
     "register_surfaces",
+    "scan_noise",
     "surface_points",
+    "surface_tokens",
     "voxel_downsample",
 ]
 
@@ -89,6 +103,177 @@ def _voxel_for(points: np.ndarray, n_points: int) -> float:
         if hi / lo < 1.05:
             break
     return float(np.sqrt(lo * hi))
+
+
+#: Radius of the neighbourhoods that measure a scan's noise, in noise
+#: deviations: a ball this wide holds the noisy shell's whole thickness, so
+#: the plane fit's residual is the noise, not the ball's own cut of the shell
+#: (which a neighbourhood of a few spacings gives when the noise is wider).
+NOISE_RADIUS = 5.0
+#: Radius of the plane fits of :func:`project_to_surface`, in noise deviations.
+PROJECTION_RADIUS = 3.0
+#: Fewest neighbours within :data:`PROJECTION_RADIUS` deviations for a scan to
+#: be projected: below it the noise is within the sampling and the fit would
+#: only move each point towards a few others.
+PROJECTION_MIN_NEIGHBOURS = 6
+#: Most points one plane fit uses; a denser neighbourhood is drawn from a
+#: random subsample of the scan (same radius, bounded cost).
+FIT_POINTS = 128
+#: Fewest points of a neighbourhood whose noise is measured about a quadric
+#: (fewer: about its plane; a quadric's six parameters would fit the noise).
+QUADRIC_POINTS = 32
+#: Points of a scan whose neighbourhoods measure its noise.
+NOISE_SAMPLE = 1000
+
+
+@dataclass(frozen=True)
+class ScanNoise:
+    """A scan's noise along its surface normal, and the neighbourhood that measured it.
+
+    Attributes
+    ----------
+    sigma : float
+        Standard deviation of the points about their local surface (data units).
+    neighbours : int
+        Points (at the scan's full density) of the neighbourhoods that measured it.
+    radius : float
+        Their median radius, at least :data:`NOISE_RADIUS` ``sigma`` unless
+        the neighbourhoods reached the whole scan.
+    """
+
+    sigma: float
+    neighbours: int
+    radius: float
+
+
+def _reference(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """A random ``share`` of the rows (all of them when ``share >= 1``)."""
+    n = points.shape[0]
+    if share >= 1.0:
+        return points
+    return points[rng.choice(n, max(FIT_POINTS + 1, round(n * share)), replace=False)]
+
+
+def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | None = None, *,
+                quadric: bool = False):
+    """Least-squares planes of each point's ``k`` nearest ``reference`` points.
+
+    Returns ``(centroids, normals, residual sd, radius)`` per point.  The sd
+    is robust, ``1.4826 · median |r|`` of the residuals ``r`` along the
+    normal, scaled by ``sqrt(k / (k - p))`` for the fit's ``p`` parameters, so
+    that a few clutter points in a neighbourhood do not count as noise.
+    With ``quadric`` and at least :data:`QUADRIC_POINTS` points the residuals
+    are taken about a quadric over the tangent plane (``p = 6``), so that
+    the surface's curvature does not count either; else about the plane
+    (``p = 3``).  The radius is the distance to the farthest neighbour.
+    """
+    tree = cKDTree(reference) if tree is None else tree
+    dist, nb = tree.query(points, k=k)
+    local = reference[nb]
+    centroid = local.mean(axis=1)
+    local = local - centroid[:, None, :]
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    normal = vec[:, :, 0]
+    height = np.einsum("nki,ni->nk", local, normal)
+    params = 3
+    if quadric and k >= QUADRIC_POINTS:
+        # Heights over the tangent plane less a least-squares quadric: the surface's curvature is not noise.
+        scale = np.maximum(dist[:, -1], 1e-300)[:, None]  # the fit in units of the neighbourhood's radius
+        u = np.einsum("nki,ni->nk", local, vec[:, :, 2]) / scale
+        v = np.einsum("nki,ni->nk", local, vec[:, :, 1]) / scale
+        A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=-1)
+        AtA = np.einsum("nki,nkj->nij", A, A) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(AtA, np.einsum("nki,nk->ni", A, height / scale)[..., None])[..., 0]
+        height = height - scale * np.einsum("nki,ni->nk", A, coef)
+        params = 6
+    sd = 1.4826 * np.median(np.abs(height), axis=1) * np.sqrt(k / max(k - params, 1))
+    return centroid, normal, sd, dist[:, -1]
+
+
+def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
+    """A scan's noise along its surface, measured at the scale the noise itself sets.
+
+    Local fits of growing neighbourhoods (8, 16, 32, ... points) about
+    :data:`NOISE_SAMPLE` of the scan's points: the median of their robust
+    residual deviations (:func:`_plane_fits`, about a quadric from
+    :data:`QUADRIC_POINTS` points on) for the first neighbourhoods whose
+    median radius reaches :data:`NOISE_RADIUS` times it.  A fixed
+    neighbourhood of a few spacings cuts a shell thicker than itself and
+    measures its own size instead (a quarter to half of the noise at 4% of a
+    bunny's radius).  In a volume of scattered points no neighbourhood
+    settles (a ball's points deviate from any plane by 0.45 of its radius),
+    and ``neighbours`` reaches the whole set.  Neighbourhoods above
+    ``2 * FIT_POINTS`` points are drawn from a random subsample of the scan.
+
+    ``at``: rows of the points to centre the neighbourhoods on (for example
+    the scan's surface points, :func:`surface_points`, so that clutter does
+    not count as noise); every point is in the fits.  Pass all points, not
+    the surface ones alone: tensor voting keeps a noisy scan's points near
+    the surface and drops the rest, which halves the measured noise.
+    """
+    pts = as_points(points, "points", min_points=4)
+    n = pts.shape[0]
+    rng = np.random.default_rng(seed)
+    rows = np.arange(n) if at is None else np.asarray(at, dtype=np.int64)
+    if rows.size == 0:
+        rows = np.arange(n)
+    at = pts[rows[rng.choice(rows.size, min(rows.size, NOISE_SAMPLE), replace=False)]]
+    k = 8
+    while True:
+        k = min(k, n - 1)
+        share = min(1.0, 2 * FIT_POINTS / k)
+        ref = _reference(pts, share, rng)
+        kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
+        _, _, sd, radius = _plane_fits(at, ref, kk, quadric=True)
+        sigma, r = float(np.median(sd)), float(np.median(radius))
+        if r >= NOISE_RADIUS * sigma or k >= n - 1:
+            return ScanNoise(sigma, int(k), r)
+        k *= 2
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceProjection:
+    """A scan's points moved onto their local surface, and its normals there."""
+
+    points: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3) unit, unoriented
+    neighbours: int  # points (at full density) of each plane fit
+
+
+def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 4096) -> SurfaceProjection | None:
+    """Moving least-squares projection onto the plane fitted within :data:`PROJECTION_RADIUS` noise deviations.
+
+    Each point moves along the normal of the least-squares plane of its
+    neighbours within about ``PROJECTION_RADIUS * noise.sigma`` (their count
+    scaled from the neighbourhood that measured the noise: a surface holds
+    points in proportion to the squared radius) onto that plane (the
+    projection of Levin's MLS surfaces with a plane as the local
+    approximation, Alexa et al. 2003).  The noise along the normal falls
+    about as the square root of the points a fit uses; the fits' own
+    curvature bias is alike in two scans of one surface.  ``None`` when
+    fewer than :data:`PROJECTION_MIN_NEIGHBOURS` points fall within the
+    radius: the noise is within the sampling, and the scan stays as it is.
+    """
+    pts = as_points(points, "points", min_points=4)
+    if not isinstance(noise, ScanNoise):
+        raise InputError(f"Expected `noise` a ScanNoise (as `scan_noise(points)` returns), got {type(noise).__name__}.")
+    n = pts.shape[0]
+    k = round(noise.neighbours * (PROJECTION_RADIUS * noise.sigma / max(noise.radius, 1e-300)) ** 2)
+    k = min(k, n - 1)
+    if k < PROJECTION_MIN_NEIGHBOURS:
+        return None
+    rng = np.random.default_rng(seed)
+    ref = _reference(pts, min(1.0, FIT_POINTS / k), rng)
+    kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
+    tree = cKDTree(ref)
+    out = np.empty_like(pts)
+    normals = np.empty_like(pts)
+    for start in range(0, n, chunk):
+        p = pts[start:start + chunk]
+        centroid, normal, _, _ = _plane_fits(p, ref, kk, tree)
+        out[start:start + chunk] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
+        normals[start:start + chunk] = normal
+    return SurfaceProjection(out, normals, int(k))
 
 
 def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0,
@@ -122,6 +307,55 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     idx = np.asarray(surf.indices)
     order = np.argsort(idx, kind="stable")
     return pick[idx[order]], np.asarray(surf.normals)[order]
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceTokens:
+    """One scan's surface tokens (:func:`surface_tokens`).
+
+    Attributes
+    ----------
+    points : (N, 3) ndarray
+        The scan's points, projected onto its surface when ``projection`` is not None.
+    rows : (K,) ndarray of int
+        Rows of ``points`` on salient surfaces (all of them without clutter removal), ascending.
+    normals : (K, 3) ndarray or None
+        Their unit normals (None without clutter removal or projection: none computed).
+    noise : ScanNoise
+    projection : SurfaceProjection or None
+    """
+
+    points: np.ndarray
+    rows: np.ndarray
+    normals: np.ndarray | None
+    noise: ScanNoise
+    projection: SurfaceProjection | None
+
+
+def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
+                   memory_budget: float | None = None) -> SurfaceTokens:
+    """Stage 1 of :func:`register_surfaces` for one scan: its noise, its surface, its points on salient surfaces.
+
+    Tensor voting keeps the points on salient surfaces (``clutter=True``;
+    all points otherwise); the noise is measured about them
+    (:func:`scan_noise`); a scan noisier than its sampling is projected onto
+    its surface (:func:`project_to_surface`) and voted on again, since the
+    first vote drops the noisy points of a surface along with the clutter.
+    """
+    n = points.shape[0]
+    if clutter:
+        rows, normals = surface_points(points, seed=seed, memory_budget=memory_budget)
+    else:
+        rows, normals = np.arange(n), None
+    noise = scan_noise(points, at=rows, seed=seed)
+    projection = project_to_surface(points, noise, seed=seed)
+    if projection is not None:
+        points = projection.points
+        if clutter:
+            rows, normals = surface_points(points, seed=seed, memory_budget=memory_budget)
+        else:
+            normals = projection.normals
+    return SurfaceTokens(points, rows, normals, noise, projection)
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
@@ -293,7 +527,13 @@ def register_surfaces(
     RigidMotion
         ``target ≈ source @ rotation.T + translation``; ``correspondences``
         index the input points (one-to-one nearest pairs within the final
-        gate, on the points kept as surface).  ``info`` has the voxel size and stage timings.
+        gate, on the points kept as surface).  ``info`` has the voxel size
+        and stage timings; ``noise`` (the two scans' noise, root mean
+        square), ``scan_noise`` (each scan's, :func:`scan_noise`),
+        ``projected`` (the points of each scan's plane fits, 0 when it was
+        not projected, :func:`project_to_surface`) and ``residual_noise``
+        (the point-to-plane residuals of the final pairs, per scan, as
+        :func:`plane_noise`).
     """
     t0 = time.perf_counter()
     X = RIGID.check_points(source, "source")
@@ -309,15 +549,11 @@ def register_surfaces(
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
 
     report(0.0, "surface tokens")
-    if clutter:
-        ix, _ = surface_points(X, seed=seed, memory_budget=memory_budget)
-        iy, nys = surface_points(Y, seed=seed, memory_budget=memory_budget)
-    else:
-        ix, iy = np.arange(X.shape[0]), np.arange(Y.shape[0])
-        nys = None
-    Xs, Ys = X[ix], Y[iy]
-    if nys is None:
-        nys = _normals(Ys)
+    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    ix, iy = tx.rows, ty.rows
+    Xs, Ys = tx.points[ix], ty.points[iy]
+    nys = ty.normals if ty.normals is not None else _normals(Ys)
     prepared = time.perf_counter() - t0
     match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
                            confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
@@ -331,10 +567,13 @@ def register_surfaces(
             info[key] += prepared
     if not match:
         return stages.failure(RIGID, info["reason"], info)
-    noise = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
+    residual = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
     # Correspondences index the input points.
     kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
-    info.update(noise=noise, time_s=time.perf_counter() - t0)
+    info.update(noise=float(np.sqrt(0.5 * (tx.noise.sigma ** 2 + ty.noise.sigma ** 2))),
+                scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,
+                projected=tuple(0 if t.projection is None else t.projection.neighbours for t in (tx, ty)),
+                time_s=time.perf_counter() - t0)
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
 

@@ -295,14 +295,24 @@ class ScanSurfaces:
 
     Attributes
     ----------
+    points : (N, 3) ndarray
+        The scan, projected onto its surfaces when it is noisier than its
+        sampling (:func:`gatv.scans.surface_tokens`), else as given.
     mask : (N,) ndarray of bool
         Which rows of the scan lie on a salient surface (:func:`gatv.scans.surface_points`).
     normals : (N, 3) ndarray
         Their unit normals (rows off the surfaces: zero).
+    noise : float
+        The scan's noise along its surfaces (:func:`gatv.scans.scan_noise`).
+    projected : int
+        Points of each plane fit of the projection; 0 when not projected.
     """
 
+    points: np.ndarray
     mask: np.ndarray
     normals: np.ndarray
+    noise: float
+    projected: int
 
 
 def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
@@ -313,20 +323,20 @@ def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     points no motion explains yet); the surfaces and normals of the whole scan
     serve them all, so the voting is not repeated on each subset.  With
     ``clutter=False`` every point is kept, with the normals of one ball pass.
+    A noisy scan is projected onto its surfaces first, as
+    :func:`gatv.register` does (:func:`gatv.scans.surface_tokens`).
     """
-    from ..scans import surface_points
+    from ..scans import surface_tokens
     from ..voting import vote
 
     n = points.shape[0]
+    tokens = surface_tokens(points, clutter=clutter, seed=seed, memory_budget=memory_budget)
     mask = np.zeros(n, bool)
     normals = np.zeros((n, 3))
-    if clutter:
-        idx, nrm = surface_points(points, seed=seed, memory_budget=memory_budget)
-    else:
-        idx, nrm = np.arange(n), np.asarray(vote(points).normals)
-    mask[idx] = True
-    normals[idx] = nrm
-    return ScanSurfaces(mask, normals)
+    mask[tokens.rows] = True
+    normals[tokens.rows] = tokens.normals if tokens.normals is not None else np.asarray(vote(tokens.points).normals)
+    projected = 0 if tokens.projection is None else tokens.projection.neighbours
+    return ScanSurfaces(tokens.points, mask, normals, tokens.noise.sigma, projected)
 
 
 #: Options of :func:`register_part` a user may set through ``scan_options``.
@@ -427,12 +437,13 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     if "feature_tol" in options:
         options["feature_tol"] = check_positive(options["feature_tol"], "scan_options['feature_tol']")
     n1, n2 = X.shape[0], Y.shape[0]
-    spacing = median_spacing(Y)
-    gate = SAMPLING_GATE * spacing
-    tree_x, tree_y = cKDTree(X), cKDTree(Y)
     clutter = bool(options.get("clutter", True))
     surf_x = scan_surfaces(X, clutter=clutter, seed=seed, memory_budget=memory_budget)
     surf_y = scan_surfaces(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    X, Y = surf_x.points, surf_y.points  # noisy scans projected onto their surfaces; rows as given
+    spacing = median_spacing(Y)
+    gate = SAMPLING_GATE * spacing
+    tree_x, tree_y = cKDTree(X), cKDTree(Y)
     free_s = np.ones(n1, bool)
     free_t = np.ones(n2, bool)
     rounds, degenerate, ambiguous = [], [], []
@@ -578,6 +589,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         token_labels.append(np.full(c.shape[0], k, np.int64))
     info = {"pipeline": "scans", "n_source": int(n1), "n_target": int(n2), "spacing": spacing, "gate": gate,
             "reason": reason, "rounds": rounds, "degenerate": degenerate, "ambiguous": ambiguous,
+            "noise": float(np.sqrt(0.5 * (surf_x.noise ** 2 + surf_y.noise ** 2))),
+            "scan_noise": (surf_x.noise, surf_y.noise), "projected": (surf_x.projected, surf_y.projected),
             "static": bool(motions) and motions[0].info.get("kind") == "identity",
             "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")

@@ -39,6 +39,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numba import get_num_threads
 from scipy.spatial import cKDTree
 
 from . import stages
@@ -155,7 +156,7 @@ def _reference(points: np.ndarray, share: float, rng: np.random.Generator) -> np
 
 
 def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | None = None, *,
-                quadric: bool = False):
+                quadric: bool = False, residuals: bool = True):
     """Least-squares planes of each point's ``k`` nearest ``reference`` points.
 
     Returns ``(centroids, normals, residual sd, radius)`` per point.  The sd
@@ -166,14 +167,17 @@ def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree
     are taken about a quadric over the tangent plane (``p = 6``), so that
     the surface's curvature does not count either; else about the plane
     (``p = 3``).  The radius is the distance to the farthest neighbour.
+    Without ``residuals`` the sd is None (the projection needs only the planes).
     """
     tree = cKDTree(reference) if tree is None else tree
-    dist, nb = tree.query(points, k=k)
+    dist, nb = tree.query(points, k=k, workers=get_num_threads())  # numba's threads: a batch worker's share
     local = reference[nb]
     centroid = local.mean(axis=1)
     local = local - centroid[:, None, :]
-    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    _, vec = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
     normal = vec[:, :, 0]
+    if not residuals:
+        return centroid, normal, None, dist[:, -1]
     height = np.einsum("nki,ni->nk", local, normal)
     params = 3
     if quadric and k >= QUADRIC_POINTS:
@@ -270,7 +274,7 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
     normals = np.empty_like(pts)
     for start in range(0, n, chunk):
         p = pts[start:start + chunk]
-        centroid, normal, _, _ = _plane_fits(p, ref, kk, tree)
+        centroid, normal, _, _ = _plane_fits(p, ref, kk, tree, residuals=False)
         out[start:start + chunk] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
         normals[start:start + chunk] = normal
     return SurfaceProjection(out, normals, int(k))

@@ -32,6 +32,9 @@ Rows (20 trials each, ``--trials``):
   (a point's motion where the other scene sees its surface, else -1),
   static patch labelled static, median and max time, and the peak RSS of
   the benchmark process so far (an upper bound for each scene).
+  ``--scan-noise 2,4`` adds the rows ``<row> +2% noise``: the same scenes
+  with Gaussian noise on every point of both, its deviation that share of
+  the first object's RMS radius (1% is 0.58 mm on a bunny).
 
 Methods: ``auto`` (:func:`gatv.motions.segment` as a user calls it: the
 pipeline and grouping chosen from the data), ``graph`` (``grouping="graph"``), ``greedy``
@@ -62,6 +65,7 @@ Prints a markdown table; writes ``motions.csv`` and ``motions_trials.csv``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import os
 import sys
@@ -133,9 +137,32 @@ def _load_object(name):
     return target / 1000.0, source / 1000.0, R, t / 1000.0  # millimetres -> metres
 
 
+#: Suffix of a noisy scan row: ``"scans: chef + parasaurolophus +2% noise"`` (``--scan-noise 2``).
+NOISE_SUFFIX = "% noise"
+
+
+def scan_row(name):
+    """``(scan row, noise %)`` of a row name, or ``(None, 0)`` for a point-set row."""
+    if name in SCAN_ROWS:
+        return name, 0.0
+    base, _, pct = name.rpartition(" +")
+    if base in SCAN_ROWS and pct.endswith(NOISE_SUFFIX):
+        return base, float(pct[: -len(NOISE_SUFFIX)])
+    return None, 0.0
+
+
 def make_scan_scene(name, rng):
-    return scan_scene([_load_object(o) for o in SCAN_ROWS[name]], n_points=40000, clutter=0.2,
-                      static_patch=0.1, seed=rng)
+    """A scan row's scene; a noisy row adds Gaussian noise to every point of both scenes, its deviation
+    the given share of the first object's RMS radius in the source scene (1% is 0.58 mm on a bunny)."""
+    base, pct = scan_row(name)
+    scene = scan_scene([_load_object(o) for o in SCAN_ROWS[base]], n_points=40000, clutter=0.2,
+                       static_patch=0.1, seed=rng)
+    if pct > 0:
+        first = scene.source[scene.source_labels == 0]
+        sigma = pct / 100.0 * float(np.sqrt(((first - first.mean(axis=0)) ** 2).sum(axis=1).mean()))
+        scene = dataclasses.replace(scene, source=scene.source + rng.normal(0.0, sigma, scene.source.shape),
+                                    target=scene.target + rng.normal(0.0, sigma, scene.target.shape))
+    return scene
 
 
 def make_rows():
@@ -458,7 +485,7 @@ def run_task(task: tuple) -> list[dict]:
     """One trial of one row, every method on the same scene (module level: picklable for map_trials)."""
     name, row_index, trial, seed, methods = task
     seq = np.random.SeedSequence([seed, row_index, trial])
-    scans = name in SCAN_ROWS
+    scans = scan_row(name)[0] is not None
     if scans:
         warm_up_scans()
     else:
@@ -519,10 +546,12 @@ def run(args) -> list[dict]:
     rows = make_rows()
     every = list(rows) + list(SCAN_ROWS)
     names = args.rows or list(rows)
-    unknown = [n for n in names if n not in every]
+    names += [f"{n} +{pct:g}{NOISE_SUFFIX}" for pct in args.scan_noise for n in names if n in SCAN_ROWS]
+    unknown = [n for n in names if n not in every and scan_row(n)[0] is None]
     if unknown:
         raise SystemExit(f"unknown rows {unknown}; choose from {every}")
-    tasks = [(name, every.index(name), trial, args.seed, tuple(args.methods))
+    # A noisy scan row draws the scene of its noise-free row (same seeds), then the noise.
+    tasks = [(name, every.index(scan_row(name)[0] or name), trial, args.seed, tuple(args.methods))
              for name in names for trial in range(args.trials)]
     return [rec for recs in map_trials(run_task, tasks, scheduler=args.scheduler) for rec in recs]
 
@@ -575,6 +604,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--rows", type=parse_list(str), default=None, metavar="R,R,...")
+    parser.add_argument("--scan-noise", type=parse_list(float), default=[], metavar="N,N",
+                        help="also run each scan row with Gaussian noise of N%% of its first object's RMS radius "
+                             "on every point of both scenes (rows named '<row> +N%% noise')")
     parser.add_argument("--methods", type=parse_list(str), default=["auto", "graph", "greedy", "ransac"],
                         metavar="M,M,...")
     add_scheduler_argument(parser)
@@ -585,8 +617,8 @@ def main(argv=None) -> int:
     records = run(args)
     names = list(dict.fromkeys(r["row"] for r in records))
     summary = summarise(records, names, args.methods)
-    point_rows = [x for x in summary if x["row"] not in SCAN_ROWS]
-    scan_rows = [x for x in summary if x["row"] in SCAN_ROWS]
+    point_rows = [x for x in summary if scan_row(x["row"])[0] is None]
+    scan_rows = [x for x in summary if scan_row(x["row"])[0] is not None]
     if point_rows:
         headers = ["row", "method", "trials", "K", "points", "exact K %", "rot err (deg)", "t err", "precision",
                    "recall", "F1", "F1 ceiling", "label acc", "median s", "max s", "median cpu s", "max cpu s",

@@ -440,6 +440,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     clutter = bool(options.get("clutter", True))
     surf_x = scan_surfaces(X, clutter=clutter, seed=seed, memory_budget=memory_budget)
     surf_y = scan_surfaces(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    X_in, Y_in = X, Y  # the points as given: the motions' rms is reported on them, as register does
     X, Y = surf_x.points, surf_y.points  # noisy scans projected onto their surfaces; rows as given
     spacing = median_spacing(Y)
     gate = SAMPLING_GATE * spacing
@@ -582,7 +583,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     for k, (R, t, extra) in enumerate(kept):
         src, tgt = np.flatnonzero(src_lab == k), np.flatnonzero(tgt_lab == k)
         pairs = _pairs(X, Y, R, t, gate, src, tgt, cKDTree(Y[tgt])) if tgt.size else np.empty((0, 2), np.int64)
-        motions.append(stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(R, t), pairs),
+        motions.append(stages.motion_result(RIGID, X_in, Y_in, stages.Fit(homogeneous(R, t), pairs),
                                             dict(extra, label=k, gate=gate)))
         c = pairs[np.argsort(pairs[:, 0], kind="stable")]
         tokens.append(c)

@@ -220,7 +220,9 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
         # Noisier than the sampling, a surface is not flat at twelve neighbours; at the noise's own scale it is.
         from .scans import scan_noise
 
-        share = max(scan_noise(X).neighbours / n1, scan_noise(Y).neighbours / n2)
+        share = scan_noise(X).neighbours / n1
+        if share <= SURFACE_NEIGHBOURHOOD:  # the target's only when the source passes
+            share = max(share, scan_noise(Y).neighbours / n2)
         if share <= SURFACE_NEIGHBOURHOOD:
             return "scans", (f"{n1} and {n2} points on noisy surfaces (their noise measured on neighbourhoods of "
                              f"{share:.1%} of the points)")

@@ -222,13 +222,16 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     if rows.size == 0:
         rows = np.arange(n)
     at = pts[rows[rng.choice(rows.size, min(rows.size, NOISE_SAMPLE), replace=False)]]
+    full_tree = None  # the whole scan's, built once for the neighbourhoods that use every point
     k = 8
     while True:
         k = min(k, n - 1)
         share = min(1.0, 2 * FIT_POINTS / k)
         ref = _reference(pts, share, rng)
+        if ref is pts and full_tree is None:
+            full_tree = cKDTree(pts)
         kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
-        _, _, sd, radius = _plane_fits(at, ref, kk, quadric=True)
+        _, _, sd, radius = _plane_fits(at, ref, kk, full_tree if ref is pts else None, quadric=True)
         sigma, r = float(np.median(sd)), float(np.median(radius))
         if r >= NOISE_RADIUS * sigma or k >= n - 1:
             return ScanNoise(sigma, int(k), r)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from math import erf
 
 import numpy as np
@@ -55,6 +55,7 @@ __all__ = [
     "motion_result",
     "nearest_pairs",
     "noise_from_residuals",
+    "polish_trials",
     "prepare",
     "refine",
     "regate",
@@ -426,8 +427,9 @@ def grow_tolerance(problem: Problem, fit: Fit, levels, level: int) -> tuple[Fit,
 FINAL_GATE = 4.5
 
 
-def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3) -> float | None:
-    """Point noise ``σ`` of each set, from the residuals of true pairs cut at ``gate``.
+def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3, *,
+                         chance_pairs: float = 0.0, n_points: int | None = None) -> float | None:
+    """Point noise ``σ`` of each set, from the residuals of a motion's pairs cut at ``gate``.
 
     A true pair's residual ``x' - T(x)`` is an isotropic Gaussian of per-axis
     standard deviation ``s = sqrt(2) σ`` (both points noisy), so its norm
@@ -437,8 +439,19 @@ def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3) -> fl
     residuals (``F`` the chi CDF), which is unbiased by the cut.  ``None``
     when the median is so close to the gate (above ``0.5 ** (1/dim)`` of it)
     that the noise reaches beyond the gate: a wider gate is needed.
+
+    ``chance_pairs``: the pairs a random motion would find within ``gate``
+    had every one of the ``n_points`` source points a random partner (the
+    target's density times the gate's measure, summed over the source).
+    Where the target is dense such pairs are among the motion's own, with
+    residuals spread uniformly over the gate's ball, and the median above
+    counts them as noise (a noise 10-20% high, and a gate at that noise
+    takes in more of them).  Given them, the residuals are a mixture of the
+    truncated chi (``m`` true pairs, ``m F(gate / s)`` of them seen) and the
+    uniform ball (``chance_pairs · (1 − m / n_points)``, the source points
+    without a partner), and ``s`` and ``m`` are its maximum-likelihood
+    values (EM, started from the median's ``s``).
     """
-    from scipy.optimize import brentq
     from scipy.stats import chi
 
     r = np.asarray(residuals, dtype=np.float64)
@@ -451,15 +464,66 @@ def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3) -> fl
     if m >= gate * 0.5 ** (1.0 / dim) * (1.0 - 1e-9):
         return None
     dist = chi(dim)
+    s = _median_scale(m, gate, dist)
+    if chance_pairs > 0.0 and n_points:
+        s = _mixture_scale(r, gate, dist, s, float(chance_pairs), int(n_points))
+    return float(s / np.sqrt(2.0))
+
+
+def _median_scale(m: float, gate: float, dist) -> float:
+    """The scale ``s`` whose chi distribution ``dist``, cut at ``gate``, has median ``m``."""
+    from scipy.optimize import brentq
 
     def excess(s):
         return dist.cdf(m / s) / dist.cdf(gate / s) - 0.5
 
-    lo, hi = m * 1e-3, m * 1e3
-    if excess(hi) > 0:  # pragma: no cover - excluded by the median test above
-        return None
-    s = brentq(excess, lo, hi, xtol=1e-6 * m)
-    return float(s / np.sqrt(2.0))
+    return float(brentq(excess, m * 1e-3, m * 1e3, xtol=1e-6 * m))
+
+
+def _mixture_scale(r: np.ndarray, gate: float, dist, s: float, chance_pairs: float, n_points: int,
+                   rounds: int = 50) -> float:
+    """EM for :func:`noise_from_residuals`' mixture of true pairs and chance pairs (residual norms ``r``).
+
+    E-step: each residual's probability of being a true pair's.  M-step:
+    the scale whose cut chi distribution has the weighted median of the
+    residuals as its median (the unmixed estimate when no pair is a chance
+    one), and the true pairs' number.
+    """
+    dim = int(dist.args[0])
+    order = np.argsort(r)
+    r = r[order]
+    uniform = dim * r ** (dim - 1) / gate**dim  # norm density of a point uniform in the ball
+    m_true = float(r.size)
+    for _ in range(rounds):
+        seen = float(dist.cdf(gate / s))
+        true_pdf = dist.pdf(r / s) / (s * seen)
+        a = m_true * seen
+        b = chance_pairs * max(0.0, 1.0 - m_true / n_points)
+        w = a * true_pdf / (a * true_pdf + b * uniform + 1e-300)
+        cum = np.cumsum(w)
+        median = float(r[min(int(np.searchsorted(cum, 0.5 * cum[-1])), r.size - 1)])
+        if not 0.0 < median < gate * 0.5 ** (1.0 / dim):
+            break
+        s_new = _median_scale(median, gate, dist)
+        m_new = min(float(w.sum()) / float(dist.cdf(gate / s_new)), float(n_points))
+        done = abs(s_new - s) <= 1e-6 * s and abs(m_new - m_true) <= 1e-3
+        s, m_true = s_new, m_new
+        if done:
+            break
+    return s
+
+
+def _chance_pairs(problem: Problem, fit: Fit, gate_radius: float) -> float:
+    """Pairs within ``gate_radius`` that ``fit``'s motion would find had every source point a random
+    partner: the density of the target points other than its partners, where it lands."""
+    others = np.ones(problem.target.shape[0], bool)
+    others[fit.correspondences[:, 1]] = False
+    k = min(DENSITY_NEIGHBOURS, int(others.sum()))
+    if k == 0:
+        return 0.0
+    d, _ = cKDTree(problem.target[others]).query(apply_matrix(fit.matrix, problem.source), k=k)
+    radii = np.maximum(d.reshape(problem.source.shape[0], -1)[:, -1], 1e-300)
+    return float(np.minimum(1.0, k * (gate_radius / radii) ** problem.dim).sum())
 
 
 def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float = 0.0,
@@ -470,9 +534,11 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
     data's noise, on its luckiest pairs, whose residuals say little about
     the noise; the tolerance first grows up the schedule while the support
     grows beyond chance (:func:`grow_tolerance`).  Then
-    :func:`noise_from_residuals` on the correspondences and :func:`refine`
-    at the gate of the estimate alternate until the estimate moves by less
-    than 5%.  When the residuals fill the gate (the noise reaches beyond it)
+    :func:`noise_from_residuals` on the correspondences (given the chance
+    pairs the gate holds at the density of the target's other points where
+    the motion lands)
+    and :func:`refine` at the gate of the estimate alternate until the
+    estimate moves by less than 5%.  When the residuals fill the gate (the noise reaches beyond it)
     the gate grows by 1.5 while the support grows beyond what the wider gate
     would collect from random points.  Returns the re-gated fit and the
     noise estimate (at least ``floor``).
@@ -483,7 +549,8 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
     for _ in range(rounds):
         g = gate(sigma)
         res = problem.residuals(fit.matrix, fit.correspondences)
-        est = noise_from_residuals(res, g, problem.dim)
+        est = noise_from_residuals(res, g, problem.dim, chance_pairs=_chance_pairs(problem, fit, g),
+                                   n_points=n1)
         if est is None:
             wider = refine(problem, fit, gate(1.5 * sigma))
             gain = chance_count(n1, n2, problem.volume, gate(1.5 * sigma), dim=problem.dim, alpha=1e-3)
@@ -793,13 +860,41 @@ def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
             + SCORE_COST * trials.n_congruent + VISIT_COST * visited)
 
 
+#: ICP rounds a polished trial may take (:func:`refine`'s ``iterations``),
+#: each charged as a scored match visiting every source point.
+POLISH_ROUNDS = 10
+
+
+def polish_trials(problem: Problem, trials, gate_radius: float):
+    """``trials`` each polished by ICP within ``gate_radius`` (:func:`refine`), ranked by their polished support.
+
+    The local optimisation of LO-RANSAC: under noise the pose of three noisy
+    points is off by about the noise over the triangle's height, and far
+    from the triangle a true trial's points fall outside a gate of the
+    noise's size; its support there is a fraction of its motion's, and a
+    motion smaller than twice the density test's level is not seen.  Its
+    polish brings them in (a wrong trial's gains little: its pairs are
+    chance pairs, which a refit only moves among).  The trials keep the
+    model's type; their matrices and support are replaced.
+    """
+    if not len(trials):
+        return trials
+    fits = [refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), gate_radius, POLISH_ROUNDS)
+            for matrix in trials.matrices]
+    support = np.array([f.support for f in fits], np.int64)
+    order = np.argsort(-support, kind="stable")
+    linear, shift = zip(*(split_matrix(fits[k].matrix) for k in order))
+    return replace(trials, rotations=np.stack(linear), translations=np.stack(shift), support=support[order])
+
+
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
            sigma: float | None = None, max_candidates: int = 8, polish: bool = True, grow: bool = True,
            threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
            progress=None, tried: list | None = None, max_matches: int = MAX_MATCHES,
            max_work: float | None = None, trial_options: dict | None = None,
            deadline: float | None = None, confidence: float = 0.999,
-           judged_wrong: float | None = JUDGED_WRONG, listing: float = LISTING) -> Found | None:
+           judged_wrong: float | None = JUDGED_WRONG, listing: float = LISTING,
+           polish_trial_motions: bool = False) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -854,6 +949,12 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     ``budget``: at a coarse tolerance random motions already reach a large
     share of the points, and only a motion larger still can be found
     there, which a few samples hit.
+    ``polish_trial_motions``: each chunk's ``keep`` best trials are polished
+    (:func:`polish_trials`) before the density test, which then sees their
+    polished support: the local optimisation of LO-RANSAC, for noise so
+    large that a noisy sample's pose leaves most of its motion's points
+    outside the gate.
+
     Returns ``None`` when the budget, the work or the time runs out.
     """
     model = problem.model
@@ -926,6 +1027,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 rec["listed"] += listed
                 rec["visited"] += visited
                 chunk = chunk_work(trials, n, triple_cost(n2) if triple_cost is not None else 0.0)
+                if polish_trial_motions and len(trials):
+                    trials = polish_trials(problem, trials, g)
+                    chunk += len(trials) * POLISH_ROUNDS * (SCORE_COST + VISIT_COST * n)
                 rec["work"] += chunk
                 work += chunk
                 per_triple[level] = rec["work"] / max(rec["triples"], 1)

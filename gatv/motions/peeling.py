@@ -9,7 +9,9 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
 1. **Search** (:func:`gatv.stages.search`, as :func:`gatv.register`) on
    the points no motion explains yet: the model's invariant-sample trial
    motions in round robin over the tolerance schedule, with a RANSAC
-   budget for the smallest motion wanted.
+   budget for the smallest motion wanted.  A noisy peel polishes each
+   chunk's best trials before the density test sees them
+   (:func:`gatv.stages.polish_trials`, LO-RANSAC's local optimisation).
 2. **Judge** (:func:`gatv.stages.judge`): candidate tokens within the voting reach of
    the trial, one ball pass in each of the model's joint spaces (one for
    rigid and similarity motions; Kang's two, ``(x, y, x')`` and
@@ -206,6 +208,11 @@ def assign_pairs(pairs: np.ndarray, gain: np.ndarray) -> np.ndarray:
 
 #: Level of :func:`merge_same_motions`' test that two found motions are one.
 MERGE_LEVEL = 1e-3
+#: Largest share of two motions' pairs beyond the final gate of their union's
+#: fit (:data:`gatv.stages.FINAL_GATE` σ, which keeps 98% of true pairs) for
+#: :func:`merge_same_motions` to test them as one: those pairs are left out of
+#: the test, so that a chance pair a part took in does not keep it apart.
+MERGE_OUTSIDE = 0.2
 
 
 def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *,
@@ -219,7 +226,13 @@ def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *
     ``(RSS(A ∪ B) − RSS(A) − RSS(B)) / s²`` (``s² = 2 σ²`` the per-axis
     variance of a pair's residual at the pooled noise ``σ``) is a chi-square
     with the motion's 6 degrees of freedom; two different motions leave it
-    orders of magnitude above.  The pair with the smallest statistic under
+    orders of magnitude above.  Pairs beyond :data:`gatv.stages.FINAL_GATE`
+    σ of the union's fit (at most :data:`MERGE_OUTSIDE` of them; more, and
+    the two are not one motion) are left out of all three fits: a chance
+    pair that a part took in would otherwise keep it apart from the rest.
+    The joined motion keeps both motions' pairs (its pose is fitted without
+    the far ones).
+    The pair with the smallest statistic under
     its ``level`` quantile is joined (pose refitted on the union, support
     weighted noise), and the test repeats.  Returns the fits, their noises and
     a record of each join.
@@ -239,21 +252,35 @@ def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *
         M = P.model.fit(P.source[pairs[:, 0]], P.target[pairs[:, 1]])
         return M, float(np.sum(np.square(P.residuals(M, pairs))))
 
+    # A true pair's residual under the union's fit stays within FINAL_GATE σ (98%);
+    # the pairs beyond it (a chance pair a part took in) are left out of all three fits.
+    far = stages.FINAL_GATE * np.sqrt(s2 / 2.0)
+    k_min = P.model.sample_size
     while len(fits) > 1 and s2 > 0:
         best = None
-        own = [rss(f.correspondences)[1] for f in fits]
         for a in range(len(fits)):
             for b in range(a + 1, len(fits)):
-                union = np.vstack([fits[a].correspondences, fits[b].correspondences])
-                M, r = rss(union)
-                stat = (r - own[a] - own[b]) / s2
+                pa, pb = fits[a].correspondences, fits[b].correspondences
+                union = np.vstack([pa, pb])
+                M, _ = rss(union)
+                inside = P.residuals(M, union) <= far
+                if inside.mean() < 1.0 - MERGE_OUTSIDE:
+                    continue  # two motions: the union's fit leaves many pairs far off
+                pa, pb = pa[inside[:len(pa)]], pb[inside[len(pa):]]
+                if len(pa) < k_min or len(pb) < k_min:
+                    continue
+                M, r = rss(np.vstack([pa, pb]))
+                stat = (r - rss(pa)[1] - rss(pb)[1]) / s2
                 if stat <= limit and (best is None or stat < best[0]):
-                    best = (stat, a, b, M, union)
+                    best = (stat, a, b, M, union, int(np.count_nonzero(~inside)))
         if best is None:
             break
-        stat, a, b, M, union = best
+        # The pose is the fit without the far pairs; the pairs are both motions'
+        # (pool_noise re-gates every motion at the pooled noise afterwards).
+        stat, a, b, M, union, left_out = best
         na, nb = fits[a].support, fits[b].support
-        joined.append({"motions": (a, b), "supports": (na, nb), "statistic": stat, "limit": limit})
+        joined.append({"motions": (a, b), "supports": (na, nb), "statistic": stat, "limit": limit,
+                       "left_out": left_out})
         noises[a] = float(np.sqrt((na * noises[a] ** 2 + nb * noises[b] ** 2) / (na + nb)))
         fits[a] = Fit(M, union[np.argsort(union[:, 0], kind="stable")])
         del fits[b], noises[b]
@@ -482,6 +509,10 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                               # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
                               # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
                               judged_wrong=None,
+                              # Noise unknown: the density test sees each chunk's best
+                              # trials polished (LO-RANSAC), as a noisy triple's pose
+                              # leaves most of a small motion outside the gate.
+                              polish_trial_motions=noisy,
                               memory_budget=memory_budget, tried=tried, deadline=deadline, **options)
         if found is None:
             log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
@@ -554,20 +585,21 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     while noisy and noise is None and len(fits) > 1:
         pooled_fits, pooled = pool_noise(P, fits, tolerances)
         # At the pooled noise of the one sensor, every motion must still beat
-        # chance among all points (its pairs within gate(σ) against the chance
-        # level there, as the judge): a wrong motion kept in the first round,
-        # when the noise was unknown, had its own (small) noise.  Pooling runs
-        # again without it, whose pairs may belong to the others.
+        # chance among the points its round searched (its pairs within gate(σ)
+        # against the chance level there, as the judge): a wrong motion kept in
+        # the first round, when the noise was unknown, had its own (small)
+        # noise.  Pooling runs again without it, whose pairs may belong to the
+        # others.
         g_pool = stages.gate(pooled)
-        chance = P.chance(g_pool, N_JUDGED)
+        chances = [model.chance(*log[r]["points"], P.volume, g_pool, N_JUDGED) for r in rounds_of]
         within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
-        weak = [k for k, w in enumerate(within) if w < chance]
+        weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
         if not weak or len(weak) == len(fits):
             fits = pooled_fits
             tolerances = [pooled] * len(fits)
             break
         for k in sorted(weak, reverse=True):
-            dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chance), "noise": pooled})
+            dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chances[k]), "noise": pooled})
             del fits[k], tolerances[k], rounds_of[k]
         if len(fits) == 1:
             pooled = None

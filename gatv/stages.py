@@ -445,12 +445,13 @@ def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3, *,
     target's density times the gate's measure, summed over the source).
     Where the target is dense such pairs are among the motion's own, with
     residuals spread uniformly over the gate's ball, and the median above
-    counts them as noise (a noise 10-20% high, and a gate at that noise
-    takes in more of them).  Given them, the residuals are a mixture of the
+    counts them as noise (too high a noise, and a gate at that noise takes
+    in more of them).  Given them, the residuals are a mixture of the
     truncated chi (``m`` true pairs, ``m F(gate / s)`` of them seen) and the
     uniform ball (``chance_pairs · (1 − m / n_points)``, the source points
-    without a partner), and ``s`` and ``m`` are its maximum-likelihood
-    values (EM, started from the median's ``s``).
+    without a partner), and ``s`` and ``m`` are fitted to it by EM whose
+    M-step takes the weighted median (:func:`_mixture_scale`), started from
+    the median's ``s``.
     """
     from scipy.stats import chi
 
@@ -536,12 +537,12 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
     grows beyond chance (:func:`grow_tolerance`).  Then
     :func:`noise_from_residuals` on the correspondences (given the chance
     pairs the gate holds at the density of the target's other points where
-    the motion lands)
-    and :func:`refine` at the gate of the estimate alternate until the
-    estimate moves by less than 5%.  When the residuals fill the gate (the noise reaches beyond it)
-    the gate grows by 1.5 while the support grows beyond what the wider gate
-    would collect from random points.  Returns the re-gated fit and the
-    noise estimate (at least ``floor``).
+    the motion lands) and :func:`refine` at the gate of the estimate
+    alternate until the estimate moves by less than 5%.  When the residuals
+    fill the gate (the noise reaches beyond it) the gate grows by 1.5 while
+    the support grows beyond what the wider gate would collect from random
+    points.  Returns the re-gated fit and the noise estimate (at least
+    ``floor``).
     """
     n1, n2 = problem.source.shape[0], problem.target.shape[0]
     fit, level = grow_tolerance(problem, fit, levels, level)
@@ -872,9 +873,9 @@ def polish_trials(problem: Problem, trials, gate_radius: float):
     points is off by about the noise over the triangle's height, and far
     from the triangle a true trial's points fall outside a gate of the
     noise's size; its support there is a fraction of its motion's, and a
-    motion smaller than twice the density test's level is not seen.  Its
-    polish brings them in (a wrong trial's gains little: its pairs are
-    chance pairs, which a refit only moves among).  The trials keep the
+    small motion stays under the density test's level.  Its polish brings
+    them in (a wrong trial's gains little: its pairs are chance pairs,
+    which a refit only moves among).  The trials keep the
     model's type; their matrices and support are replaced.
     """
     if not len(trials):

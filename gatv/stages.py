@@ -148,13 +148,30 @@ class Problem:
         """``|target[j] - T(source[i])|`` of candidate pairs ``(i, j)``."""
         return self.model.residuals(matrix, self.source[pairs[:, 0]], self.target[pairs[:, 1]])
 
-    def landing_radii(self, matrix: np.ndarray) -> np.ndarray:
+    def landing_radii(self, matrix: np.ndarray, *, without: np.ndarray | None = None) -> np.ndarray:
         """Radius of the ball around each moved source point ``T(x)`` that holds
         :data:`DENSITY_NEIGHBOURS` target points: the target's local density
-        where ``matrix`` puts the source (:meth:`landing_measure`)."""
-        k = min(DENSITY_NEIGHBOURS, self.target.shape[0])
-        d, _ = self.tree.query(apply_matrix(matrix, self.source), k=k)
+        where ``matrix`` puts the source (:meth:`landing_measure`).
+
+        ``without``: target rows left out (a motion's own partners, for the
+        density of the other points), at least one target point staying; the
+        ball then holds ``min(DENSITY_NEIGHBOURS, points left)`` of them.
+        """
+        tree = self.tree
+        if without is not None:
+            others = np.ones(self.target.shape[0], bool)
+            others[without] = False
+            tree = cKDTree(self.target[others])
+        k = min(DENSITY_NEIGHBOURS, tree.n)
+        d, _ = tree.query(apply_matrix(matrix, self.source), k=k)
         return np.maximum(d.reshape(len(self.source), -1)[:, -1], 1e-300)
+
+    def landing_pairs(self, radii: np.ndarray, gate: float, n_target: int | None = None) -> float:
+        """Pairs within ``gate`` a motion with :meth:`landing_radii` ``radii`` collects by chance,
+        in expectation: ``min(1, k (gate / r_k)^d)`` a moved source point, summed (``k`` the
+        neighbours the radii counted among ``n_target`` points, default the whole target)."""
+        k = min(DENSITY_NEIGHBOURS, self.target.shape[0] if n_target is None else int(n_target))
+        return float(np.minimum(1.0, k * (gate / radii) ** self.dim).sum())
 
     def landing_measure(self, radii: np.ndarray, gate: float) -> float:
         """The measure that gives :meth:`chance` the chance pairs of a motion whose
@@ -171,8 +188,7 @@ class Problem:
         (``k`` target points in the ball of radius ``r_k``); the box measure
         with the same expected count over the source is returned.
         """
-        k = min(DENSITY_NEIGHBOURS, self.target.shape[0])
-        expected = float(np.minimum(1.0, k * (gate / radii) ** self.dim).sum())
+        expected = self.landing_pairs(radii, gate)
         uniform = self.source.shape[0] * self.target.shape[0] * ball_measure(gate, self.dim)
         return uniform / max(expected, 1e-300)
 
@@ -517,14 +533,12 @@ def _mixture_scale(r: np.ndarray, gate: float, dist, s: float, chance_pairs: flo
 def _chance_pairs(problem: Problem, fit: Fit, gate_radius: float) -> float:
     """Pairs within ``gate_radius`` that ``fit``'s motion would find had every source point a random
     partner: the density of the target points other than its partners, where it lands."""
-    others = np.ones(problem.target.shape[0], bool)
-    others[fit.correspondences[:, 1]] = False
-    k = min(DENSITY_NEIGHBOURS, int(others.sum()))
-    if k == 0:
+    partners = fit.correspondences[:, 1]
+    n_others = problem.target.shape[0] - np.unique(partners).size
+    if n_others == 0:
         return 0.0
-    d, _ = cKDTree(problem.target[others]).query(apply_matrix(fit.matrix, problem.source), k=k)
-    radii = np.maximum(d.reshape(problem.source.shape[0], -1)[:, -1], 1e-300)
-    return float(np.minimum(1.0, k * (gate_radius / radii) ** problem.dim).sum())
+    radii = problem.landing_radii(fit.matrix, without=partners)
+    return problem.landing_pairs(radii, gate_radius, n_others)
 
 
 def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float = 0.0,

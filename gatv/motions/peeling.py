@@ -258,19 +258,23 @@ def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *
     k_min = P.model.sample_size
     while len(fits) > 1 and s2 > 0:
         best = None
+        own = [rss(f.correspondences)[1] for f in fits]
         for a in range(len(fits)):
             for b in range(a + 1, len(fits)):
                 pa, pb = fits[a].correspondences, fits[b].correspondences
                 union = np.vstack([pa, pb])
-                M, _ = rss(union)
+                M, r = rss(union)
                 inside = P.residuals(M, union) <= far
                 if inside.mean() < 1.0 - MERGE_OUTSIDE:
                     continue  # two motions: the union's fit leaves many pairs far off
-                pa, pb = pa[inside[:len(pa)]], pb[inside[len(pa):]]
-                if len(pa) < k_min or len(pb) < k_min:
-                    continue
-                M, r = rss(np.vstack([pa, pb]))
-                stat = (r - rss(pa)[1] - rss(pb)[1]) / s2
+                r_a, r_b = own[a], own[b]
+                if not inside.all():  # refit all three without the far pairs
+                    pa, pb = pa[inside[:len(pa)]], pb[inside[len(pa):]]
+                    if len(pa) < k_min or len(pb) < k_min:
+                        continue
+                    M, r = rss(np.vstack([pa, pb]))
+                    r_a, r_b = rss(pa)[1], rss(pb)[1]
+                stat = (r - r_a - r_b) / s2
                 if stat <= limit and (best is None or stat < best[0]):
                     best = (stat, a, b, M, union, int(np.count_nonzero(~inside)))
         if best is None:

@@ -67,6 +67,7 @@ __all__ = [
     "match_surfaces",
     "matching_voxel",
     "plane_noise",
+    "pooled_noise",
     "project_to_surface",
     "refine_point_to_plane",
     "register_scans",
@@ -475,6 +476,11 @@ def plane_noise(source, target, target_normals, pairs) -> float:
     return 1.4826 * mad / np.sqrt(2.0)
 
 
+def pooled_noise(source_sigma: float, target_sigma: float) -> float:
+    """The two scans' noise as one figure: the root mean square of each one's (:func:`scan_noise`)."""
+    return float(np.sqrt(0.5 * (source_sigma**2 + target_sigma**2)))
+
+
 def register_surfaces(
     source,
     target,
@@ -577,7 +583,7 @@ def register_surfaces(
     residual = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
     # Correspondences index the input points.
     kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
-    info.update(noise=float(np.sqrt(0.5 * (tx.noise.sigma ** 2 + ty.noise.sigma ** 2))),
+    info.update(noise=pooled_noise(tx.noise.sigma, ty.noise.sigma),
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,
                 projected=tuple(0 if t.projection is None else t.projection.neighbours for t in (tx, ty)),
                 time_s=time.perf_counter() - t0)

@@ -417,6 +417,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         round's support against its chance levels (``chance``: the
         unexplained points'; ``part_chance``: the searched part's own).
     """
+    from ..scans import pooled_noise
+
     t_start = time.perf_counter()
     X = RIGID.check_points(source, "source")
     Y = RIGID.check_points(target, "target")
@@ -590,7 +592,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         token_labels.append(np.full(c.shape[0], k, np.int64))
     info = {"pipeline": "scans", "n_source": int(n1), "n_target": int(n2), "spacing": spacing, "gate": gate,
             "reason": reason, "rounds": rounds, "degenerate": degenerate, "ambiguous": ambiguous,
-            "noise": float(np.sqrt(0.5 * (surf_x.noise ** 2 + surf_y.noise ** 2))),
+            "noise": pooled_noise(surf_x.noise, surf_y.noise),
             "scan_noise": (surf_x.noise, surf_y.noise), "projected": (surf_x.projected, surf_y.projected),
             "static": bool(motions) and motions[0].info.get("kind") == "identity",
             "time_s": time.perf_counter() - t_start}

@@ -365,3 +365,48 @@ def test_openmp_threads_wait_passively_unless_the_user_says(given):
     out = subprocess.run([sys.executable, "-c", "import os, gatv; print(os.environ['OMP_WAIT_POLICY'])"],
                          env=env, capture_output=True, text=True, check=True).stdout.strip()
     assert out == (given or "PASSIVE")
+
+
+def _poisson_chance(sigma, expected, n_tests, dim=3):
+    """A chance level as :meth:`gatv.stages.Problem.chance` gives it: ``expected`` random pairs within
+    ``gate(sigma)``, growing as the gate's measure, family-wise over ``n_tests``."""
+    from scipy.stats import poisson
+
+    def chance(g):
+        return int(poisson.isf(1e-3 / n_tests, expected * (g / gate(sigma)) ** dim)) + 3
+
+    return chance
+
+
+def test_detection_tolerance_is_the_noise_where_chance_collects_nothing():
+    from gatv.stages import detection_tolerance
+
+    assert detection_tolerance(0.3, lambda g: 4) == pytest.approx(0.3, rel=1e-12)
+    assert detection_tolerance(0.3, _poisson_chance(0.3, 1e-4, 4.0)) == pytest.approx(0.3, rel=1e-12)
+    assert detection_tolerance(0.0, lambda g: 4) == 0.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(sigma=st.floats(1e-3, 10.0), expected=st.floats(1e-3, 500.0), n_tests=st.floats(1.0, 1e8),
+       scale=st.floats(0.01, 100.0))
+def test_detection_tolerance_minimises_the_smallest_detectable_motion(sigma, expected, n_tests, scale):
+    """Within DETECTION_RANGE of the noise, the tolerance whose gate needs the fewest motion points to beat
+    chance (none of eleven evenly spaced gates needs fewer), under the noise's own gate where random motions
+    collect many pairs, and equivariant under a change of unit."""
+    from scipy.stats import chi
+
+    from gatv.stages import DETECTION_RANGE, detection_tolerance
+
+    chance = _poisson_chance(sigma, expected, n_tests)
+    tol = detection_tolerance(sigma, chance)
+    lo, hi = DETECTION_RANGE
+    assert lo * sigma * (1 - 1e-9) <= tol <= hi * sigma * (1 + 1e-9)
+
+    def smallest(c):
+        return chance(gate(c * sigma)) / chi(3).cdf(gate(c) / np.sqrt(2.0))
+
+    assert all(smallest(tol / sigma) <= smallest(c) + 1e-9 for c in np.linspace(hi, lo, 11))
+    moved = detection_tolerance(scale * sigma, lambda g: chance(g / scale))
+    assert moved == pytest.approx(scale * tol, rel=1e-9)
+    if expected >= 50.0:  # many chance pairs: a gate under the noise's own
+        assert tol < hi * sigma

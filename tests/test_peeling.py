@@ -490,7 +490,7 @@ def test_polished_trial_motions_bring_in_their_motion_and_wrong_ones_stay_under_
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [4, 7])  # seeds 0-7: three found on 6 of 8 (before 3f9a43e: 3 of 8)
+@pytest.mark.parametrize("seed", [3, 7])  # both found only one motion before
 def test_noisy_peel_finds_three_motions_at_four_percent_noise(seed):
     """4% noise (0.2 per axis on a 10-cube), motions of 31, 35 and 60 points among as many outliers,
     noise not given: the three motions, each within 2.5°, one-to-one; the noise measured within 25%.

@@ -443,40 +443,6 @@ def grow_tolerance(problem: Problem, fit: Fit, levels, level: int) -> tuple[Fit,
 FINAL_GATE = 4.5
 
 
-#: The gates :func:`detection_tolerance` chooses among, in units of the
-#: noise's own gate ``gate(σ)``: below half of it a motion keeps under a
-#: third of its pairs, and beyond it the chance pairs grow faster than the
-#: true ones (where random motions collect any).
-DETECTION_RANGE = (0.5, 1.0)
-
-
-def detection_tolerance(noise: float, chance, dim: int = 3, steps: int = 11) -> float:
-    """The tolerance whose gate tells a motion of point noise ``noise`` from chance with the fewest points.
-
-    A true pair's residual norm follows a chi distribution with ``dim``
-    degrees of freedom, scaled by ``sqrt(2) σ`` (both points noisy), so the
-    gate ``gate(c σ)`` keeps the share ``F(c) = chi.cdf(gate(c σ) / (sqrt(2) σ))``
-    of a motion's pairs, while the pairs a random motion collects grow as the
-    gate's measure, ``c^dim``.  A motion of ``m`` points beats the chance level
-    ``chance(gate(c σ))`` (a callable: the count a random motion stays under,
-    as :meth:`Problem.chance`) when ``m F(c) ≥ chance``; the smallest such
-    motion, ``chance / F``, is returned's ``c σ`` over :data:`DETECTION_RANGE`.
-    Where random motions collect a fair number of points (dense or noisy
-    data: the Poisson tail grows with the measure) it lies below ``c = 1``,
-    about 0.6-0.8; where they collect almost none, at ``c = 1`` (a narrower
-    gate would lose true pairs for nothing; ties go to the widest).
-    """
-    from scipy.stats import chi
-
-    sigma = float(noise)
-    if not sigma > 0.0:
-        return sigma
-    c = np.linspace(DETECTION_RANGE[1], DETECTION_RANGE[0], int(steps))  # widest first: ties keep it
-    kept = chi(dim).cdf(gate(c) / np.sqrt(2.0))
-    smallest = np.array([chance(gate(x * sigma)) for x in c], np.float64) / kept
-    return float(c[int(np.argmin(smallest))] * sigma)
-
-
 def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3, *,
                          chance_pairs: float = 0.0, n_points: int | None = None) -> float | None:
     """Point noise ``σ`` of each set, from the residuals of a motion's pairs cut at ``gate``.
@@ -943,7 +909,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
            max_work: float | None = None, trial_options: dict | None = None,
            deadline: float | None = None, confidence: float = 0.999,
            judged_wrong: float | None = JUDGED_WRONG, listing: float = LISTING,
-           noise: float | None = None, polish_trial_motions: bool = False) -> Found | None:
+           polish_trial_motions: bool = False) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -989,10 +955,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     the noise, a wider listing keeps more true matches (each side with
     probability ``erf(listing / sqrt 2)``) but lists chance matches as
     ``eps³``, and the work a motion found costs goes as ``(listing /
-    erf(listing / sqrt 2))³``.  ``noise``: the points' noise when it is
-    known and the levels' gates are chosen for the density test instead
-    (:func:`detection_tolerance`); the listing is then at the noise
-    (``eps = 2 listing noise``) whatever the level.
+    erf(listing / sqrt 2))³``.
 
     A level draws at most the samples that find, with ``confidence``, the
     smallest motion its density test accepts (the RANSAC bound of
@@ -1063,9 +1026,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 report(sum(done) / sum(caps), f"tolerance {tol:.3g}: {rec['triples']} triples")
                 g = gate(tol)
                 # Side-length tolerance: a side's length error is the noise of four
-                # points projected on it (standard deviation 2 tol, or 2 noise when
-                # given); ``listing`` of those.
-                eps = 2.0 * listing * (tol if noise is None else noise)
+                # points projected on it (standard deviation 2 tol); ``listing`` of those.
+                eps = 2.0 * listing * tol
                 # The model's options for many matches a sample (``trial_options``)
                 # only where the samples so far had many: they cost more than they
                 # save on exact data.

@@ -35,7 +35,6 @@ or too few points are left (``info["reason"]`` says which).
 from __future__ import annotations
 
 import time
-from functools import partial
 from math import comb
 
 import numpy as np
@@ -471,34 +470,23 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         S = _subproblem(P, src, tgt)
         n_possible = _sample_space(model, src.size)
-        cap = int(min(3 * n_possible, max_triples))
-        # Once the noise is measured (one sensor), a round lists congruent
-        # matches at LISTING standard deviations of a side's noise, not the
-        # search's default stages.LISTING: fewer all-inlier samples are listed
-        # (listed_share) and more are drawn, but each lists
-        # (stages.LISTING / LISTING)³ times fewer matches to score.  Its
-        # density test counts support within the gate that tells the smallest
-        # motion from chance among these points (detection_tolerance, family-
-        # wise over every match the round may score): below the noise's own
-        # gate where chance pairs are many, as at 4% noise.
-        measured = noisy and bool(fits)
-        listing = LISTING if measured else stages.LISTING
-        side_noise = None
-        if measured:
-            # A side's noise is that of the points (measured), at least the
-            # schedule's first level (its floor).
-            side_noise = max(measured_noise, levels[0])
-            n_matches = N_JUDGED * float(cap) * search_options.get("max_matches", stages.MAX_MATCHES)
-            tol = stages.detection_tolerance(measured_noise, partial(S.chance, n_tests=n_matches), S.dim)
-            round_levels = [max(tol, levels[0])]
         # A motion needs the chance level's support at the finest tolerance searched to be
         # kept: smaller ones are not worth the samples that would find them.
         need_min = smallest
         if noisy:
             need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
-        # The listing holds more than LISTING standard deviations of the
-        # points' noise when that lies under the schedule's floor.
-        listed = listed_share(listing * side_noise / max(measured_noise, 1e-300) if measured else listing, k_pts)
+        cap = int(min(3 * n_possible, max_triples))
+        # Once the noise is measured (one sensor), a round lists congruent
+        # matches at LISTING standard deviations of a side's noise, not the
+        # search's default stages.LISTING: fewer all-inlier samples are listed
+        # (listed_share) and more are drawn, but each lists
+        # (stages.LISTING / LISTING)³ times fewer matches to score.
+        measured = noisy and bool(fits)
+        listing = LISTING if measured else stages.LISTING
+        # A side's noise is that of the points (measured), which may lie under
+        # the round's tolerance (the schedule's first level is its floor): the
+        # listing then holds more than LISTING standard deviations of it.
+        listed = listed_share(listing * round_levels[0] / max(measured_noise, 1e-300) if measured else listing, k_pts)
         budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
                                          search_options.get("max_matches", stages.MAX_MATCHES),
                                          memory_budget=memory_budget, listed=listed)
@@ -519,7 +507,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
                               max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
                               threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
-                              listing=listing, noise=side_noise,
+                              listing=listing,
                               # Family-wise over every match, as a peel keeps motions
                               # until none beats chance: register's screen level
                               # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
@@ -545,7 +533,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
             # there, while a wrong motion's residuals spread over the gate it was
             # found at, so its pairs thin out as the gate's volume.
-            g_noise = stages.gate(stages.detection_tolerance(tol, partial(S.chance, n_tests=N_JUDGED), S.dim))
+            g_noise = stages.gate(tol)
             within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
             chance = S.chance(g_noise, N_JUDGED)
             if within < chance:
@@ -576,6 +564,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             n_k = np.array([f.support for f in fits] + [fit.support], np.float64)
             s_k = np.array(tolerances + [tol], np.float64)
             measured_noise = float(np.sqrt(np.sum(n_k * s_k**2) / np.sum(n_k)))
+            round_levels = [max(measured_noise, levels[0])]
         log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
                     "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
                     "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
@@ -605,14 +594,9 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         # the first round, when the noise was unknown, had its own (small)
         # noise.  Pooling runs again without it, whose pairs may belong to the
         # others.
-        chances, within = [], []
-        for r, f in zip(rounds_of, pooled_fits):
-            def chance(g, points=log[r]["points"]):
-                return model.chance(*points, P.volume, g, N_JUDGED)
-
-            g_pool = stages.gate(stages.detection_tolerance(pooled, chance, P.dim))
-            chances.append(chance(g_pool))
-            within.append(int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)))
+        g_pool = stages.gate(pooled)
+        chances = [model.chance(*log[r]["points"], P.volume, g_pool, N_JUDGED) for r in rounds_of]
+        within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
         weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
         if not weak or len(weak) == len(fits):
             fits = pooled_fits

@@ -172,7 +172,7 @@ def surface_likeness(points: np.ndarray, *, k: int = 12, sample: int = 400, seed
     seed).  Near 0 for points on a surface, about 0.1–0.2 for points
     scattered through a volume.
     """
-    from scipy.spatial import cKDTree
+    from .scans import local_scatter
 
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
@@ -181,10 +181,7 @@ def surface_likeness(points: np.ndarray, *, k: int = 12, sample: int = 400, seed
         return float("nan")
     rng = np.random.default_rng(seed)
     pick = rng.choice(n, min(n, int(sample)), replace=False)
-    _, nb = cKDTree(pts).query(pts[pick], k=k)
-    local = pts[nb] - pts[nb].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", local, local)
-    ev = np.linalg.eigvalsh(cov)
+    ev = local_scatter(pts, pts[pick], k).eigenvalues
     return float(np.median(ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-300)))
 
 

@@ -60,10 +60,12 @@ from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
 
 __all__ = [
+    "LocalScatter",
     "ScanNoise",
     "SurfaceMatch",
     "SurfaceProjection",
     "SurfaceTokens",
+    "local_scatter",
     "match_surfaces",
     "matching_voxel",
     "plane_noise",
@@ -156,6 +158,46 @@ def _reference(points: np.ndarray, share: float, rng: np.random.Generator) -> np
     return points[rng.choice(n, max(FIT_POINTS + 1, round(n * share)), replace=False)]
 
 
+@dataclass(frozen=True)
+class LocalScatter:
+    """The scatter of each query point's ``k`` nearest reference points (:func:`local_scatter`)."""
+
+    #: (n, 3) means of the neighbourhoods.
+    centroids: np.ndarray
+    #: (n, k, 3) neighbours less their mean.
+    offsets: np.ndarray
+    #: (n, 3) eigenvalues of ``offsetsᵀ offsets``, ascending: sums of squares along each axis.
+    eigenvalues: np.ndarray
+    #: (n, 3, 3) the axes, ``axes[:, :, j]`` the unit eigenvector of ``eigenvalues[:, j]``.
+    axes: np.ndarray
+    #: (n,) distance to the farthest of the ``k`` neighbours.
+    radius: np.ndarray
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(n, 3) least-variance axes: the normals of the neighbourhoods' least-squares planes."""
+        return self.axes[:, :, 0]
+
+
+def local_scatter(reference: np.ndarray, queries: np.ndarray, k: int, tree: cKDTree | None = None, *,
+                  workers: int = 1) -> LocalScatter:
+    """Principal axes of each query's ``k`` nearest ``reference`` points (local PCA).
+
+    The least-variance axis is the normal of the neighbourhood's plane and
+    its eigenvalue the squared residuals about it: the local surface fit of
+    the normals, noise and planarity measures.  ``tree`` is a
+    :class:`scipy.spatial.cKDTree` of ``reference`` (built when omitted);
+    ``workers`` its query's threads.
+    """
+    tree = cKDTree(reference) if tree is None else tree
+    dist, nb = tree.query(queries, k=k, workers=workers)
+    local = reference[nb]
+    centroid = local.mean(axis=1)
+    local = local - centroid[:, None, :]
+    values, axes = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
+    return LocalScatter(centroid, local, values, axes, dist[:, -1])
+
+
 def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | None = None, *,
                 quadric: bool = False, residuals: bool = True):
     """Least-squares planes of each point's ``k`` nearest ``reference`` points.
@@ -170,20 +212,16 @@ def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree
     (``p = 3``).  The radius is the distance to the farthest neighbour.
     Without ``residuals`` the sd is None (the projection needs only the planes).
     """
-    tree = cKDTree(reference) if tree is None else tree
-    dist, nb = tree.query(points, k=k, workers=get_num_threads())  # numba's threads: a batch worker's share
-    local = reference[nb]
-    centroid = local.mean(axis=1)
-    local = local - centroid[:, None, :]
-    _, vec = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
-    normal = vec[:, :, 0]
+    # numba's threads: a batch worker's share
+    fit = local_scatter(reference, points, k, tree, workers=get_num_threads())
+    centroid, local, vec, normal, radius = fit.centroids, fit.offsets, fit.axes, fit.normals, fit.radius
     if not residuals:
-        return centroid, normal, None, dist[:, -1]
+        return centroid, normal, None, radius
     height = np.einsum("nki,ni->nk", local, normal)
     params = 3
     if quadric and k >= QUADRIC_POINTS:
         # Heights over the tangent plane less a least-squares quadric: the surface's curvature is not noise.
-        scale = np.maximum(dist[:, -1], 1e-300)[:, None]  # the fit in units of the neighbourhood's radius
+        scale = np.maximum(radius, 1e-300)[:, None]  # the fit in units of the neighbourhood's radius
         u = np.einsum("nki,ni->nk", local, vec[:, :, 2]) / scale
         v = np.einsum("nki,ni->nk", local, vec[:, :, 1]) / scale
         A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=-1)
@@ -192,7 +230,7 @@ def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree
         height = height - scale * np.einsum("nki,ni->nk", A, coef)
         params = 6
     sd = 1.4826 * np.median(np.abs(height), axis=1) * np.sqrt(k / max(k - params, 1))
-    return centroid, normal, sd, dist[:, -1]
+    return centroid, normal, sd, radius
 
 
 def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:

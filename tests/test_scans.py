@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from gatv import Rotor, register_scans
 from gatv.datasets import rotation_error_deg
-from gatv.scans import surface_points, voxel_downsample
+from gatv.scans import local_scatter, surface_points, voxel_downsample
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -192,3 +192,33 @@ def test_projection_names_a_bad_noise_argument():
     pts = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(InputError, match="`noise`.*scan_noise"):
         project_to_surface(pts, 0.01)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(4, 20), noise=st.floats(0.0, 0.05))
+def test_local_scatter_is_the_pca_of_the_k_nearest_neighbours(seed, k, noise):
+    """Against a brute-force reference (all distances, covariance, eigvalsh); on a noisy plane the
+    least-variance axis is the plane's normal and its eigenvalue the residual sum of squares about the fit."""
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    ref = rng.uniform(-1, 1, (60, 1)) * u + rng.uniform(-1, 1, (60, 1)) * v + rng.normal(0, noise, (60, 1)) * normal
+    queries = ref[rng.choice(60, 9, replace=False)] + rng.normal(0, 0.01, (9, 3))
+    fit = local_scatter(ref, queries, k)
+    d = np.linalg.norm(queries[:, None, :] - ref[None, :, :], axis=2)
+    nb = np.argsort(d, axis=1)[:, :k]
+    for i in range(len(queries)):
+        local = ref[nb[i]] - ref[nb[i]].mean(axis=0)
+        np.testing.assert_allclose(fit.centroids[i], ref[nb[i]].mean(axis=0), atol=1e-12)
+        np.testing.assert_allclose(fit.eigenvalues[i], np.linalg.eigvalsh(local.T @ local), atol=1e-10)
+        assert fit.radius[i] == pytest.approx(np.sort(d[i])[k - 1])
+        # the axes diagonalise the scatter: A^T C A = diag(eigenvalues)
+        C = local.T @ local
+        np.testing.assert_allclose(fit.axes[i].T @ C @ fit.axes[i], np.diag(fit.eigenvalues[i]), atol=1e-10)
+        # the normal's eigenvalue is the sum of squared heights about the least-squares plane
+        assert fit.eigenvalues[i, 0] == pytest.approx(np.sum((local @ fit.normals[i]) ** 2), abs=1e-12)
+        if noise < 0.01:
+            assert abs(fit.normals[i] @ normal) > 0.95

@@ -63,6 +63,7 @@ from ..errors import InputError
 from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
+from ..scans import local_scatter
 from .segmentation import Segmentation
 
 __all__ = [
@@ -136,10 +137,7 @@ def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: f
 
 def _unit_normals(points: np.ndarray, tree: cKDTree, at: np.ndarray, k: int = 12) -> np.ndarray:
     """Unit normals at rows ``at`` of ``points``: least-variance axis of their ``k`` nearest neighbours."""
-    _, nb = tree.query(points[at], k=min(k, points.shape[0]))
-    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
-    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
-    return vecs[:, :, 0]
+    return local_scatter(points, points[at], min(k, points.shape[0]), tree).normals
 
 
 def _aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -235,11 +233,8 @@ def local_noise(points: np.ndarray, at: np.ndarray, *, k: int = 10, tree: cKDTre
     three parameters of the plane), median over ``at``: the sensor noise
     along the surface normal, measured on one scan alone.
     """
-    tree = cKDTree(points) if tree is None else tree
     kk = min(int(k) + 1, points.shape[0])
-    _, nb = tree.query(points[at], k=kk)
-    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
-    ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", local, local))
+    ev = local_scatter(points, points[at], kk, tree).eigenvalues
     return float(np.median(np.sqrt(np.maximum(ev[:, 0], 0.0) / max(kk - 3, 1))))
 
 

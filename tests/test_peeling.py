@@ -236,6 +236,47 @@ def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled
     assert sorted(m.info["round"] for m in seg) == [1, 2]  # the rounds that kept them
 
 
+def test_points_a_rejected_wrong_motion_held_out_go_back_to_the_search(monkeypatch):
+    """A wrong first-round motion whose chance pairs take most of a true motion's target points is rejected at its
+    own noise, and its points leave the search: the true motion cannot be found among the rest.  Once the peel has
+    stopped, they go back to the search for one more pass (``info["returned"]``), which finds it."""
+    scene = _noisy_two_motions(5, 0.1)
+    src, tgt = scene.source.copy(), scene.target.copy()
+    true_s = set(np.concatenate([p[:, 0] for p in scene.true_pairs]).tolist())
+    k = 32  # of the second motion's 40 target points
+    free_s = [i for i in range(len(src)) if i not in true_s][:k]
+    stolen_t = scene.true_pairs[1][:k, 1]
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()
+    # outlier source points that M puts near those targets, spread over a ball of 0.7 (7 times the noise)
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(k, 3))
+    u *= (0.7 * rng.uniform(size=k) ** (1 / 3) / np.linalg.norm(u, axis=1))[:, None]
+    src[free_s] = (tgt[stolen_t] + u) @ M[:3, :3]
+    planted = np.column_stack([free_s, stolen_t]).astype(np.int64)
+    P = stages.prepare(src, tgt)
+
+    def planted_motion(problem, levels):
+        fit = stages.Fit(M, planted)
+        return stages.Found(fit, levels[0], stages.Judged(fit, k, 1.0), k, 3)
+
+    _first_search_returns(monkeypatch, planted_motion)
+    seg = peel(P, seed=0, noisy=True, schedule=_noisy_schedule())
+    assert "rejected" in seg.info["rounds"][0]  # at its own noise, in its round
+    assert seg.info["returned"] == 1 and len(seg) == 2, seg.info["reason"]
+    for truth in scene.true_pairs:
+        assert max(_overlap(m.correspondences, truth) for m in seg) >= 0.9 * len(truth)
+    found_in = {m.info["round"] for m in seg}
+    first_pass_end = next(r for r, rec in enumerate(seg.info["rounds"]) if r > 0 and rec.get("support") is None)
+    assert max(found_in) > first_pass_end  # the second motion came from the pass after the first one stopped
+    _check_one_to_one(seg)
+
+    monkeypatch.setattr("gatv.motions.peeling.RETURNS", 0)
+    _first_search_returns(monkeypatch, planted_motion)
+    alone = peel(P, seed=0, noisy=True, schedule=_noisy_schedule())
+    assert alone.info["returned"] == 0 and len(alone) == 1  # without the pass, the held-out motion is lost
+
+
 def test_rounds_at_the_measured_noise_rank_LISTING_WIDE_candidates_and_list_at_LISTING(monkeypatch):
     """The first round searches as register (its WIDE, the search's listing); later ones at LISTING, LISTING_WIDE."""
     from gatv.motions.peeling import LISTING_WIDE

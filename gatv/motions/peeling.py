@@ -27,6 +27,11 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
    found at); one rejected from a tolerance above the finest shows that the
    density test's chance level is breached there in these data, so later
    rounds search the finer tolerances only (``info["rounds"][k]["rejected"]``).
+4. **Pool**: at the end, one sensor's noise pooled over the motions kept; a
+   motion whose pairs do not beat chance there is dropped
+   (``info["dropped"]``).  The points a rejected or dropped motion held out
+   of the later rounds (its chance pairs may be a true motion's points) go
+   back to the search for one more pass (``info["returned"]``).
 
 It stops when no trial beats chance, ``max_motions`` motions were found,
 or too few points are left (``info["reason"]`` says which).
@@ -78,6 +83,10 @@ LISTING = 1.0
 #: costs as much as scoring: on 1%/2% K=4 rounds 32 beat 2, 8 and 128
 #: (:data:`gatv.registration.WIDE`, which suits wide listings).
 LISTING_WIDE = 32
+#: Passes of a noisy peel, after the first, that return to the search the
+#: points held out by motions rejected at their noise or dropped at the
+#: pooled noise.
+RETURNS = 1
 
 
 def _sample_space(model, n: int) -> int:
@@ -406,7 +415,9 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     Segmentation
         Motions largest first, labels per point (``-1``: unexplained),
         ``tokens`` the kept correspondences with ``token_labels`` their
-        motion; ``info["reason"]`` says why the peeling stopped.
+        motion; ``info["reason"]`` says why the peeling stopped,
+        ``info["returned"]`` how many passes searched again the points that
+        rejected or dropped motions had held out (:data:`RETURNS` at most).
     """
     t_start = time.perf_counter()
     if not isinstance(problem, Problem):
@@ -459,155 +470,203 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     tolerances: list[float] = []
     log: list = []
     reason = ""
-    while True:
-        if max_motions is not None and len(fits) >= max_motions:
-            reason = "max_motions reached"
-            break
-        src, tgt = np.flatnonzero(~used_s), np.flatnonzero(~used_t)
-        need_pts = max(k_pts + 1, min_support or 0)
-        if src.size < need_pts or tgt.size < need_pts:
-            reason = "too few points left"
-            break
-        S = _subproblem(P, src, tgt)
-        n_possible = _sample_space(model, src.size)
-        # A motion needs the chance level's support at the finest tolerance searched to be
-        # kept: smaller ones are not worth the samples that would find them.
-        need_min = smallest
-        if noisy:
-            need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
-        cap = int(min(3 * n_possible, max_triples))
-        # Once the noise is measured (one sensor), a round lists congruent
-        # matches at LISTING standard deviations of a side's noise, not the
-        # search's default stages.LISTING: fewer all-inlier samples are listed
-        # (listed_share) and more are drawn, but each lists
-        # (stages.LISTING / LISTING)³ times fewer matches to score.
-        measured = noisy and bool(fits)
-        listing = LISTING if measured else stages.LISTING
-        # A side's noise is that of the points (measured), which may lie under
-        # the round's tolerance (the schedule's first level is its floor): the
-        # listing then holds more than LISTING standard deviations of it.
-        listed = listed_share(listing * round_levels[0] / max(measured_noise, 1e-300) if measured else listing, k_pts)
-        budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
-                                         search_options.get("max_matches", stages.MAX_MATCHES),
-                                         memory_budget=memory_budget, listed=listed)
-        report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
-        tried: list = []
-        t_round = time.perf_counter()
-        options = dict(search_options)
-        if "trial_options" in options:
-            # The round's budget is drawn for motions of need_min points: the
-            # sequential test need not look for smaller ones.
-            options["trial_options"] = dict(options["trial_options"], min_share=need_min / src.size)
-            if measured:
-                # A tight listing lists a few matches a sample: ranking more
-                # candidate triples than LISTING_WIDE costs more than it saves.
-                options["trial_options"]["wide"] = LISTING_WIDE
-        # listing=: the search caps each level at the RANSAC bound for the share
-        # of all-inlier samples its listing keeps (erf(listing / sqrt 2) a side).
-        found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
-                              max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
-                              threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
-                              listing=listing,
-                              # Family-wise over every match, as a peel keeps motions
-                              # until none beats chance: register's screen level
-                              # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
-                              # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
-                              judged_wrong=None,
-                              # Noise unknown: the density test sees each chunk's best
-                              # trials polished (LO-RANSAC), as a noisy triple's pose
-                              # leaves most of a small motion outside the gate.
-                              polish_trial_motions=noisy,
-                              memory_budget=memory_budget, tried=tried, deadline=deadline, **options)
-        if found is None:
-            log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
-                        "smallest": need_min, "points": (int(src.size), int(tgt.size))})
-            reason = stages.search_failure(tried, time_limit)
-            break
-        fit, tol = found.fit, found.tolerance
-        if noisy:
-            level = round_levels.index(tol)
-            fit, tol = stages.settle_noise(S, fit, round_levels, level,
-                                           floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
-            # Kept only when, at its measured noise, it still beats chance as the
-            # judge asks (its pairs within gate(σ) against the chance level there,
-            # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
-            # there, while a wrong motion's residuals spread over the gate it was
-            # found at, so its pairs thin out as the gate's volume.
-            g_noise = stages.gate(tol)
-            within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
-            chance = S.chance(g_noise, N_JUDGED)
-            if within < chance:
-                record = {"support": within, "noise": float(tol), "chance": int(chance),
-                          "tolerance": float(round_levels[level]), "matrix": fit.matrix}
-                if level > 0:
-                    # A random motion beat the density test's chance level at this
-                    # tolerance: in these data (points not uniform over the box the
-                    # chance level assumes) the level and the coarser ones find
-                    # wrong motions, so the next rounds search the finer ones only.
-                    round_levels = round_levels[:level]
-                else:
-                    # Its points leave the search, so the next round draws anew
-                    # (the kept motions are re-gated over all points at the end).
-                    used_s[src[fit.correspondences[:, 0]]] = True
-                    used_t[tgt[fit.correspondences[:, 1]]] = True
-                record["levels_next"] = [float(x) for x in round_levels]
-                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
-                            "smallest": need_min, "points": (int(src.size), int(tgt.size)), "rejected": record})
-                rejected += 1
-                if rejected > N_JUDGED or fit.support == 0:
-                    reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
-                    break
-                continue
-            # One sensor: the next rounds search at the noise measured so far
-            # (pooled over the motions found, weighted by support as in
-            # pool_noise), not the whole schedule.
-            n_k = np.array([f.support for f in fits] + [fit.support], np.float64)
-            s_k = np.array(tolerances + [tol], np.float64)
-            measured_noise = float(np.sqrt(np.sum(n_k * s_k**2) / np.sum(n_k)))
-            round_levels = [max(measured_noise, levels[0])]
-        log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
-                    "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
-                    "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
-                    "sigma": found.judged.sigma})
-        kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
-        fits.append(Fit(fit.matrix, kept))
-        fit_rounds.append(len(log) - 1)
-        tolerances.append(float(tol))
-        used_s[kept[:, 0]] = True
-        used_t[kept[:, 1]] = True
-
     pooled = None
     merged: list = []
-    rounds_of = list(fit_rounds)
-    if noisy and noise is None and len(fits) > 1:
-        fits, tolerances, merged = merge_same_motions(P, fits, tolerances)
-        for rec in merged:  # joins in order, indices as they were then
-            a, b = rec["motions"]
-            rec["rounds"] = (rounds_of[a], rounds_of[b])
-            del rounds_of[b]
     dropped: list = []
-    while noisy and noise is None and len(fits) > 1:
-        pooled_fits, pooled = pool_noise(P, fits, tolerances)
-        # At the pooled noise of the one sensor, every motion must still beat
-        # chance among the points its round searched (its pairs within gate(σ)
-        # against the chance level there, as the judge): a wrong motion kept in
-        # the first round, when the noise was unknown, had its own (small)
-        # noise.  Pooling runs again without it, whose pairs may belong to the
-        # others.
-        g_pool = stages.gate(pooled)
-        chances = [model.chance(*log[r]["points"], P.volume, g_pool, N_JUDGED) for r in rounds_of]
-        within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
-        weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
-        if not weak or len(weak) == len(fits):
-            fits = pooled_fits
-            tolerances = [pooled] * len(fits)
+    # The noise of the one sensor pooled over the motions kept (None until
+    # a pass of the peel has pooled it), and how many times the points of
+    # motions dropped at it went back to the search.
+    known_pool = None
+    returned = 0
+    exhausted = False  # a pass stopped because no motion was left to find
+    # points held out of the search by motions rejected or dropped as wrong
+    held_s, held_t = np.zeros(n1, bool), np.zeros(n2, bool)
+    while True:
+        while True:
+            if max_motions is not None and len(fits) >= max_motions:
+                reason = "max_motions reached"
+                exhausted = False
+                break
+            src, tgt = np.flatnonzero(~used_s), np.flatnonzero(~used_t)
+            need_pts = max(k_pts + 1, min_support or 0)
+            if src.size < need_pts or tgt.size < need_pts:
+                reason = "too few points left"
+                exhausted = True
+                break
+            S = _subproblem(P, src, tgt)
+            n_possible = _sample_space(model, src.size)
+            # A motion needs the chance level's support at the finest tolerance searched to be
+            # kept: smaller ones are not worth the samples that would find them.
+            need_min = smallest
+            if noisy:
+                need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
+            cap = int(min(3 * n_possible, max_triples))
+            # Once the noise is measured (one sensor), a round lists congruent
+            # matches at LISTING standard deviations of a side's noise, not the
+            # search's default stages.LISTING: fewer all-inlier samples are listed
+            # (listed_share) and more are drawn, but each lists
+            # (stages.LISTING / LISTING)³ times fewer matches to score.
+            measured = noisy and bool(fits)
+            listing = LISTING if measured else stages.LISTING
+            # A side's noise is that of the points (measured), which may lie under
+            # the round's tolerance (the schedule's first level is its floor): the
+            # listing then holds more than LISTING standard deviations of it.
+            listed = listed_share(listing * round_levels[0] / max(measured_noise, 1e-300) if measured else listing, k_pts)
+            budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
+                                             search_options.get("max_matches", stages.MAX_MATCHES),
+                                             memory_budget=memory_budget, listed=listed)
+            report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
+            tried: list = []
+            t_round = time.perf_counter()
+            options = dict(search_options)
+            if "trial_options" in options:
+                # The round's budget is drawn for motions of need_min points: the
+                # sequential test need not look for smaller ones.
+                options["trial_options"] = dict(options["trial_options"], min_share=need_min / src.size)
+                if measured:
+                    # A tight listing lists a few matches a sample: ranking more
+                    # candidate triples than LISTING_WIDE costs more than it saves.
+                    options["trial_options"]["wide"] = LISTING_WIDE
+            # listing=: the search caps each level at the RANSAC bound for the share
+            # of all-inlier samples its listing keeps (erf(listing / sqrt 2) a side).
+            found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
+                                  max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
+                                  threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
+                                  listing=listing,
+                                  # Family-wise over every match, as a peel keeps motions
+                                  # until none beats chance: register's screen level
+                                  # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
+                                  # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
+                                  judged_wrong=None,
+                                  # Noise unknown: the density test sees each chunk's best
+                                  # trials polished (LO-RANSAC), as a noisy triple's pose
+                                  # leaves most of a small motion outside the gate.
+                                  polish_trial_motions=noisy,
+                                  memory_budget=memory_budget, tried=tried, deadline=deadline, **options)
+            if found is None:
+                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
+                            "smallest": need_min, "points": (int(src.size), int(tgt.size))})
+                reason = stages.search_failure(tried, time_limit)
+                # not the time limit or the work bound: the samples ran out
+                exhausted = not any("stopped" in rec for rec in tried)
+                break
+            fit, tol = found.fit, found.tolerance
+            if noisy:
+                level = round_levels.index(tol)
+                fit, tol = stages.settle_noise(S, fit, round_levels, level,
+                                               floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
+                # Kept only when, at its measured noise, it still beats chance as the
+                # judge asks (its pairs within gate(σ) against the chance level there,
+                # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
+                # there, while a wrong motion's residuals spread over the gate it was
+                # found at, so its pairs thin out as the gate's volume.
+                g_noise = stages.gate(tol)
+                within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
+                chance = S.chance(g_noise, N_JUDGED)
+                if known_pool is not None and within >= chance:
+                    # A pass after the noise was pooled: checked there too, as
+                    # the pooled check will (a motion of its own small noise
+                    # was how a wrong one got in before).
+                    g_pool = stages.gate(known_pool)
+                    within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_pool))
+                    chance = S.chance(g_pool, N_JUDGED)
+                if within < chance:
+                    record = {"support": within, "noise": float(tol), "chance": int(chance),
+                              "tolerance": float(round_levels[level]), "matrix": fit.matrix}
+                    if level > 0:
+                        # A random motion beat the density test's chance level at this
+                        # tolerance: in these data (points not uniform over the box the
+                        # chance level assumes) the level and the coarser ones find
+                        # wrong motions, so the next rounds search the finer ones only.
+                        round_levels = round_levels[:level]
+                    else:
+                        # Its points leave the search, so the next round draws anew
+                        # (the kept motions are re-gated over all points at the end).
+                        used_s[src[fit.correspondences[:, 0]]] = True
+                        used_t[tgt[fit.correspondences[:, 1]]] = True
+                        held_s[src[fit.correspondences[:, 0]]] = True
+                        held_t[tgt[fit.correspondences[:, 1]]] = True
+                    record["levels_next"] = [float(x) for x in round_levels]
+                    log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
+                                "smallest": need_min, "points": (int(src.size), int(tgt.size)), "rejected": record})
+                    rejected += 1
+                    if rejected > N_JUDGED or fit.support == 0:
+                        reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
+                        exhausted = False
+                        break
+                    continue
+                # One sensor: the next rounds search at the noise measured so far
+                # (pooled over the motions found, weighted by support as in
+                # pool_noise), not the whole schedule.
+                n_k = np.array([f.support for f in fits] + [fit.support], np.float64)
+                s_k = np.array(tolerances + [tol], np.float64)
+                measured_noise = float(np.sqrt(np.sum(n_k * s_k**2) / np.sum(n_k)))
+                round_levels = [max(measured_noise, levels[0])]
+            log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
+                        "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
+                        "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
+                        "sigma": found.judged.sigma})
+            kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
+            fits.append(Fit(fit.matrix, kept))
+            fit_rounds.append(len(log) - 1)
+            tolerances.append(float(tol))
+            used_s[kept[:, 0]] = True
+            used_t[kept[:, 1]] = True
+
+        pooled = None
+        rounds_of = fit_rounds
+        if noisy and noise is None and len(fits) > 1:
+            fits, tolerances, joined = merge_same_motions(P, fits, tolerances)
+            for rec in joined:  # joins in order, indices as they were then
+                a, b = rec["motions"]
+                rec["rounds"] = (rounds_of[a], rounds_of[b])
+                del rounds_of[b]
+            merged.extend(joined)
+        while noisy and noise is None and len(fits) > 1:
+            pooled_fits, pooled = pool_noise(P, fits, tolerances)
+            # At the pooled noise of the one sensor, every motion must still beat
+            # chance among the points its round searched (its pairs within gate(σ)
+            # against the chance level there, as the judge): a wrong motion kept in
+            # the first round, when the noise was unknown, had its own (small)
+            # noise.  Pooling runs again without it, whose pairs may belong to the
+            # others.
+            g_pool = stages.gate(pooled)
+            chances = [model.chance(*log[r]["points"], P.volume, g_pool, N_JUDGED) for r in rounds_of]
+            within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
+            weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
+            if not weak or len(weak) == len(fits):
+                fits = pooled_fits
+                tolerances = [pooled] * len(fits)
+                break
+            for k in sorted(weak, reverse=True):
+                dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chances[k]), "noise": pooled})
+                held_s[fits[k].correspondences[:, 0]] = True
+                held_t[fits[k].correspondences[:, 1]] = True
+                del fits[k], tolerances[k], rounds_of[k]
+            if len(fits) == 1:
+                pooled = None
+                break
+        # Points held out of the later rounds by a motion rejected at its own
+        # noise or dropped at the pooled noise (wrong motions, whose chance
+        # pairs may be a true motion's points) go back to the search for one
+        # more pass once the peel has stopped for want of a motion beating
+        # chance: it lists at the noise pooled over the motions kept and
+        # checks every motion it finds there too.
+        kept_s, kept_t = np.zeros(n1, bool), np.zeros(n2, bool)
+        for fit in fits:
+            kept_s[fit.correspondences[:, 0]] = True
+            kept_t[fit.correspondences[:, 1]] = True
+        held = np.any(held_s & ~kept_s) or np.any(held_t & ~kept_t)
+        if not (noisy and held and fits and returned < RETURNS and exhausted):
             break
-        for k in sorted(weak, reverse=True):
-            dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chances[k]), "noise": pooled})
-            del fits[k], tolerances[k], rounds_of[k]
-        if len(fits) == 1:
-            pooled = None
-            break
+        returned += 1
+        used_s, used_t = kept_s, kept_t
+        held_s[:] = False
+        held_t[:] = False
+        n_k = np.array([f.support for f in fits], np.float64)
+        measured_noise = float(np.sqrt(np.sum(n_k * np.square(tolerances)) / np.sum(n_k)))
+        known_pool = measured_noise
+        round_levels = [max(measured_noise, levels[0])]
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(n2, -1, np.int64)
@@ -623,7 +682,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
     info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
+            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped,
+            "returned": returned, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
     report(1.0, f"found {len(motions)} motions ({reason})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),

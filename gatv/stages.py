@@ -551,8 +551,11 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
     grows beyond chance (:func:`grow_tolerance`).  Then
     :func:`noise_from_residuals` on the correspondences (given the chance
     pairs the gate holds at the density of the target's other points where
-    the motion lands) and :func:`refine` at the gate of the estimate
-    alternate until the estimate moves by less than 5%.  When the residuals
+    the motion lands) and the gate of the estimate alternate until the
+    estimate moves by less than 5%: a wider gate refits the pose
+    (:func:`refine`), a narrower one keeps it (:func:`regate`), since a
+    refit on the pairs the narrower gate keeps fits their noise, and the
+    estimates would shrink round after round.  When the residuals
     fill the gate (the noise reaches beyond it) the gate grows by 1.5 while
     the support grows beyond what the wider gate would collect from random
     points.  Returns the re-gated fit and the noise estimate (at least
@@ -577,7 +580,9 @@ def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float
         if abs(est - sigma) <= 0.05 * sigma:
             sigma = est
             break
-        moved = refine(problem, fit, gate(est))
+        # A narrower gate keeps the pose: a refit on the pairs it keeps would fit
+        # their noise, and the next estimate would shrink with it.
+        moved = refine(problem, fit, gate(est)) if est > sigma else regate(problem, fit, gate(est))
         if moved is fit or moved.support < problem.model.sample_size:
             break
         fit, sigma = moved, est

@@ -105,6 +105,61 @@ def test_noise_without_chance_pairs_is_the_median_estimate():
     assert noise_from_residuals(r, 0.7, chance_pairs=5.0, n_points=None) == base
 
 
+def _settle_from_a_noisy_triple(seed, monkeypatch=None):
+    """One motion of 32 points (target noise 0.2 a coordinate: σ = 0.2 / sqrt 2 for each set) among 160
+    outliers, the fit a noisy triple's pose polished at the 0.12-spacing level, settled from there."""
+    from scipy.spatial.transform import Rotation
+
+    from gatv.motions import multi_motion_scene
+
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed).as_matrix()
+    scene = multi_motion_scene([R], [rng.uniform(-5, 5, 3)], [32], n_outliers=160, noise=0.2, seed=rng)
+    P = stages.prepare(scene.source, scene.target)
+    pairs = scene.true_pairs[0]
+    levels = [f * P.spacing for f in (0.05, 0.12, 0.3)]
+    tri = pairs[rng.choice(len(pairs), 3, replace=False)]
+    M = P.model.fit(P.source[tri[:, 0]], P.target[tri[:, 1]])
+    fit = stages.refine(P, stages.Fit(M, np.empty((0, 2), np.int64)), gate(levels[1]), 10)
+    return P, fit, levels, 0.2 / np.sqrt(2.0)
+
+
+def test_settle_noise_refits_the_pose_only_on_a_wider_gate(monkeypatch):
+    """A narrower gate keeps the pose (a refit on the pairs it keeps would fit their noise, and the estimates
+    would shrink round after round); a wider one refits it."""
+    real_refine = stages.refine
+    for seed in range(8):
+        P, fit, levels, _ = _settle_from_a_noisy_triple(seed)
+        calls, last = [], [None]
+        real_nfr = stages.noise_from_residuals
+
+        def nfr(res, g, dim=3, **kw):
+            last[0] = g
+            return real_nfr(res, g, dim, **kw)
+
+        def refine(problem, f, g, *args):
+            calls.append((g, last[0]))
+            return real_refine(problem, f, g, *args)
+
+        monkeypatch.setattr(stages, "noise_from_residuals", nfr)
+        monkeypatch.setattr(stages, "refine", refine)
+        stages.settle_noise(P, fit, levels, 1)
+        monkeypatch.undo()
+        # every refit after an estimate is at a gate wider than the one the estimate was made at
+        assert all(g > g_est for g, g_est in calls if g_est is not None), calls
+
+
+def test_settle_noise_does_not_collapse_onto_a_motions_tightest_pairs():
+    """From a noisy triple's polished pose, a motion of at least 20 pairs settles at no less than half its
+    noise on each of 30 scenes (one settled at 0.27 of it when every narrower gate refitted the pose)."""
+    for seed in range(30):
+        P, fit, levels, sigma = _settle_from_a_noisy_triple(seed)
+        if fit.support < 20:  # not a motion the peel would keep
+            continue
+        _, est = stages.settle_noise(P, fit, levels, 1)
+        assert est > 0.5 * sigma, (seed, est / sigma)
+
+
 @pytest.mark.parametrize("noise", [0.01, 0.03])
 def test_noisy_sets_recovered_without_noise_given(noise):
     """The Table-2 protocol with Gaussian noise on every inlier: motion, pairs and the noise itself."""

@@ -474,8 +474,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     merged: list = []
     dropped: list = []
     # The noise of the one sensor pooled over the motions kept (None until
-    # a pass of the peel has pooled it), and how many times the points of
-    # motions dropped at it went back to the search.
+    # a pass has ended), and the passes that searched again the points that
+    # wrong motions had held out.
     known_pool = None
     returned = 0
     exhausted = False  # a pass stopped because no motion was left to find

@@ -124,29 +124,34 @@ def _settle_from_a_noisy_triple(seed, monkeypatch=None):
     return P, fit, levels, 0.2 / np.sqrt(2.0)
 
 
+def _refits_while_settling(monkeypatch, seed):
+    """``(gate of each refit, gate of the estimate before it)`` while :func:`stages.settle_noise` runs."""
+    P, fit, levels, _ = _settle_from_a_noisy_triple(seed)
+    real_refine, real_nfr = stages.refine, stages.noise_from_residuals
+    calls, last = [], [None]
+
+    def nfr(res, g, dim=3, **kw):
+        last[0] = g
+        return real_nfr(res, g, dim, **kw)
+
+    def refine(problem, f, g, *args):
+        calls.append((g, last[0]))
+        return real_refine(problem, f, g, *args)
+
+    with monkeypatch.context() as m:
+        m.setattr(stages, "noise_from_residuals", nfr)
+        m.setattr(stages, "refine", refine)
+        stages.settle_noise(P, fit, levels, 1)
+    return calls
+
+
 def test_settle_noise_refits_the_pose_only_on_a_wider_gate(monkeypatch):
     """A narrower gate keeps the pose (a refit on the pairs it keeps would fit their noise, and the estimates
     would shrink round after round); a wider one refits it."""
-    real_refine = stages.refine
     for seed in range(8):
-        P, fit, levels, _ = _settle_from_a_noisy_triple(seed)
-        calls, last = [], [None]
-        real_nfr = stages.noise_from_residuals
-
-        def nfr(res, g, dim=3, **kw):
-            last[0] = g
-            return real_nfr(res, g, dim, **kw)
-
-        def refine(problem, f, g, *args):
-            calls.append((g, last[0]))
-            return real_refine(problem, f, g, *args)
-
-        monkeypatch.setattr(stages, "noise_from_residuals", nfr)
-        monkeypatch.setattr(stages, "refine", refine)
-        stages.settle_noise(P, fit, levels, 1)
-        monkeypatch.undo()
+        calls = _refits_while_settling(monkeypatch, seed)
         # every refit after an estimate is at a gate wider than the one the estimate was made at
-        assert all(g > g_est for g, g_est in calls if g_est is not None), calls
+        assert all(g > g_est for g, g_est in calls if g_est is not None), (seed, calls)
 
 
 def test_settle_noise_does_not_collapse_onto_a_motions_tightest_pairs():

@@ -222,3 +222,10 @@ def test_local_scatter_is_the_pca_of_the_k_nearest_neighbours(seed, k, noise):
         assert fit.eigenvalues[i, 0] == pytest.approx(np.sum((local @ fit.normals[i]) ** 2), abs=1e-12)
         if noise < 0.01:
             assert abs(fit.normals[i] @ normal) > 0.95
+
+
+def test_local_scatter_names_k_when_it_exceeds_the_reference():
+    from gatv.errors import InputError
+
+    with pytest.raises(InputError, match="`k`"):
+        local_scatter(np.zeros((5, 3)), np.zeros((1, 3)), 6)

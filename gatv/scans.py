@@ -190,10 +190,11 @@ def local_scatter(reference: np.ndarray, queries: np.ndarray, k: int, tree: cKDT
     ``workers`` its query's threads.
     """
     reference = np.asarray(reference, np.float64)
-    if not 1 <= int(k) <= reference.shape[0]:
+    k = check_int(k, "k", 1)
+    if k > reference.shape[0]:
         raise InputError(f"Expected `k` between 1 and the {reference.shape[0]} reference points, got {k}.")
     tree = cKDTree(reference) if tree is None else tree
-    dist, nb = tree.query(queries, k=int(k), workers=workers)
+    dist, nb = tree.query(queries, k=k, workers=workers)
     local = reference[nb]
     centroid = local.mean(axis=1)
     local = local - centroid[:, None, :]

@@ -105,7 +105,7 @@ def test_noise_without_chance_pairs_is_the_median_estimate():
     assert noise_from_residuals(r, 0.7, chance_pairs=5.0, n_points=None) == base
 
 
-def _settle_from_a_noisy_triple(seed, monkeypatch=None):
+def _settle_from_a_noisy_triple(seed):
     """One motion of 32 points (target noise 0.2 a coordinate: σ = 0.2 / sqrt 2 for each set) among 160
     outliers, the fit a noisy triple's pose polished at the 0.12-spacing level, settled from there."""
     from scipy.spatial.transform import Rotation

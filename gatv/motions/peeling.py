@@ -95,6 +95,12 @@ def _sample_space(model, n: int) -> int:
     return int(f(n)) if f is not None else comb(n, model.sample_size)
 
 
+def _support_weighted_noise(fits: list[Fit], noises) -> float:
+    """One sensor's noise from its motions' own: ``σ² = Σ n_k σ_k² / Σ n_k`` over their supports ``n_k``."""
+    n = np.array([f.support for f in fits], dtype=np.float64)
+    return float(np.sqrt(np.sum(n * np.square(noises)) / np.sum(n)))
+
+
 def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
     """The points not yet explained, with the full problem's scale facts."""
     Y = P.target[tgt]
@@ -319,8 +325,7 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     from math import gamma
 
     P = problem
-    n = np.array([f.support for f in fits], dtype=np.float64)
-    sigma = float(np.sqrt(np.sum(n * np.square(noises)) / np.sum(n)))
+    sigma = _support_weighted_noise(fits, noises)
     g = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
     n1, density = P.source.shape[0], P.target.shape[0] / P.volume
     ball = np.pi ** (P.dim / 2.0) / gamma(P.dim / 2.0 + 1.0)
@@ -561,14 +566,15 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                 # there, while a wrong motion's residuals spread over the gate it was
                 # found at, so its pairs thin out as the gate's volume.
                 g_noise = stages.gate(tol)
-                within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_noise))
+                residuals = S.residuals(fit.matrix, fit.correspondences)
+                within = int(np.sum(residuals <= g_noise))
                 chance = S.chance(g_noise, N_JUDGED)
                 if known_pool is not None and within >= chance:
                     # A pass after the noise was pooled: checked there too, as
                     # the pooled check will (a motion of its own small noise
                     # was how a wrong one got in before).
                     g_pool = stages.gate(known_pool)
-                    within = int(np.sum(S.residuals(fit.matrix, fit.correspondences) <= g_pool))
+                    within = int(np.sum(residuals <= g_pool))
                     chance = S.chance(g_pool, N_JUDGED)
                 if within < chance:
                     record = {"support": within, "noise": float(tol), "chance": int(chance),
@@ -598,9 +604,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
                 # One sensor: the next rounds search at the noise measured so far
                 # (pooled over the motions found, weighted by support as in
                 # pool_noise), not the whole schedule.
-                n_k = np.array([f.support for f in fits] + [fit.support], np.float64)
-                s_k = np.array(tolerances + [tol], np.float64)
-                measured_noise = float(np.sqrt(np.sum(n_k * s_k**2) / np.sum(n_k)))
+                measured_noise = _support_weighted_noise([*fits, fit], [*tolerances, tol])
                 round_levels = [max(measured_noise, levels[0])]
             log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
                         "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
@@ -663,9 +667,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         used_s, used_t = kept_s, kept_t
         held_s[:] = False
         held_t[:] = False
-        n_k = np.array([f.support for f in fits], np.float64)
-        measured_noise = float(np.sqrt(np.sum(n_k * np.square(tolerances)) / np.sum(n_k)))
-        known_pool = measured_noise
+        measured_noise = known_pool = _support_weighted_noise(fits, tolerances)
         round_levels = [max(measured_noise, levels[0])]
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)

@@ -40,6 +40,7 @@ or too few points are left (``info["reason"]`` says which).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from math import comb
 
 import numpy as np
@@ -461,214 +462,315 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     schedule = tuple(float(check_positive(r, "schedule")) for r in schedule)
     if not schedule:
         raise InputError("Expected `schedule` to hold at least one tolerance.")
-    levels = stages.tolerance_levels(P, noise, schedule)
     n1, n2 = P.source.shape[0], P.target.shape[0]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
-    smallest = max(float(min_inlier_share) * n1, float(k_pts))
-    round_levels = list(levels)
-    measured_noise = 0.0
-    fit_rounds: list[int] = []
-    rejected = 0
-    used_s = np.zeros(n1, bool)
-    used_t = np.zeros(n2, bool)
-    fits: list[Fit] = []
-    tolerances: list[float] = []
-    log: list = []
-    reason = ""
+    config = _Rounds(levels=stages.tolerance_levels(P, noise, schedule), noisy=noisy, noise=noise,
+                     smallest=max(float(min_inlier_share) * n1, float(k_pts)), confidence=confidence,
+                     max_triples=max_triples, min_support=min_support, sigma=sigma,
+                     max_candidates=max_candidates, refine=refine, memory_budget=memory_budget,
+                     search_options=search_options, deadline=deadline, time_limit=time_limit)
+    state = _PeelState.start(n1, n2, config.levels)
     pooled = None
     merged: list = []
     dropped: list = []
-    # The noise of the one sensor pooled over the motions kept (None until
-    # a pass has ended), and the passes that searched again the points that
-    # wrong motions had held out.
-    known_pool = None
-    returned = 0
-    exhausted = False  # a pass stopped because no motion was left to find
-    # points held out of the search by motions rejected or dropped as wrong
-    held_s, held_t = np.zeros(n1, bool), np.zeros(n2, bool)
     while True:
-        while True:
-            if max_motions is not None and len(fits) >= max_motions:
-                reason = "max_motions reached"
-                exhausted = False
-                break
-            src, tgt = np.flatnonzero(~used_s), np.flatnonzero(~used_t)
-            need_pts = max(k_pts + 1, min_support or 0)
-            if src.size < need_pts or tgt.size < need_pts:
-                reason = "too few points left"
-                exhausted = True
-                break
-            S = _subproblem(P, src, tgt)
-            n_possible = _sample_space(model, src.size)
-            # A motion needs the chance level's support at the finest tolerance searched to be
-            # kept: smaller ones are not worth the samples that would find them.
-            need_min = smallest
-            if noisy:
-                need_min = max(smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
-            cap = int(min(3 * n_possible, max_triples))
-            # Once the noise is measured (one sensor), a round lists congruent
-            # matches at LISTING standard deviations of a side's noise, not the
-            # search's default stages.LISTING: fewer all-inlier samples are listed
-            # (listed_share) and more are drawn, but each lists
-            # (stages.LISTING / LISTING)³ times fewer matches to score.
-            measured = noisy and bool(fits)
-            listing = LISTING if measured else stages.LISTING
-            # A side's noise is that of the points (measured), which may lie under
-            # the round's tolerance (the schedule's first level is its floor): the
-            # listing then holds more than LISTING standard deviations of it.
-            listed = listed_share(listing * round_levels[0] / max(measured_noise, 1e-300) if measured else listing, k_pts)
-            budget, need_min = search_budget(S, round_levels, need_min, confidence, cap,
-                                             search_options.get("max_matches", stages.MAX_MATCHES),
-                                             memory_budget=memory_budget, listed=listed)
-            report(float(used_s.mean()), f"motion {len(fits) + 1}: {src.size} source points left")
-            tried: list = []
-            t_round = time.perf_counter()
-            options = dict(search_options)
-            if "trial_options" in options:
-                # The round's budget is drawn for motions of need_min points: the
-                # sequential test need not look for smaller ones.
-                options["trial_options"] = dict(options["trial_options"], min_share=need_min / src.size)
-                if measured:
-                    # A tight listing lists a few matches a sample: ranking more
-                    # candidate triples than LISTING_WIDE costs more than it saves.
-                    options["trial_options"]["wide"] = LISTING_WIDE
-            # listing=: the search caps each level at the RANSAC bound for the share
-            # of all-inlier samples its listing keeps (erf(listing / sqrt 2) a side).
-            found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=sigma,
-                                  max_candidates=max_candidates, polish=refine, grow=noise is None and not noisy,
-                                  threshold_tests=N_JUDGED, min_support=min_support, confidence=confidence,
-                                  listing=listing,
-                                  # Family-wise over every match, as a peel keeps motions
-                                  # until none beats chance: register's screen level
-                                  # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
-                                  # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
-                                  judged_wrong=None,
-                                  # Noise unknown: the density test sees each chunk's best
-                                  # trials polished (LO-RANSAC), as a noisy triple's pose
-                                  # leaves most of a small motion outside the gate.
-                                  polish_trial_motions=noisy,
-                                  memory_budget=memory_budget, tried=tried, deadline=deadline, **options)
-            if found is None:
-                log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
-                            "smallest": need_min, "points": (int(src.size), int(tgt.size))})
-                reason = stages.search_failure(tried, time_limit)
-                # not the time limit or the work bound: the samples ran out
-                exhausted = not any("stopped" in rec for rec in tried)
-                break
-            fit, tol = found.fit, found.tolerance
-            if noisy:
-                level = round_levels.index(tol)
-                fit, tol = stages.settle_noise(S, fit, round_levels, level,
-                                               floor=P.spacing * stages.NOISY_SCHEDULE[0] if noise is None else levels[0])
-                # Kept only when, at its measured noise, it still beats chance as the
-                # judge asks (its pairs within gate(σ) against the chance level there,
-                # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
-                # there, while a wrong motion's residuals spread over the gate it was
-                # found at, so its pairs thin out as the gate's volume.
-                g_noise = stages.gate(tol)
-                residuals = S.residuals(fit.matrix, fit.correspondences)
-                within = int(np.sum(residuals <= g_noise))
-                chance = S.chance(g_noise, N_JUDGED)
-                if known_pool is not None and within >= chance:
-                    # A pass after the noise was pooled: checked there too, as
-                    # the pooled check will (a motion of its own small noise
-                    # was how a wrong one got in before).
-                    g_pool = stages.gate(known_pool)
-                    within = int(np.sum(residuals <= g_pool))
-                    chance = S.chance(g_pool, N_JUDGED)
-                if within < chance:
-                    record = {"support": within, "noise": float(tol), "chance": int(chance),
-                              "tolerance": float(round_levels[level]), "matrix": fit.matrix}
-                    if level > 0:
-                        # A random motion beat the density test's chance level at this
-                        # tolerance: in these data (points not uniform over the box the
-                        # chance level assumes) the level and the coarser ones find
-                        # wrong motions, so the next rounds search the finer ones only.
-                        round_levels = round_levels[:level]
-                    else:
-                        # Its points leave the search, so the next round draws anew
-                        # (the kept motions are re-gated over all points at the end).
-                        used_s[src[fit.correspondences[:, 0]]] = True
-                        used_t[tgt[fit.correspondences[:, 1]]] = True
-                        held_s[src[fit.correspondences[:, 0]]] = True
-                        held_t[tgt[fit.correspondences[:, 1]]] = True
-                    record["levels_next"] = [float(x) for x in round_levels]
-                    log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget,
-                                "smallest": need_min, "points": (int(src.size), int(tgt.size)), "rejected": record})
-                    rejected += 1
-                    if rejected > N_JUDGED or fit.support == 0:
-                        reason = f"{rejected} motions found did not beat the chance level once their noise was measured"
-                        exhausted = False
-                        break
-                    continue
-                # One sensor: the next rounds search at the noise measured so far
-                # (pooled over the motions found, weighted by support as in
-                # pool_noise), not the whole schedule.
-                measured_noise = _support_weighted_noise([*fits, fit], [*tolerances, tol])
-                round_levels = [max(measured_noise, levels[0])]
-            log.append({"levels": tried, "time_s": time.perf_counter() - t_round, "budget": budget, "smallest": need_min,
-                        "points": (int(src.size), int(tgt.size)), "support": fit.support, "threshold": found.threshold,
-                        "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
-                        "sigma": found.judged.sigma})
-            kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
-            fits.append(Fit(fit.matrix, kept))
-            fit_rounds.append(len(log) - 1)
-            tolerances.append(float(tol))
-            used_s[kept[:, 0]] = True
-            used_t[kept[:, 1]] = True
-
+        reason, exhausted = _peel_rounds(P, config, state, rng, max_motions, report)
         pooled = None
-        rounds_of = fit_rounds
-        if noisy and noise is None and len(fits) > 1:
-            fits, tolerances, joined = merge_same_motions(P, fits, tolerances)
-            for rec in joined:  # joins in order, indices as they were then
-                a, b = rec["motions"]
-                rec["rounds"] = (rounds_of[a], rounds_of[b])
-                del rounds_of[b]
-            merged.extend(joined)
-        while noisy and noise is None and len(fits) > 1:
-            pooled_fits, pooled = pool_noise(P, fits, tolerances)
-            # At the pooled noise of the one sensor, every motion must still beat
-            # chance among the points its round searched (its pairs within gate(σ)
-            # against the chance level there, as the judge): a wrong motion kept in
-            # the first round, when the noise was unknown, had its own (small)
-            # noise.  Pooling runs again without it, whose pairs may belong to the
-            # others.
-            g_pool = stages.gate(pooled)
-            chances = [model.chance(*log[r]["points"], P.volume, g_pool, N_JUDGED) for r in rounds_of]
-            within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
-            weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
-            if not weak or len(weak) == len(fits):
-                fits = pooled_fits
-                tolerances = [pooled] * len(fits)
-                break
-            for k in sorted(weak, reverse=True):
-                dropped.append({"round": rounds_of[k], "within": within[k], "chance": int(chances[k]), "noise": pooled})
-                held_s[fits[k].correspondences[:, 0]] = True
-                held_t[fits[k].correspondences[:, 1]] = True
-                del fits[k], tolerances[k], rounds_of[k]
-            if len(fits) == 1:
-                pooled = None
-                break
-        # Points held out of the later rounds by a motion rejected at its own
-        # noise or dropped at the pooled noise (wrong motions, whose chance
-        # pairs may be a true motion's points) go back to the search for one
-        # more pass once the peel has stopped for want of a motion beating
-        # chance: it lists at the noise pooled over the motions kept and
-        # checks every motion it finds there too.
-        kept_s, kept_t = np.zeros(n1, bool), np.zeros(n2, bool)
-        for fit in fits:
-            kept_s[fit.correspondences[:, 0]] = True
-            kept_t[fit.correspondences[:, 1]] = True
-        held = np.any(held_s & ~kept_s) or np.any(held_t & ~kept_t)
-        if not (noisy and held and fits and returned < RETURNS and exhausted):
+        if noisy and noise is None and len(state.fits) > 1:
+            merged.extend(_merge_found(P, state))
+            pooled = _pool_and_drop(P, state, dropped)
+        # Points that wrong motions held out go back for one more pass, once
+        # the peel has stopped for want of a motion beating chance.
+        if not (noisy and state.fits and state.returned < RETURNS and exhausted):
             break
-        returned += 1
-        used_s, used_t = kept_s, kept_t
-        held_s[:] = False
-        held_t[:] = False
-        measured_noise = known_pool = _support_weighted_noise(fits, tolerances)
-        round_levels = [max(measured_noise, levels[0])]
+        if not _return_held(state, config):
+            break
+    return _segmentation(P, state, {
+        "model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing, "mode": "peel",
+        "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped, "returned": state.returned,
+        "reason": reason, "rounds": state.log}, t_start, report)
+
+
+@dataclass(frozen=True, eq=False)
+class _Rounds:
+    """What every round of a peel searches with (fixed for the whole peel)."""
+
+    levels: list[float]  # the tolerance schedule in data units
+    noisy: bool
+    noise: float | None
+    smallest: float  # smallest motion wanted, in source points
+    confidence: float
+    max_triples: int
+    min_support: int | None
+    sigma: float | None
+    max_candidates: int
+    refine: bool
+    memory_budget: float | None
+    search_options: dict
+    deadline: float | None
+    time_limit: float | None
+
+
+@dataclass(eq=False)
+class _PeelState:
+    """What the rounds of a peel have found and where they search next.
+
+    ``used_*``: points a kept (or rejected) motion took out of the search;
+    ``held_*``: those a wrong motion took, which go back in a return pass.
+    ``fits``, ``tolerances`` (their noise) and ``fit_rounds`` (the round that
+    kept each) are in the full problem's indices.  ``round_levels``: the
+    tolerances the next round searches; ``measured_noise``: the noise pooled
+    over the motions kept so far (0 before the first); ``known_pool``: the
+    pooled noise of an earlier pass (``None`` in the first).
+    """
+
+    used_s: np.ndarray
+    used_t: np.ndarray
+    held_s: np.ndarray
+    held_t: np.ndarray
+    round_levels: list[float]
+    fits: list[Fit] = field(default_factory=list)
+    tolerances: list[float] = field(default_factory=list)
+    fit_rounds: list[int] = field(default_factory=list)
+    log: list[dict] = field(default_factory=list)
+    measured_noise: float = 0.0
+    known_pool: float | None = None
+    rejected: int = 0
+    returned: int = 0
+
+    @classmethod
+    def start(cls, n1: int, n2: int, levels) -> _PeelState:
+        return cls(np.zeros(n1, bool), np.zeros(n2, bool), np.zeros(n1, bool), np.zeros(n2, bool), list(levels))
+
+
+def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motions, report) -> tuple[str, bool]:
+    """Rounds of search → settle → check → keep on the points still unexplained, until one finds nothing.
+
+    Returns why the rounds stopped and whether for want of a motion to find
+    (not a time or work limit, ``max_motions`` or the rejection limit).
+    """
+    model = P.model
+    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    while True:
+        if max_motions is not None and len(state.fits) >= max_motions:
+            return "max_motions reached", False
+        src, tgt = np.flatnonzero(~state.used_s), np.flatnonzero(~state.used_t)
+        need_pts = max(k_pts + 1, config.min_support or 0)
+        if src.size < need_pts or tgt.size < need_pts:
+            return "too few points left", True
+        S = _subproblem(P, src, tgt)
+        record = {"points": (int(src.size), int(tgt.size))}
+        t_round = time.perf_counter()
+        found = _search_round(S, config, state, rng, record, report, len(state.fits))
+        if found is None:
+            state.log.append({**record, "time_s": time.perf_counter() - t_round})
+            # not the time limit or the work bound: the samples ran out
+            return stages.search_failure(record["levels"], config.time_limit), \
+                not any("stopped" in rec for rec in record["levels"])
+        fit, tol = found.fit, found.tolerance
+        if config.noisy:
+            fit, tol, rejection = _settle_and_check(P, S, config, state, fit, tol, src, tgt)
+            if rejection is not None:
+                state.log.append({**record, "time_s": time.perf_counter() - t_round, "rejected": rejection})
+                state.rejected += 1
+                if state.rejected > N_JUDGED or fit.support == 0:
+                    return (f"{state.rejected} motions found did not beat the chance level once their noise "
+                            "was measured"), False
+                continue
+            # One sensor: the next rounds search at the noise measured so far
+            # (pooled over the motions found, weighted by support as in
+            # pool_noise), not the whole schedule.
+            state.measured_noise = _support_weighted_noise([*state.fits, fit], [*state.tolerances, tol])
+            state.round_levels = [max(state.measured_noise, config.levels[0])]
+        state.log.append({**record, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
+                          "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
+                          "sigma": found.judged.sigma})
+        kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
+        state.fits.append(Fit(fit.matrix, kept))
+        state.fit_rounds.append(len(state.log) - 1)
+        state.tolerances.append(float(tol))
+        state.used_s[kept[:, 0]] = True
+        state.used_t[kept[:, 1]] = True
+
+
+def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: dict, report, n_found: int):
+    """One round's :func:`gatv.stages.search` on the subproblem ``S``: its budget, listing and options.
+
+    Fills ``record`` (the round's log entry) with the levels tried, the
+    budget and the smallest motion it can find.
+    """
+    model = S.model
+    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    n_src = S.source.shape[0]
+    round_levels = state.round_levels
+    # A motion needs the chance level's support at the finest tolerance searched to be
+    # kept: smaller ones are not worth the samples that would find them.
+    need_min = config.smallest
+    if config.noisy:
+        need_min = max(config.smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
+    cap = int(min(3 * _sample_space(model, n_src), config.max_triples))
+    # Once the noise is measured (one sensor), a round lists congruent
+    # matches at LISTING standard deviations of a side's noise, not the
+    # search's default stages.LISTING: fewer all-inlier samples are listed
+    # (listed_share) and more are drawn, but each lists
+    # (stages.LISTING / LISTING)³ times fewer matches to score.
+    measured = config.noisy and n_found > 0
+    listing = LISTING if measured else stages.LISTING
+    # A side's noise is that of the points (measured), which may lie under
+    # the round's tolerance (the schedule's first level is its floor): the
+    # listing then holds more than LISTING standard deviations of it.
+    listed = listed_share(listing * round_levels[0] / max(state.measured_noise, 1e-300) if measured else listing,
+                          k_pts)
+    options = dict(config.search_options)
+    budget, need_min = search_budget(S, round_levels, need_min, config.confidence, cap,
+                                     options.get("max_matches", stages.MAX_MATCHES),
+                                     memory_budget=config.memory_budget, listed=listed)
+    report(float(state.used_s.mean()), f"motion {n_found + 1}: {n_src} source points left")
+    tried: list = []
+    if "trial_options" in options:
+        # The round's budget is drawn for motions of need_min points: the
+        # sequential test need not look for smaller ones.
+        options["trial_options"] = dict(options["trial_options"], min_share=need_min / n_src)
+        if measured:
+            # A tight listing lists a few matches a sample: ranking more
+            # candidate triples than LISTING_WIDE costs more than it saves.
+            options["trial_options"]["wide"] = LISTING_WIDE
+    # listing=: the search caps each level at the RANSAC bound for the share
+    # of all-inlier samples its listing keeps (erf(listing / sqrt 2) a side).
+    found = stages.search(S, round_levels, budget=max(budget, 1), rng=rng, keep=N_JUDGED, sigma=config.sigma,
+                          max_candidates=config.max_candidates, polish=config.refine,
+                          grow=config.noise is None and not config.noisy,
+                          threshold_tests=N_JUDGED, min_support=config.min_support, confidence=config.confidence,
+                          listing=listing,
+                          # Family-wise over every match, as a peel keeps motions
+                          # until none beats chance: register's screen level
+                          # (stages.JUDGED_WRONG) gave a spurious 4th motion at 1%
+                          # K=3 and stopped after one at 2% K=3 (benchmarks/motions.py).
+                          judged_wrong=None,
+                          # Noise unknown: the density test sees each chunk's best
+                          # trials polished (LO-RANSAC), as a noisy triple's pose
+                          # leaves most of a small motion outside the gate.
+                          polish_trial_motions=config.noisy,
+                          memory_budget=config.memory_budget, tried=tried, deadline=config.deadline, **options)
+    record.update(levels=tried, budget=budget, smallest=need_min)
+    return found
+
+
+def _settle_and_check(P: Problem, S: Problem, config: _Rounds, state: _PeelState, fit: Fit, tol: float,
+                      src: np.ndarray, tgt: np.ndarray) -> tuple[Fit, float, dict | None]:
+    """A noisy round's motion: its noise measured, then checked against chance there.
+
+    Returns the settled fit, its noise and ``None`` when kept, or the
+    rejection's record (the round's levels and held-out points updated).
+    """
+    round_levels = state.round_levels
+    level = round_levels.index(tol)
+    floor = P.spacing * stages.NOISY_SCHEDULE[0] if config.noise is None else config.levels[0]
+    fit, tol = stages.settle_noise(S, fit, round_levels, level, floor=floor)
+    # Kept only when, at its measured noise, it still beats chance as the
+    # judge asks (its pairs within gate(σ) against the chance level there,
+    # family-wise over N_JUDGED): a true motion keeps ~89% of its pairs
+    # there, while a wrong motion's residuals spread over the gate it was
+    # found at, so its pairs thin out as the gate's volume.
+    g_noise = stages.gate(tol)
+    residuals = S.residuals(fit.matrix, fit.correspondences)
+    within = int(np.sum(residuals <= g_noise))
+    chance = S.chance(g_noise, N_JUDGED)
+    if state.known_pool is not None and within >= chance:
+        # A pass after the noise was pooled: checked there too, as
+        # the pooled check will (a motion of its own small noise
+        # was how a wrong one got in before).
+        g_pool = stages.gate(state.known_pool)
+        within = int(np.sum(residuals <= g_pool))
+        chance = S.chance(g_pool, N_JUDGED)
+    if within >= chance:
+        return fit, tol, None
+    record = {"support": within, "noise": float(tol), "chance": int(chance),
+              "tolerance": float(round_levels[level]), "matrix": fit.matrix}
+    if level > 0:
+        # A random motion beat the density test's chance level at this
+        # tolerance: in these data (points not uniform over the box the
+        # chance level assumes) the level and the coarser ones find
+        # wrong motions, so the next rounds search the finer ones only.
+        state.round_levels = round_levels[:level]
+    else:
+        # Its points leave the search, so the next round draws anew
+        # (the kept motions are re-gated over all points at the end).
+        s, t = src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]
+        state.used_s[s] = state.held_s[s] = True
+        state.used_t[t] = state.held_t[t] = True
+    record["levels_next"] = [float(x) for x in state.round_levels]
+    return fit, tol, record
+
+
+def _merge_found(P: Problem, state: _PeelState) -> list[dict]:
+    """:func:`merge_same_motions` on the motions kept, each join's record naming the rounds it joined."""
+    state.fits, state.tolerances, joined = merge_same_motions(P, state.fits, state.tolerances)
+    for rec in joined:  # joins in order, indices as they were then
+        a, b = rec["motions"]
+        rec["rounds"] = (state.fit_rounds[a], state.fit_rounds[b])
+        del state.fit_rounds[b]
+    return joined
+
+
+def _pool_and_drop(P: Problem, state: _PeelState, dropped: list) -> float | None:
+    """The motions re-gated at the noise pooled over them (:func:`pool_noise`), dropping those that fail there.
+
+    At the pooled noise of the one sensor, every motion must still beat
+    chance among the points its round searched (its pairs within gate(σ)
+    against the chance level there, as the judge): a wrong motion kept in
+    the first round, when the noise was unknown, had its own (small)
+    noise.  Pooling runs again without it, whose pairs may belong to the
+    others.  Returns the pooled noise (``None`` when one motion is left).
+    """
+    model = P.model
+    while len(state.fits) > 1:
+        pooled_fits, pooled = pool_noise(P, state.fits, state.tolerances)
+        g_pool = stages.gate(pooled)
+        chances = [model.chance(*state.log[r]["points"], P.volume, g_pool, N_JUDGED) for r in state.fit_rounds]
+        within = [int(np.sum(P.residuals(f.matrix, f.correspondences) <= g_pool)) for f in pooled_fits]
+        weak = [k for k, (w, chance) in enumerate(zip(within, chances)) if w < chance]
+        if not weak or len(weak) == len(state.fits):
+            state.fits = pooled_fits
+            state.tolerances = [pooled] * len(state.fits)
+            return pooled
+        for k in sorted(weak, reverse=True):
+            dropped.append({"round": state.fit_rounds[k], "within": within[k], "chance": int(chances[k]),
+                            "noise": pooled})
+            state.held_s[state.fits[k].correspondences[:, 0]] = True
+            state.held_t[state.fits[k].correspondences[:, 1]] = True
+            del state.fits[k], state.tolerances[k], state.fit_rounds[k]
+    return None
+
+
+def _return_held(state: _PeelState, config: _Rounds) -> bool:
+    """Points held out by wrong motions back to the search for one more pass; whether there are any.
+
+    A motion rejected at its own noise or dropped at the pooled noise was a
+    wrong motion, whose chance pairs may be a true motion's points.  Once
+    the peel has stopped for want of a motion beating chance, those no kept
+    motion explains go back; the pass lists at the noise pooled over the
+    motions kept and checks every motion it finds there too.
+    """
+    kept_s, kept_t = np.zeros_like(state.used_s), np.zeros_like(state.used_t)
+    for fit in state.fits:
+        kept_s[fit.correspondences[:, 0]] = True
+        kept_t[fit.correspondences[:, 1]] = True
+    if not (np.any(state.held_s & ~kept_s) or np.any(state.held_t & ~kept_t)):
+        return False
+    state.returned += 1
+    state.used_s, state.used_t = kept_s, kept_t
+    state.held_s[:] = False
+    state.held_t[:] = False
+    state.measured_noise = state.known_pool = _support_weighted_noise(state.fits, state.tolerances)
+    state.round_levels = [max(state.measured_noise, config.levels[0])]
+    return True
+
+
+def _segmentation(P: Problem, state: _PeelState, info: dict, t_start: float, report) -> Segmentation:
+    """The result: motions largest first, per-point labels, the tokens of each motion."""
+    n1, n2 = P.source.shape[0], P.target.shape[0]
+    fits, tolerances = state.fits, state.tolerances
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(n2, -1, np.int64)
@@ -679,14 +781,12 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         src_lab[c[:, 0]] = new
         tgt_lab[c[:, 1]] = new
         motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k], "noise": tolerances[k],
-                                                   "round": rounds_of[k]}))
+                                                   "round": state.fit_rounds[k]}))
         c = c[np.argsort(c[:, 0], kind="stable")]
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
-    info = {"model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing,
-            "mode": "peel", "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped,
-            "returned": returned, "reason": reason, "rounds": log, "time_s": time.perf_counter() - t_start}
-    report(1.0, f"found {len(motions)} motions ({reason})")
+    info["time_s"] = time.perf_counter() - t_start
+    report(1.0, f"found {len(motions)} motions ({info['reason']})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,
                         np.vstack(tokens) if tokens else np.empty((0, 2), np.int64),
                         np.concatenate(labels) if labels else np.empty(0, np.int64), info)

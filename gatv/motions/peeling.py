@@ -259,8 +259,7 @@ def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *
     if P.model.name != "rigid" or P.dim != 3:
         return list(fits), list(noises), []
     fits, noises = list(fits), [float(x) for x in noises]
-    n = np.array([f.support for f in fits], np.float64)
-    s2 = 2.0 * float(np.sum(n * np.square(noises)) / np.sum(n))
+    s2 = 2.0 * _support_weighted_noise(fits, noises) ** 2
     limit = float(chi2.isf(level, 6))
     joined = []
 

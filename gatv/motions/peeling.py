@@ -463,13 +463,12 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         raise InputError("Expected `schedule` to hold at least one tolerance.")
     n1, n2 = P.source.shape[0], P.target.shape[0]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
-    config = _Rounds(levels=stages.tolerance_levels(P, noise, schedule), noisy=noisy, noise=noise,
+    config = _Rounds(levels=tuple(stages.tolerance_levels(P, noise, schedule)), noisy=noisy, noise=noise,
                      smallest=max(float(min_inlier_share) * n1, float(k_pts)), confidence=confidence,
                      max_triples=max_triples, min_support=min_support, sigma=sigma,
                      max_candidates=max_candidates, refine=refine, memory_budget=memory_budget,
                      search_options=search_options, deadline=deadline, time_limit=time_limit)
     state = _PeelState.start(n1, n2, config.levels)
-    pooled = None
     merged: list = []
     dropped: list = []
     while True:
@@ -494,7 +493,7 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
 class _Rounds:
     """What every round of a peel searches with (fixed for the whole peel)."""
 
-    levels: list[float]  # the tolerance schedule in data units
+    levels: tuple[float, ...]  # the tolerance schedule in data units
     noisy: bool
     noise: float | None
     smallest: float  # smallest motion wanted, in source points

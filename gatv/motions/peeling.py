@@ -464,7 +464,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     n1, n2 = P.source.shape[0], P.target.shape[0]
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     config = _Rounds(levels=tuple(stages.tolerance_levels(P, noise, schedule)), noisy=noisy, noise=noise,
-                     smallest=max(float(min_inlier_share) * n1, float(k_pts)), confidence=confidence,
+                     sample_points=k_pts, smallest=max(float(min_inlier_share) * n1, float(k_pts)),
+                     confidence=confidence,
                      max_triples=max_triples, min_support=min_support, sigma=sigma,
                      max_candidates=max_candidates, refine=refine, memory_budget=memory_budget,
                      search_options=search_options, deadline=deadline, time_limit=time_limit)
@@ -496,6 +497,7 @@ class _Rounds:
     levels: tuple[float, ...]  # the tolerance schedule in data units
     noisy: bool
     noise: float | None
+    sample_points: int  # points of a trial sample (the model's trial_sample_size)
     smallest: float  # smallest motion wanted, in source points
     confidence: float
     max_triples: int
@@ -547,13 +549,11 @@ def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motion
     Returns why the rounds stopped and whether for want of a motion to find
     (not a time or work limit, ``max_motions`` or the rejection limit).
     """
-    model = P.model
-    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     while True:
         if max_motions is not None and len(state.fits) >= max_motions:
             return "max_motions reached", False
         src, tgt = np.flatnonzero(~state.used_s), np.flatnonzero(~state.used_t)
-        need_pts = max(k_pts + 1, config.min_support or 0)
+        need_pts = max(config.sample_points + 1, config.min_support or 0)
         if src.size < need_pts or tgt.size < need_pts:
             return "too few points left", True
         S = _subproblem(P, src, tgt)
@@ -598,7 +598,6 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
     budget and the smallest motion it can find.
     """
     model = S.model
-    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     n_src = S.source.shape[0]
     round_levels = state.round_levels
     # A motion needs the chance level's support at the finest tolerance searched to be
@@ -618,7 +617,7 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
     # the round's tolerance (the schedule's first level is its floor): the
     # listing then holds more than LISTING standard deviations of it.
     listed = listed_share(listing * round_levels[0] / max(state.measured_noise, 1e-300) if measured else listing,
-                          k_pts)
+                          config.sample_points)
     options = dict(config.search_options)
     budget, need_min = search_budget(S, round_levels, need_min, config.confidence, cap,
                                      options.get("max_matches", stages.MAX_MATCHES),

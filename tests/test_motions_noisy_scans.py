@@ -25,7 +25,7 @@ from gatv.datasets import (
 )
 from gatv.errors import InputError
 from gatv.motions import multi_motion_scene, scan_scene, segment
-from gatv.motions.scans import chance_support, local_noise, regions, thickness
+from gatv.motions.scans import chance_support, displaced_level, local_noise, regions, thickness
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -141,6 +141,44 @@ def test_chance_level_of_a_plane_sliding_on_itself_is_its_size():
     assert chance_support(x, y, gate, seed=0, tangent=False, polish=0) < 0.6 * slide
 
 
+def _static_plane_in_clutter(rng, n_plane, n_clutter):
+    """A plane sampled independently in two scans (0 points: none), each with its own uniform clutter."""
+    box = rng.uniform(-0.5, 0.5, (n_clutter, 3)), rng.uniform(-0.5, 0.5, (n_clutter, 3))
+    return np.vstack([_plane(rng, n_plane), box[0]]), np.vstack([_plane(rng, n_plane), box[1]])
+
+
+def _identity_support(source, target, gate):
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(target).query(source, distance_upper_bound=gate)
+    return int(np.count_nonzero(np.isfinite(d)))
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_displaced_level_tells_a_static_plane_from_overlapping_clutter(seed):
+    # Clutter alone: the identity collects what the two scans' overlap gives any motion near it
+    # (the most at no displacement, which the level extrapolates); a static plane is far above that.
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    radius = 0.015
+    for n_plane, static in ((0, False), (1500, True)):
+        x, y = _static_plane_in_clutter(rng, n_plane, 3000)
+        level = displaced_level(x, cKDTree(y), np.eye(3), np.zeros(3), radius, 8 * radius)
+        support = _identity_support(x, y, radius)
+        assert (support > level) == static, (n_plane, support, level)
+
+
+def test_displaced_level_is_invariant_to_the_unit():
+    from scipy.spatial import cKDTree
+
+    x, y = _static_plane_in_clutter(np.random.default_rng(4), 800, 2000)
+    R, t = _rotation([0.0, 0.0, 1.0], 3.0), np.array([0.01, 0.0, 0.0])
+    levels = [displaced_level(s * x, cKDTree(s * y), R, s * t, s * 0.015, s * 0.12) for s in (0.25, 1.0, 8.0)]
+    assert levels[0] == levels[1] == levels[2] > 0
+
+
 def test_thickness_local_noise_and_regions():
     rng = np.random.default_rng(2)
     p = _plane(rng, 3000, 0.002)
@@ -200,6 +238,37 @@ def test_an_object_on_a_static_floor_is_found(seed):
     for r in seg.info["rounds"][1:]:
         if "chance" in r:  # counted among the points the identity does not explain
             assert r["unexplained"][0] < len(source) - 0.9 * len(floor)
+    _labels_match(seg)
+
+
+def object_in_clutter(seed, share=0.4, noise=0.001):
+    """A bumpy object, tilted and moved in the source, in uniform clutter (``share`` of each scan) drawn
+    independently in the two scans over the object's box; nothing in the scene is static.
+
+    Returns source, target and the object's motion.
+    """
+    rng = np.random.default_rng(seed)
+    Q = _rotation([1.0, 0.3, 0.2], 50.0)
+    obj_t = _blob(rng, 4000, np.array([0.0, 1.0, 0.0]))
+    obj_s = _blob(rng, 4000, np.array([0.3, 1.0, 0.0])) @ Q.T + [0.02, -0.01, 0.0]
+    n_clutter = int(share / (1.0 - share) * len(obj_t))
+    lo, hi = obj_t.min(axis=0) - 0.05, obj_t.max(axis=0) + 0.05
+    src = np.vstack([obj_s, rng.uniform(lo, hi, (n_clutter, 3))])
+    tgt = np.vstack([obj_t, rng.uniform(lo, hi, (n_clutter, 3))])
+    t = -Q.T @ np.array([0.02, -0.01, 0.0])
+    return src + rng.normal(0.0, noise, src.shape), tgt + rng.normal(0.0, noise, tgt.shape), (Q.T, t)
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
+def test_overlapping_clutter_is_not_a_static_part(seed):
+    # The identity keeps the two scans' clutter boxes where they overlap most: it collects more pairs
+    # than random motions, which move one box off the other, but no more than itself displaced.
+    source, target, (R, t) = object_in_clutter(seed)
+    seg = segment(source, target)
+    identity = seg.info["rounds"][0]
+    assert identity["kind"] == "identity" and identity["verdict"] == "chance"
+    assert [m.info["kind"] for m in seg] == ["search"]
+    assert rotation_error_deg(seg[0].rotation, R) < 1.0 and np.linalg.norm(seg[0].translation - t) < 0.005
     _labels_match(seg)
 
 

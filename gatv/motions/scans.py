@@ -11,9 +11,13 @@ found"):
 1. **The identity first.** A static part of the scene (background, a
    table) is a motion like any other; it is tried explicitly, since a
    search draws its trials from the moving parts as readily as from it.
-   Its points then join the parts' connectivity only: explained, they are
-   neither searched with an object resting on them nor counted by a later
-   motion or by the chance level (a floor slides on itself).
+   Being one fixed motion, its chance level is itself displaced by a few
+   gates (:func:`displaced_level`): clutter and crossing surfaces where the
+   two scenes overlap explain nearly as much shifted as unshifted, a static
+   part does not.  Its points then join the parts' connectivity only:
+   explained, they are neither searched with an object resting on them nor
+   counted by a later motion or by the chance level (a floor slides on
+   itself).
 2. **Peel.** The surface registration of ``register(pipeline="scans")``
    (:func:`register_part`) on the unexplained points, with each scan's
    surface points and normals voted once (:func:`scan_surfaces`); its
@@ -49,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import norm
 
 from .. import stages
 from .._validation import (
@@ -64,6 +69,7 @@ from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from ..scans import local_scatter
+from ..stats import ALPHA
 from .segmentation import Segmentation
 
 __all__ = [
@@ -73,6 +79,7 @@ __all__ = [
     "SAMPLING_GATE",
     "ScanSurfaces",
     "chance_support",
+    "displaced_level",
     "local_noise",
     "register_part",
     "residual_noise",
@@ -106,6 +113,29 @@ CHANCE_SAMPLE = 4000
 #: :data:`CHANCE_SAMPLE` points, from their own starts.
 CHANCE_SCREEN = 1000
 N_CHANCE_FINAL = 8
+#: A fixed motion (the identity) is compared with itself displaced by
+#: :data:`DISPLACEMENT` sampling gates along this many evenly spread
+#: directions (:func:`displaced_level`).
+N_DISPLACED = 32
+#: Displacement of :func:`displaced_level`, in sampling gates: far enough
+#: that a matched surface leaves the counting radius (:data:`STATIC_GATE`
+#: gates) for all directions but those within ``asin(STATIC_GATE /
+#: DISPLACEMENT)`` of its own plane (an eighth of the sphere, which the
+#: median ignores), near enough that the two scans' volumes overlap nearly
+#: as much as undisplaced (the rest is extrapolated).
+DISPLACEMENT = 4.0
+#: Share of the sampling gate within which a fixed motion's pairs are
+#: counted against :func:`displaced_level`: 1.5 spacings, where two
+#: samplings of one surface put nearly every point's partner, while clutter
+#: and crossing surfaces collect pairs in proportion to the gate's volume or
+#: width, so the narrower gate sharpens the test.
+STATIC_GATE = 0.5
+#: Standard deviations of the displaced supports a fixed motion's support
+#: must exceed their background by: the one-sided Gaussian quantile of the
+#: chance tests' level :data:`gatv.stats.ALPHA` (4.75 for 1e-6).  The
+#: background is itself estimated from the displaced counts, so a lower
+#: quantile lets chance overlaps through more often than its level says.
+DISPLACED_Z = float(norm.isf(ALPHA))
 
 
 def thickness(points: np.ndarray) -> float:
@@ -162,8 +192,8 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
     triples of surface points with agreeing normals) the source's surface
     normal there is turned onto the target's, with a random sign and a random
     spin about it, so the two surfaces touch tangentially; otherwise the
-    rotation is uniform over SO(3) (what one fixed hypothesis, such as the
-    identity, is to be compared with).  A draw's support is the number of
+    rotation is uniform over SO(3).  (A fixed hypothesis such as the identity
+    has its own null, :func:`displaced_level`.)  A draw's support is the number of
     source points landing within ``gate`` of a target point (counted on at
     most ``sample`` source points and scaled up): where the surfaces touch
     or cross, plus clutter, as for a wrong motion.  A plane that slides on
@@ -210,6 +240,54 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
             R, t = _icp(sub, Y, tree, R, t, gate, polish)
         best = max(best, int(np.count_nonzero(_support(sub, tree, R, t, gate))))
     return int(np.ceil(best * scale))
+
+
+def _sphere_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (the Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, radius: float,
+                    displacement: float, *, directions: int = N_DISPLACED, z: float = DISPLACED_Z) -> int:
+    """Pairs within ``radius`` a fixed motion ``(R, t)`` must exceed to explain more than the overlap of the scans.
+
+    A fixed hypothesis such as the identity is not drawn by a search, so the
+    random motions of :func:`chance_support` are not its null: they move the
+    source scene's volume off the target's, while the identity keeps the two
+    scenes' clutter and their crossing surfaces where they overlap most.  Its
+    null is the same motion displaced by ``displacement`` (data units, many
+    times ``radius``): a static part falls out of the radius, the overlap of
+    clutter and of crossing surfaces changes little.  Little, not nothing:
+    two boxes of clutter overlap most undisplaced and lose overlap linearly
+    with the displacement, so the background at no displacement is
+    extrapolated from two shells, ``2 m(D) - m(2D)``, where ``m(r)`` is the
+    median count over ``directions`` evenly spread displacements of length
+    ``r``.  The level adds ``z`` standard deviations of the counts at ``D``,
+    taken from their lower quartile (a static plane slides along its own
+    directions, which raises the upper tail only), at least the Poisson
+    deviation.  The count of the motion itself is the number of source
+    points within ``radius`` of a target point under ``(R, t)``.
+    """
+    X = np.asarray(source, dtype=np.float64)
+    if X.shape[0] == 0:
+        return 0
+    moved = X @ np.asarray(R, dtype=np.float64).T + t
+    units = _sphere_directions(int(directions))
+
+    def counts(distance):
+        return np.array([np.count_nonzero(np.isfinite(tree.query(moved + shift, k=1, distance_upper_bound=radius)[0]))
+                         for shift in distance * units])
+
+    near = counts(float(displacement))
+    far = counts(2.0 * float(displacement))
+    median = float(np.median(near))
+    background = max(2.0 * median - float(np.median(far)), 0.0)
+    spread = max((median - float(np.percentile(near, 25))) / 0.6745, np.sqrt(max(median, 1.0)))
+    return int(np.ceil(background + float(z) * spread))
 
 
 def _icp(X, Y, tree, R, t, gate, iterations):
@@ -410,7 +488,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         lists plane-like parts set aside, ``info["ambiguous"]`` parts whose
         motion a distinct rival fits nearly as well; ``info["rounds"]`` each
         round's support against its chance levels (``chance``: the
-        unexplained points'; ``part_chance``: the searched part's own).
+        unexplained points'; for the identity :func:`displaced_level`,
+        which its ``static_support`` is judged against; ``part_chance``:
+        the searched part's own).
     """
     from ..scans import pooled_noise
 
@@ -458,8 +538,16 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         inl = _support(X[src], tree, R, t, gate)
         support = int(np.count_nonzero(inl))
         searched = kind != "identity"
-        chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
-                                tree=tree, tangent=searched, polish=10 if searched else 0)
+        if searched:
+            chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
+                                    tree=tree)
+            judged = support
+        else:
+            # One fixed motion, not drawn by a search: its null is itself displaced, where the two
+            # scenes overlap as much (random motions move the source scene's volume off the target's),
+            # its pairs counted within the narrower STATIC_GATE.
+            chance = displaced_level(X[src], tree, R, t, STATIC_GATE * gate, DISPLACEMENT * gate)
+            judged = int(np.count_nonzero(_support(X[src], tree, R, t, STATIC_GATE * gate)))
         flat = thickness(X[src[inl]]) if support >= 4 else 0.0
         pairs = _pairs(X, Y, R, t, gate, src, tgt, tree)
         pick = pairs if pairs.shape[0] <= NOISE_SAMPLE else pairs[np.random.default_rng(seed).choice(
@@ -468,6 +556,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         scan_noise = local_noise(X, pick[:, 0], tree=tree_x) if pick.shape[0] else float("nan")
         rec = dict(extra, kind=kind, support=support, chance=chance, thickness=flat, noise=fit_noise,
                    scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s & ~static_s)), int(tgt.size)))
+        if not searched:
+            rec["static_support"] = judged
         rounds.append(rec)
         if searched and support > chance:
             # The search maximised the support over this part alone: a small or thin part (a strip
@@ -480,7 +570,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                                "centroid": X[src[inl]].mean(axis=0).tolist()})
             free_s[src[inl]] = False
             free_t[pairs[:, 1]] = False
-        elif support <= max(chance, rec.get("part_chance", 0)):
+        elif judged <= max(chance, rec.get("part_chance", 0)):
             verdict = "chance"
         elif not fit_noise <= NOISE_FACTOR * scan_noise:
             verdict = "noise"

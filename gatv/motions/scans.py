@@ -11,7 +11,7 @@ found"):
 1. **The identity first.** A static part of the scene (background, a
    table) is a motion like any other; it is tried explicitly, since a
    search draws its trials from the moving parts as readily as from it.
-   Being one fixed motion, its chance level is itself displaced by a few
+   Being one fixed motion, it must also beat itself displaced by a few
    gates (:func:`displaced_level`): clutter and crossing surfaces where the
    two scenes overlap explain nearly as much shifted as unshifted, a static
    part does not.  Its points then join the parts' connectivity only:
@@ -52,8 +52,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numba import get_num_threads
 from scipy.spatial import cKDTree
-from scipy.stats import norm
+from scipy.stats import norm, poisson
 
 from .. import stages
 from .._validation import (
@@ -69,7 +70,6 @@ from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from ..scans import local_scatter
-from ..stats import ALPHA
 from .segmentation import Segmentation
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "PART_OPTIONS",
     "PLANE_THICKNESS",
     "SAMPLING_GATE",
+    "DisplacedLevel",
     "ScanSurfaces",
     "chance_support",
     "displaced_level",
@@ -124,18 +125,19 @@ N_DISPLACED = 32
 #: median ignores), near enough that the two scans' volumes overlap nearly
 #: as much as undisplaced (the rest is extrapolated).
 DISPLACEMENT = 4.0
-#: Share of the sampling gate within which a fixed motion's pairs are
-#: counted against :func:`displaced_level`: 1.5 spacings, where two
-#: samplings of one surface put nearly every point's partner, while clutter
-#: and crossing surfaces collect pairs in proportion to the gate's volume or
-#: width, so the narrower gate sharpens the test.
+#: Share of the sampling gate within which :func:`displaced_level` counts a
+#: fixed motion's pairs: 1.5 spacings, where two samplings of one surface
+#: put nearly every point's partner, while clutter and crossing surfaces
+#: collect pairs in proportion to the gate's volume or width.
 STATIC_GATE = 0.5
-#: Standard deviations of the displaced supports a fixed motion's support
-#: must exceed their background by: the one-sided Gaussian quantile of the
-#: chance tests' level :data:`gatv.stats.ALPHA` (4.75 for 1e-6).  The
-#: background is itself estimated from the displaced counts, so a lower
-#: quantile lets chance overlaps through more often than its level says.
-DISPLACED_Z = float(norm.isf(ALPHA))
+#: Source neighbours of :func:`displaced_level`'s coherence: a pair counts
+#: when most of its point's neighbours are paired too (a matched surface is
+#: paired all over, a crossing surface along a band, clutter here and there).
+COHERENCE_NEIGHBOURS = 10
+#: Standard deviations of the displaced counts the motion's count must
+#: exceed their background by.  A veto on top of the family-wise chance level
+#: the identity beat already, so a level of one test (one-sided, about 1e-3).
+DISPLACED_Z = 3.0
 
 
 def thickness(points: np.ndarray) -> float:
@@ -192,8 +194,9 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
     triples of surface points with agreeing normals) the source's surface
     normal there is turned onto the target's, with a random sign and a random
     spin about it, so the two surfaces touch tangentially; otherwise the
-    rotation is uniform over SO(3).  (A fixed hypothesis such as the identity
-    has its own null, :func:`displaced_level`.)  A draw's support is the number of
+    rotation is uniform over SO(3) (what one fixed hypothesis, such as the
+    identity, is compared with; it also has to beat itself displaced,
+    :func:`displaced_level`).  A draw's support is the number of
     source points landing within ``gate`` of a target point (counted on at
     most ``sample`` source points and scaled up): where the surfaces touch
     or cross, plus clutter, as for a wrong motion.  A plane that slides on
@@ -251,43 +254,69 @@ def _sphere_directions(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, radius: float,
-                    displacement: float, *, directions: int = N_DISPLACED, z: float = DISPLACED_Z) -> int:
-    """Pairs within ``radius`` a fixed motion ``(R, t)`` must exceed to explain more than the overlap of the scans.
+@dataclass(frozen=True)
+class DisplacedLevel:
+    """A fixed motion's coherent pairs and the level they must exceed (:func:`displaced_level`).
 
-    A fixed hypothesis such as the identity is not drawn by a search, so the
-    random motions of :func:`chance_support` are not its null: they move the
-    source scene's volume off the target's, while the identity keeps the two
-    scenes' clutter and their crossing surfaces where they overlap most.  Its
-    null is the same motion displaced by ``displacement`` (data units, many
-    times ``radius``): a static part falls out of the radius, the overlap of
-    clutter and of crossing surfaces changes little.  Little, not nothing:
-    two boxes of clutter overlap most undisplaced and lose overlap linearly
-    with the displacement, so the background at no displacement is
-    extrapolated from two shells, ``2 m(D) - m(2D)``, where ``m(r)`` is the
-    median count over ``directions`` evenly spread displacements of length
-    ``r``.  The level adds ``z`` standard deviations of the counts at ``D``,
-    taken from their lower quartile (a static plane slides along its own
-    directions, which raises the upper tail only), at least the Poisson
-    deviation.  The count of the motion itself is the number of source
-    points within ``radius`` of a target point under ``(R, t)``.
+    Attributes
+    ----------
+    support : int
+        Source points within the counting radius of a target point under the
+        motion, most of whose neighbours are too.
+    level : int
+        What the same motion displaced collects, plus the test's margin.
+    """
+
+    support: int
+    level: int
+
+
+def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, radius: float,
+                    displacement: float, *, directions: int = N_DISPLACED, z: float = DISPLACED_Z,
+                    neighbours: int = COHERENCE_NEIGHBOURS) -> DisplacedLevel:
+    """Does a fixed motion ``(R, t)`` explain more than the overlap of the two scans?
+
+    A fixed hypothesis such as the identity keeps the two scenes' clutter and
+    their crossing surfaces where they overlap most, which random motions
+    (:func:`chance_support`) move apart.  Its own null is the same motion
+    displaced by ``displacement`` (data units, many times ``radius``): a
+    static part falls out of the radius, the overlap of clutter and of
+    crossing surfaces changes little.  Pairs are counted within ``radius``
+    and only where most of a point's ``neighbours`` nearest source points are
+    paired too (coherent: a matched surface is paired all over, a crossing
+    surface along a band, clutter here and there).  Two boxes of clutter
+    overlap most undisplaced and lose overlap linearly with the displacement,
+    so the background at no displacement is extrapolated from two shells,
+    ``2 m(D) - m(2D)``, where ``m(r)`` is the median count over ``directions``
+    evenly spread displacements of length ``r``.  The level adds ``z``
+    standard deviations of the counts at ``D``, taken from their lower
+    quartile (a static plane slides along its own directions, which raises
+    the upper tail only) and at least the Poisson deviation, and is at least
+    the Poisson quantile of the same one-sided level.  A veto, not a detector: a few coherent pairs where two
+    surfaces cross pass it now and then, which the chance level of random
+    motions (:func:`chance_support`) the identity must beat as well does
+    not let through.
     """
     X = np.asarray(source, dtype=np.float64)
-    if X.shape[0] == 0:
-        return 0
+    if X.shape[0] <= neighbours:
+        return DisplacedLevel(0, 0)
     moved = X @ np.asarray(R, dtype=np.float64).T + t
+    workers = get_num_threads()
+    near_rows = cKDTree(X).query(X, k=int(neighbours) + 1, workers=workers)[1][:, 1:]
+
+    def coherent(shift):
+        paired = np.isfinite(tree.query(moved + shift, k=1, distance_upper_bound=radius, workers=workers)[0])
+        return int(np.count_nonzero(paired & (paired[near_rows].mean(axis=1) > 0.5)))
+
     units = _sphere_directions(int(directions))
-
-    def counts(distance):
-        return np.array([np.count_nonzero(np.isfinite(tree.query(moved + shift, k=1, distance_upper_bound=radius)[0]))
-                         for shift in distance * units])
-
-    near = counts(float(displacement))
-    far = counts(2.0 * float(displacement))
+    near = np.array([coherent(shift) for shift in float(displacement) * units])
+    far = np.array([coherent(shift) for shift in 2.0 * float(displacement) * units])
     median = float(np.median(near))
     background = max(2.0 * median - float(np.median(far)), 0.0)
     spread = max((median - float(np.percentile(near, 25))) / 0.6745, np.sqrt(max(median, 1.0)))
-    return int(np.ceil(background + float(z) * spread))
+    # at least the Poisson quantile of the same one-sided level, which small counts need
+    floor = float(poisson.isf(norm.sf(float(z)), background))
+    return DisplacedLevel(coherent(np.zeros(3)), int(np.ceil(max(background + float(z) * spread, floor))))
 
 
 def _icp(X, Y, tree, R, t, gate, iterations):
@@ -488,9 +517,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         lists plane-like parts set aside, ``info["ambiguous"]`` parts whose
         motion a distinct rival fits nearly as well; ``info["rounds"]`` each
         round's support against its chance levels (``chance``: the
-        unexplained points'; for the identity :func:`displaced_level`,
-        which its ``static_support`` is judged against; ``part_chance``:
-        the searched part's own).
+        unexplained points'; ``part_chance``: the searched part's own;
+        ``displaced``: the identity's against itself displaced, which its
+        coherent ``static_support`` must exceed too, :func:`displaced_level`).
     """
     from ..scans import pooled_noise
 
@@ -538,16 +567,13 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         inl = _support(X[src], tree, R, t, gate)
         support = int(np.count_nonzero(inl))
         searched = kind != "identity"
-        if searched:
-            chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
-                                    tree=tree)
-            judged = support
-        else:
-            # One fixed motion, not drawn by a search: its null is itself displaced, where the two
-            # scenes overlap as much (random motions move the source scene's volume off the target's),
-            # its pairs counted within the narrower STATIC_GATE.
-            chance = displaced_level(X[src], tree, R, t, STATIC_GATE * gate, DISPLACEMENT * gate)
-            judged = int(np.count_nonzero(_support(X[src], tree, R, t, STATIC_GATE * gate)))
+        chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
+                                tree=tree, tangent=searched, polish=10 if searched else 0)
+        displaced = None
+        if not searched:
+            # One fixed motion: random motions move the source scene's volume off the target's, so it
+            # also has to beat itself displaced, where the two scenes overlap as much.
+            displaced = displaced_level(X[src], tree, R, t, STATIC_GATE * gate, DISPLACEMENT * gate)
         flat = thickness(X[src[inl]]) if support >= 4 else 0.0
         pairs = _pairs(X, Y, R, t, gate, src, tgt, tree)
         pick = pairs if pairs.shape[0] <= NOISE_SAMPLE else pairs[np.random.default_rng(seed).choice(
@@ -556,8 +582,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         scan_noise = local_noise(X, pick[:, 0], tree=tree_x) if pick.shape[0] else float("nan")
         rec = dict(extra, kind=kind, support=support, chance=chance, thickness=flat, noise=fit_noise,
                    scan_noise=scan_noise, unexplained=(int(np.count_nonzero(free_s & ~static_s)), int(tgt.size)))
-        if not searched:
-            rec["static_support"] = judged
+        if displaced is not None:
+            rec["static_support"], rec["displaced"] = displaced.support, displaced.level
         rounds.append(rec)
         if searched and support > chance:
             # The search maximised the support over this part alone: a small or thin part (a strip
@@ -570,7 +596,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                                "centroid": X[src[inl]].mean(axis=0).tolist()})
             free_s[src[inl]] = False
             free_t[pairs[:, 1]] = False
-        elif judged <= max(chance, rec.get("part_chance", 0)):
+        elif support <= max(chance, rec.get("part_chance", 0)) or (
+                displaced is not None and displaced.support <= displaced.level):
             verdict = "chance"
         elif not fit_noise <= NOISE_FACTOR * scan_noise:
             verdict = "noise"

@@ -80,6 +80,7 @@ __all__ = [
     "DisplacedLevel",
     "ScanSurfaces",
     "chance_support",
+    "coherent_pairs",
     "displaced_level",
     "local_noise",
     "register_part",
@@ -254,6 +255,25 @@ def _sphere_directions(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
+def _near_rows(X: np.ndarray, neighbours: int) -> np.ndarray:
+    """Rows of each point's ``neighbours`` nearest other points of ``X``."""
+    return cKDTree(X).query(X, k=int(neighbours) + 1, workers=get_num_threads())[1][:, 1:]
+
+
+def coherent_pairs(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, radius: float, *,
+                   neighbours: int = COHERENCE_NEIGHBOURS, near_rows: np.ndarray | None = None) -> np.ndarray:
+    """Which source points land within ``radius`` of a target point under ``(R, t)`` with most of their
+    ``neighbours`` nearest source points: a matched surface is paired all over, a crossing surface
+    along a band, clutter here and there (``near_rows``: those neighbours' rows, when known)."""
+    X = np.asarray(source, dtype=np.float64)
+    if X.shape[0] <= neighbours:
+        return np.zeros(X.shape[0], bool)
+    near_rows = _near_rows(X, neighbours) if near_rows is None else near_rows
+    moved = X @ np.asarray(R, dtype=np.float64).T + t
+    paired = np.isfinite(tree.query(moved, k=1, distance_upper_bound=radius, workers=get_num_threads())[0])
+    return paired & (paired[near_rows].mean(axis=1) > 0.5)
+
+
 @dataclass(frozen=True)
 class DisplacedLevel:
     """A fixed motion's coherent pairs and the level they must exceed (:func:`displaced_level`).
@@ -300,13 +320,10 @@ def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndar
     X = np.asarray(source, dtype=np.float64)
     if X.shape[0] <= neighbours:
         return DisplacedLevel(0, 0)
-    moved = X @ np.asarray(R, dtype=np.float64).T + t
-    workers = get_num_threads()
-    near_rows = cKDTree(X).query(X, k=int(neighbours) + 1, workers=workers)[1][:, 1:]
+    near_rows = _near_rows(X, neighbours)
 
     def coherent(shift):
-        paired = np.isfinite(tree.query(moved + shift, k=1, distance_upper_bound=radius, workers=workers)[0])
-        return int(np.count_nonzero(paired & (paired[near_rows].mean(axis=1) > 0.5)))
+        return int(np.count_nonzero(coherent_pairs(X, tree, R, t + shift, radius, near_rows=near_rows)))
 
     units = _sphere_directions(int(directions))
     near = np.array([coherent(shift) for shift in float(displacement) * units])

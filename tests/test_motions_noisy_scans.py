@@ -25,7 +25,14 @@ from gatv.datasets import (
 )
 from gatv.errors import InputError
 from gatv.motions import multi_motion_scene, scan_scene, segment
-from gatv.motions.scans import chance_support, displaced_level, local_noise, regions, thickness
+from gatv.motions.scans import (
+    chance_support,
+    coherent_pairs,
+    displaced_level,
+    local_noise,
+    regions,
+    thickness,
+)
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -168,6 +175,23 @@ def test_displaced_level_tells_a_static_plane_from_overlapping_clutter(seed):
         test = displaced_level(x, cKDTree(y), np.eye(3), np.zeros(3), radius, 8 * radius)
         assert test.support <= _identity_support(x, y, radius)  # the coherent ones among the pairs
         assert (test.support > test.level) == static, (n_plane, test)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), radius=st.floats(0.05, 0.4), k=st.integers(1, 12))
+def test_coherent_pairs_match_a_brute_force_reference(seed, radius, k):
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(-1.0, 1.0, (60, 3)), rng.uniform(-1.0, 1.0, (80, 3))
+    R, t = _rotation(rng.normal(size=3), rng.uniform(0.0, 180.0)), rng.normal(0.0, 0.1, 3)
+    from scipy.spatial import cKDTree
+
+    got = coherent_pairs(x, cKDTree(y), R, t, radius, neighbours=k)
+    moved = x @ R.T + t
+    paired = np.linalg.norm(moved[:, None, :] - y[None, :, :], axis=2).min(axis=1) <= radius
+    d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    near = np.argsort(d, axis=1, kind="stable")[:, :k]
+    assert np.array_equal(got, paired & (paired[near].mean(axis=1) > 0.5))
 
 
 def test_displaced_level_is_invariant_to_the_unit():

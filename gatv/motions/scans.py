@@ -312,10 +312,12 @@ def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndar
     standard deviations of the counts at ``D``, taken from their lower
     quartile (a static plane slides along its own directions, which raises
     the upper tail only) and at least the Poisson deviation, and is at least
-    the Poisson quantile of the same one-sided level.  A veto, not a detector: a few coherent pairs where two
-    surfaces cross pass it now and then, which the chance level of random
-    motions (:func:`chance_support`) the identity must beat as well does
-    not let through.
+    the Poisson quantile of the same one-sided level.
+
+    A veto, not a detector: a few coherent pairs where two surfaces cross
+    pass it now and then, which the chance level of random motions
+    (:func:`chance_support`), which the identity must beat as well, does not
+    let through.
     """
     X = np.asarray(source, dtype=np.float64)
     if X.shape[0] <= neighbours:

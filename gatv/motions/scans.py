@@ -162,9 +162,9 @@ def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     ], axis=1)
 
 
-def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: float) -> np.ndarray:
-    """Which rows of ``X`` land within ``gate`` of a target point under ``(R, t)``."""
-    d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: float, workers: int = 1) -> np.ndarray:
+    """Which rows of ``X`` land within ``gate`` of a target point under ``(R, t)`` (``workers``: query threads)."""
+    d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate, workers=workers)
     return np.isfinite(d)
 
 
@@ -269,8 +269,7 @@ def coherent_pairs(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarr
     if X.shape[0] <= neighbours:
         return np.zeros(X.shape[0], bool)
     near_rows = _near_rows(X, neighbours) if near_rows is None else near_rows
-    moved = X @ np.asarray(R, dtype=np.float64).T + t
-    paired = np.isfinite(tree.query(moved, k=1, distance_upper_bound=radius, workers=get_num_threads())[0])
+    paired = _support(X, tree, np.asarray(R, dtype=np.float64), t, radius, workers=get_num_threads())
     return paired & (paired[near_rows].mean(axis=1) > 0.5)
 
 
@@ -537,8 +536,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         motion a distinct rival fits nearly as well; ``info["rounds"]`` each
         round's support against its chance levels (``chance``: the
         unexplained points'; ``part_chance``: the searched part's own;
-        ``displaced``: the identity's against itself displaced, which its
-        coherent ``static_support`` must exceed too, :func:`displaced_level`).
+        ``displaced``: once the identity beat ``chance``, its level against
+        itself displaced, which its coherent ``static_support`` must exceed
+        too, :func:`displaced_level`).
     """
     from ..scans import pooled_noise
 
@@ -589,7 +589,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         chance = chance_support(X[np.flatnonzero(free_s & ~static_s)], Y[tgt], gate, seed=seed + len(rounds),
                                 tree=tree, tangent=searched, polish=10 if searched else 0)
         displaced = None
-        if not searched:
+        if not searched and support > chance:
             # One fixed motion: random motions move the source scene's volume off the target's, so it
             # also has to beat itself displaced, where the two scenes overlap as much.
             displaced = displaced_level(X[src], tree, R, t, STATIC_GATE * gate, DISPLACEMENT * gate)

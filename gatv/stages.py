@@ -950,9 +950,10 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     work units of the whole search, which bounds its time whatever the
     noise; ``trial_options`` go to the model's ``trial_motions``;
     ``deadline`` (a :func:`time.perf_counter` reading) stops the search
-    between chunks once passed, a wall-clock bound for callers that promise
-    one (unlike the work bound, it depends on the machine's speed); the
-    time numba spends compiling kernels on a first call moves it on.
+    between chunks, before a chunk as slow as the slowest so far would end
+    past it: a wall-clock bound for callers that promise one (unlike the
+    work bound, it depends on the machine's speed); the time numba spends
+    compiling kernels on a first call moves it on.
 
     A sample's congruent matches are listed within ``listing`` standard
     deviations of a side's length error at the level's tolerance ``τ``
@@ -1007,6 +1008,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         per_triple = [SEARCH_SHARE / FIRST_CHUNK] * len(levels)  # first chunk: a few samples, then measured
         options = dict(trial_options or {})
         work = 0.0
+        # The deadline is kept by not starting a chunk that the slowest one so far would carry past it.
+        last_check, slowest = None, 0.0
         # Tests the judge's level counts (its calls, up to ``judged_wrong`` wrong
         # ones), and the final level's (every match the budget scores).
         n_judge_tests = threshold_tests * (judged_wrong or 1.0)
@@ -1021,10 +1024,15 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     if tried is not None:
                         tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
                     return None
-                if deadline is not None and time.perf_counter() - _duration(compiling) >= deadline:
-                    if tried is not None:
-                        tried.append({"stopped": "time limit", "work": work})
-                    return None
+                if deadline is not None:
+                    now = time.perf_counter() - _duration(compiling)
+                    if last_check is not None:
+                        slowest = max(slowest, now - last_check)
+                    last_check = now
+                    if now + slowest >= deadline:
+                        if tried is not None:
+                            tried.append({"stopped": "time limit", "work": work})
+                        return None
                 m = int(min(caps[level] - done[level], max(2, min(4096, share / per_triple[level]))))
                 done[level] += m
                 rec = records[level]

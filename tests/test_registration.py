@@ -271,6 +271,41 @@ def test_only_trials_that_beat_chance_once_polished_reach_the_judge(monkeypatch)
         assert stages.beats_chance_at_some_level(P, polished, upto, stages.JUDGED_WRONG)
 
 
+@pytest.mark.parametrize("chunk_s", [0.07, 0.15, 0.3, 0.45])
+def test_time_limit_is_kept_by_the_chunks_it_starts(monkeypatch, chunk_s):
+    """The search stops before a chunk that would end past ``time_limit``, not after: on a clock that only
+    each chunk of trial motions advances, by ``chunk_s``, a search with no motion to find (two independent
+    random sets) returns with the time limit's reason and its clock within the limit, having run every
+    chunk that fitted."""
+    import types
+
+    from gatv import registration, stages
+    from gatv.models import rigid as rigid_model
+
+    rng = np.random.default_rng(5)
+    src, tgt = rng.uniform(0, 10, (150, 3)), rng.uniform(0, 10, (150, 3))
+    unlimited = register(src, tgt, noise=0.2)  # also compiles the kernels: no compile time on the fake clock
+    assert not unlimited and "time limit" not in unlimited.info["reason"]
+    clock = [0.0]
+    fake = types.SimpleNamespace(perf_counter=lambda: clock[0])
+    monkeypatch.setattr(stages, "time", fake)
+    monkeypatch.setattr(registration, "time", fake)
+    real = rigid_model.Rigid.trial_motions
+    chunks = []
+
+    def trial_motions(self, source, index, **options):
+        chunks.append(clock[0])
+        clock[0] += chunk_s
+        return real(self, source, index, **options)
+
+    monkeypatch.setattr(rigid_model.Rigid, "trial_motions", trial_motions)
+    m = register(src, tgt, noise=0.2, time_limit=1.0)
+    assert not m and "time limit" in m.info["reason"]
+    assert clock[0] <= 1.0
+    # chunk k starts at k chunk_s, and only when it would end by the limit: (k + 1) chunk_s < 1
+    assert len(chunks) == int(np.ceil(1.0 / chunk_s)) - 1
+
+
 def test_time_limit_leaves_out_numba_compilation(monkeypatch):
     """A first call compiles the kernels, a minute on a loaded machine: that time must not use up
     ``time_limit``.  A compilation of 1.5 s (a numba compile event around a sleep, at the first trial

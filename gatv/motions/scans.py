@@ -536,9 +536,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         motion a distinct rival fits nearly as well; ``info["rounds"]`` each
         round's support against its chance levels (``chance``: the
         unexplained points'; ``part_chance``: the searched part's own;
-        ``surface_chance``: once a searched motion beat both, the part's own
-        among its surface points, which its ``surface_support`` must exceed
-        too; ``displaced``: once the identity beat ``chance``, its level against
+        ``displaced``: once the identity beat ``chance``, its level against
         itself displaced, which its coherent ``static_support`` must exceed
         too, :func:`displaced_level`).
     """
@@ -611,16 +609,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             # of surface that one scan sees, a few clutter points) fits some target surface whole,
             # which random motions of the whole pool do not show.  Its own chance level does.
             rec["part_chance"] = chance_support(X[src], Y[tgt], gate, seed=seed + len(rounds), tree=tree)
-            if clutter and support > rec["part_chance"]:
-                # The search saw the part's surface points only: scattered points that voting set aside
-                # pair with the target's as readily under a wrong motion as under the right one, and
-                # counted beside the surfaces they carry a leftover of clutter and strips over its level.
-                ss, st = src[surf_x.mask[src]], tgt[surf_y.mask[tgt]]
-                if ss.size and st.size >= 4:  # (the search needed 10 of each)
-                    surf_tree = cKDTree(Y[st])
-                    rec["surface_support"] = int(np.count_nonzero(_support(X[ss], surf_tree, R, t, gate)))
-                    rec["surface_chance"] = chance_support(X[ss], Y[st], gate, seed=seed + len(rounds),
-                                                           tree=surf_tree)
         if searched and support >= least and flat <= PLANE_THICKNESS * scan_noise:
             verdict = "degenerate"
             degenerate.append({"points": support, "thickness": flat,
@@ -628,7 +616,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             free_s[src[inl]] = False
             free_t[pairs[:, 1]] = False
         elif support <= max(chance, rec.get("part_chance", 0)) or (
-                "surface_chance" in rec and rec["surface_support"] <= rec["surface_chance"]) or (
                 displaced is not None and displaced.support <= displaced.level):
             verdict = "chance"
         elif not fit_noise <= NOISE_FACTOR * scan_noise:

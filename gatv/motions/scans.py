@@ -459,6 +459,12 @@ def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     return ScanSurfaces(tokens.points, mask, normals, tokens.noise.sigma, projected)
 
 
+#: Tolerance on the normal invariants of a part's congruent triples (:func:`register_part`).
+FEATURE_TOL = 0.15
+#: A part whose best motion was rejected is searched once more with the tolerance on its normal
+#: invariants this many times wider: where few points a voxel or much clutter make the normals poor
+#: (true pairs' normals 20-40 degrees apart instead of 8-10), the true triples' matches were pruned.
+WIDER_NORMALS = 2.0
 #: Options of :func:`register_part` a user may set through ``scan_options``.
 PART_OPTIONS = ("n_points", "voxel", "min_overlap", "feature_tol", "clutter")
 #: Source points of the coarse levels of each round's point-to-plane polish
@@ -471,7 +477,7 @@ def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray
                   surf_y: ScanSurfaces, *, seed: int = 0, confidence: float = 0.999,
                   max_triples: int | None = None, n_judged: int = 4, refine: bool = True,
                   memory_budget: float | None = None, n_points: int = 600, voxel: float | None = None,
-                  min_overlap: float = 0.4, feature_tol: float = 0.15, clutter: bool = True):
+                  min_overlap: float = 0.4, feature_tol: float = FEATURE_TOL, clutter: bool = True):
     """The surface registration of :func:`gatv.scans.register_surfaces` for rows ``src`` of ``X`` onto rows ``tgt`` of ``Y``.
 
     :func:`gatv.scans.match_surfaces` (voxel grid of about ``n_points``
@@ -534,7 +540,10 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         ``info["reason"]`` says why it stopped; ``info["degenerate"]``
         lists plane-like parts set aside, ``info["ambiguous"]`` parts whose
         motion a distinct rival fits nearly as well; ``info["rounds"]`` each
-        round's support against its chance levels (``chance``: the
+        round's support against its chance levels (a searched part's
+        ``feature_tol``: the tolerance on its triples' normal invariants; a
+        part whose motion is rejected is searched once more at
+        :data:`WIDER_NORMALS` times it; ``chance``: the
         unexplained points'; ``part_chance``: the searched part's own;
         ``displaced``: once the identity beat ``chance``, its level against
         itself displaced, which its coherent ``static_support`` must exceed
@@ -655,6 +664,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     report(0.0, "identity (static part)")
     judge(np.eye(3), np.zeros(3), "identity", np.arange(n1), {})
     tried = np.zeros(n1, bool)  # source points of parts whose best motion was rejected
+    widened = np.zeros(n1, bool)  # ... once, and searched again with wider normal invariants
+    ambiguous_parts: list = []  # the source points of each part reported in ``ambiguous``
     reason = ""
     while True:
         if max_motions is not None and len(kept) >= max_motions:
@@ -678,21 +689,33 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         part = parts[0]
         report(float(1.0 - open_s.size / n1), f"round {len(rounds)}: part of {part.size} points, "
                                               f"{open_s.size} source points left")
+        feature_tol = options.get("feature_tol", FEATURE_TOL) * (WIDER_NORMALS if widened[part].any() else 1.0)
         found, found_info = register_part(X, Y, part, tgt, surf_x, surf_y, seed=seed + len(rounds),
                                           confidence=confidence, max_triples=max_triples, n_judged=n_judged,
-                                          refine=refine, memory_budget=memory_budget, **options)
+                                          refine=refine, memory_budget=memory_budget,
+                                          **dict(options, feature_tol=feature_tol))
         if found is None:
-            rounds.append({"kind": "search", "part": int(part.size), "verdict": "none",
+            rounds.append({"kind": "search", "part": int(part.size), "feature_tol": feature_tol, "verdict": "none",
                            "reason": found_info.get("reason", "")})
-            tried[part] = True
-            continue
-        extra = {"part": int(part.size), "ambiguous": found_info.get("ambiguous"), "voxel": found_info.get("voxel")}
-        if found_info.get("rival"):
-            extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
-        verdict = judge(*found, "search", part, extra, least=smallest)
-        if verdict in ("chance", "noise", "ambiguous"):
-            tried[part] = True
+            verdict = "none"
+        else:
+            extra = {"part": int(part.size), "feature_tol": feature_tol, "ambiguous": found_info.get("ambiguous"),
+                     "voxel": found_info.get("voxel")}
+            if found_info.get("rival"):
+                extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
+            verdict = judge(*found, "search", part, extra, least=smallest)
+        if verdict in ("none", "chance", "noise", "ambiguous"):
+            # Searched again once with wider normal invariants (WIDER_NORMALS), then set aside.
+            if widened[part].all():
+                tried[part] = True
+            widened[part] = True
+            if verdict == "ambiguous":
+                ambiguous_parts.append(part)
         elif verdict == "kept":
+            # an ambiguity reported on an earlier search of this part is resolved
+            stale = [k for k, p in enumerate(ambiguous_parts) if np.isin(p, part).mean() > 0.5]
+            ambiguous[:] = [a for k, a in enumerate(ambiguous) if k not in stale]
+            ambiguous_parts[:] = [p for k, p in enumerate(ambiguous_parts) if k not in stale]
             # The parts searched in vain so far are searched again: the kept motion's target
             # points have left the pool, and with them the surfaces that a part's wrong motion
             # laid it onto (an object searched before a larger one whose surfaces it also fits).

@@ -478,6 +478,29 @@ def test_three_objects_a_static_patch_and_no_spurious_motion(trial):
 
 
 @pytest.mark.slow
+def test_a_leftover_of_clutter_does_not_beat_its_part_level():
+    # benchmarks/motions.py's row "scans: bun000<-315 + parasaurolophus +4% noise" (row 28, seed 0,
+    # trial 0).  Once both objects are kept, a leftover of 1,133 source points (816 of them clutter,
+    # 317 bunny points bun000 does not see) was laid 100 degrees off with 785 pairs: over the best of 64
+    # random polished motions of the part (745), not over the best of 256 (793-815 by seed).
+    pairs = [_bunny("bun000", "bun315"), _uwa("parasaurolophus")]
+    rng = np.random.default_rng(np.random.SeedSequence([0, 28, 0]))
+    scene = scan_scene(pairs, n_points=40000, clutter=0.2, static_patch=0.1, seed=rng)
+    first = scene.source[scene.source_labels == 0]
+    sigma = 0.04 * float(np.sqrt(((first - first.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    seg = segment(scene.source + rng.normal(0.0, sigma, scene.source.shape),
+                  scene.target + rng.normal(0.0, sigma, scene.target.shape))
+    assert len(seg) == 3 and seg[0].info["kind"] == "identity"
+    for R, t in zip(scene.rotations, scene.translations):
+        errs = [(rotation_error_deg(m.rotation, R), 1000 * np.linalg.norm(m.translation - t)) for m in seg]
+        k = int(np.argmin([e[0] + e[1] for e in errs]))
+        assert errs[k][0] < 1.0 and errs[k][1] < 3.0
+    assert any(r["verdict"] == "chance" and r["chance"] < r["support"] <= r["part_chance"]
+               for r in seg.info["rounds"] if "part_chance" in r)
+    _labels_match(seg)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("seed, at_least", [(1002, 4), (1008, 3)])
 def test_a_part_rejected_once_is_searched_again_with_wider_normal_invariants(seed, at_least):
     # 20,000 points a scene and 30% clutter: the chef's and the bunny's normals at the matching voxel

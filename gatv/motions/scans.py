@@ -96,6 +96,11 @@ __all__ = [
 SAMPLING_GATE = 3.0
 #: Random motions drawn for the chance level (:func:`chance_support`).
 N_CHANCE = 64
+#: ... for a searched part's own level: its search keeps the best of some hundred
+#: triples' motions, judged and polished, and on a leftover of clutter the best of 64
+#: polished draws falls short of that now and then (the spread of their supports is
+#: as large as their mean).
+N_PART_CHANCE = 256
 #: A motion's supporting points lie on one plane (and the motion can slide
 #: along it) when their spread along their least axis, ``sqrt(λ3)``, is within
 #: this many times the scans' noise (:func:`local_noise`): a floor or a wall
@@ -617,7 +622,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             # The search maximised the support over this part alone: a small or thin part (a strip
             # of surface that one scan sees, a few clutter points) fits some target surface whole,
             # which random motions of the whole pool do not show.  Its own chance level does.
-            rec["part_chance"] = chance_support(X[src], Y[tgt], gate, seed=seed + len(rounds), tree=tree)
+            rec["part_chance"] = chance_support(X[src], Y[tgt], gate, n_draws=N_PART_CHANCE,
+                                                seed=seed + len(rounds), tree=tree)
         if searched and support >= least and flat <= PLANE_THICKNESS * scan_noise:
             verdict = "degenerate"
             degenerate.append({"points": support, "thickness": flat,

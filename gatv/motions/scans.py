@@ -586,7 +586,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     tree_x, tree_y = cKDTree(X), cKDTree(Y)
     free_s = np.ones(n1, bool)
     free_t = np.ones(n2, bool)
-    rounds, degenerate, ambiguous = [], [], []
+    rounds, degenerate = [], []
+    ambiguous = []  # (the entry of info["ambiguous"], the source points of its part)
 
     def judge(R, t, kind, src, extra, least=4):
         """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones.
@@ -639,8 +640,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             # A distinct rival motion fits the part nearly as well (gatv.scans.RIVAL_SHARE): the
             # part slides on a target surface or matches two of them; the data do not fix its motion.
             verdict = "ambiguous"
-            ambiguous.append({"points": support, "rival_angle_deg": extra.get("rival_angle_deg"),
-                              "centroid": X[src[inl]].mean(axis=0).tolist()})
+            ambiguous.append(({"points": support, "rival_angle_deg": extra.get("rival_angle_deg"),
+                               "centroid": X[src[inl]].mean(axis=0).tolist()}, src))
         else:
             verdict = "kept"
             if not searched and flat <= PLANE_THICKNESS * scan_noise:
@@ -671,7 +672,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     judge(np.eye(3), np.zeros(3), "identity", np.arange(n1), {})
     tried = np.zeros(n1, bool)  # source points of parts whose best motion was rejected
     widened = np.zeros(n1, bool)  # ... once, and searched again with wider normal invariants
-    ambiguous_parts: list = []  # the source points of each part reported in ``ambiguous``
     reason = ""
     while True:
         if max_motions is not None and len(kept) >= max_motions:
@@ -715,13 +715,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             if widened[part].all():
                 tried[part] = True
             widened[part] = True
-            if verdict == "ambiguous":
-                ambiguous_parts.append(part)
         elif verdict == "kept":
             # an ambiguity reported on an earlier search of this part is resolved
-            stale = [k for k, p in enumerate(ambiguous_parts) if np.isin(p, part).mean() > 0.5]
-            ambiguous[:] = [a for k, a in enumerate(ambiguous) if k not in stale]
-            ambiguous_parts[:] = [p for k, p in enumerate(ambiguous_parts) if k not in stale]
+            ambiguous[:] = [(a, p) for a, p in ambiguous if np.isin(p, part).mean() <= 0.5]
             # The parts searched in vain so far are searched again: the kept motion's target
             # points have left the pool, and with them the surfaces that a part's wrong motion
             # laid it onto (an object searched before a larger one whose surfaces it also fits).
@@ -751,7 +747,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         tokens.append(c)
         token_labels.append(np.full(c.shape[0], k, np.int64))
     info = {"pipeline": "scans", "n_source": int(n1), "n_target": int(n2), "spacing": spacing, "gate": gate,
-            "reason": reason, "rounds": rounds, "degenerate": degenerate, "ambiguous": ambiguous,
+            "reason": reason, "rounds": rounds, "degenerate": degenerate, "ambiguous": [a for a, _ in ambiguous],
             "noise": pooled_noise(surf_x.noise, surf_y.noise),
             "scan_noise": (surf_x.noise, surf_y.noise), "projected": (surf_x.projected, surf_y.projected),
             "static": bool(motions) and motions[0].info.get("kind") == "identity",

@@ -526,6 +526,20 @@ def test_a_part_rejected_once_is_searched_again_with_wider_normal_invariants(see
     _labels_match(seg)
 
 
+@pytest.mark.slow
+def test_a_part_searched_twice_is_reported_ambiguous_once():
+    # Seed 1004 of the 20,000-point, 30%-clutter scene: the bunny's part is ambiguous (a rival 180
+    # degrees off) at both normal tolerances; its second search's verdict replaces its first's.
+    pairs = [_bunny("bun000", "bun315"), _uwa("chef"), _uwa("parasaurolophus")]
+    scene = scan_scene(pairs, n_points=20000, clutter=0.3, static_patch=0.1, seed=np.random.default_rng(1004))
+    seg = segment(scene.source, scene.target)
+    searched = [r for r in seg.info["rounds"] if r["kind"] == "search"]
+    assert sum(r["verdict"] == "ambiguous" for r in searched) > len(seg.info["ambiguous"]) >= 1
+    centroids = np.array([a["centroid"] for a in seg.info["ambiguous"]])
+    gaps = np.linalg.norm(centroids[:, None] - centroids[None], axis=-1)[np.triu_indices(len(centroids), 1)]
+    assert np.all(gaps > seg.info["gate"])  # no part twice
+
+
 # ------------------------------------------------------------------ CLI
 def test_cli_labelled_ply(tmp_path):
     from gatv import cli

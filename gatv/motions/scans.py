@@ -700,6 +700,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                                           confidence=confidence, max_triples=max_triples, n_judged=n_judged,
                                           refine=refine, memory_budget=memory_budget,
                                           **dict(options, feature_tol=feature_tol))
+        # The part's newest search decides: an ambiguity reported on an earlier search of it goes.
+        ambiguous[:] = [(a, p) for a, p in ambiguous if np.isin(p, part).mean() <= 0.5]
         if found is None:
             rounds.append({"kind": "search", "part": int(part.size), "feature_tol": feature_tol, "verdict": "none",
                            "reason": found_info.get("reason", "")})
@@ -716,8 +718,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                 tried[part] = True
             widened[part] = True
         elif verdict == "kept":
-            # an ambiguity reported on an earlier search of this part is resolved
-            ambiguous[:] = [(a, p) for a, p in ambiguous if np.isin(p, part).mean() <= 0.5]
             # The parts searched in vain so far are searched again: the kept motion's target
             # points have left the pool, and with them the surfaces that a part's wrong motion
             # laid it onto (an object searched before a larger one whose surfaces it also fits).

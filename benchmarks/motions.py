@@ -313,6 +313,13 @@ def _baseline_segmentation(n_target, motions, labels, pairs) -> _Baseline:
 CEILING_GATES = tuple(np.arange(2.0, 4.51, 0.25))
 
 
+def _residual_deviation(scene) -> float:
+    """RMS per coordinate of the true pairs' residuals under their true motions."""
+    res = [scene.target[p[:, 1]] - (scene.source[p[:, 0]] @ R.T + t)
+           for p, R, t in zip(scene.true_pairs, scene.rotations, scene.translations)]
+    return float(np.sqrt(np.mean(np.square(np.vstack(res)))))
+
+
 def f1_ceiling(scene, gates=CEILING_GATES) -> float:
     """Correspondence F1 of the true motions, each point's nearest target one-to-one within the best gate.
 
@@ -327,11 +334,9 @@ def f1_ceiling(scene, gates=CEILING_GATES) -> float:
     from scipy.spatial import cKDTree
 
     true = set()
-    res = []
-    for p, R, t in zip(scene.true_pairs, scene.rotations, scene.translations):
+    for p in scene.true_pairs:
         true |= set(map(tuple, p.tolist()))
-        res.append(scene.target[p[:, 1]] - (scene.source[p[:, 0]] @ R.T + t))
-    s = float(np.sqrt(np.mean(np.square(np.vstack(res)))))
+    s = _residual_deviation(scene)
     if s == 0.0:
         return 1.0
     tree = cKDTree(scene.target)
@@ -383,14 +388,10 @@ def k_ceiling(scene, n_tests=CEILING_TESTS, factors=CEILING_FACTORS) -> bool:
     true pairs taken out, fewer tests than a round scores.  ``False``: some
     motion cannot be told from chance even then.
     """
-    from scipy.spatial import cKDTree
-
     from gatv.stages import gate as gate_of
     from gatv.stages import prepare
 
-    res = [scene.target[p[:, 1]] - (scene.source[p[:, 0]] @ R.T + t)
-           for p, R, t in zip(scene.true_pairs, scene.rotations, scene.translations)]
-    tau = float(np.sqrt(np.mean(np.square(np.vstack(res))))) / np.sqrt(2.0)
+    tau = _residual_deviation(scene) / np.sqrt(2.0)
     if tau == 0.0:
         return True
     used_s = np.zeros(len(scene.source), bool)
@@ -399,13 +400,12 @@ def k_ceiling(scene, n_tests=CEILING_TESTS, factors=CEILING_FACTORS) -> bool:
     while left:
         src, tgt = np.flatnonzero(~used_s), np.flatnonzero(~used_t)
         sub = prepare(scene.source[src], scene.target[tgt])
-        tree = cKDTree(sub.target)
         margin, best = -np.inf, None
         for k in left:
             moved = sub.source @ scene.rotations[k].T + scene.translations[k]
             for c in factors:
                 g = gate_of(c * tau)
-                d, _ = tree.query(moved, distance_upper_bound=g)
+                d, _ = sub.tree.query(moved, distance_upper_bound=g)
                 m = int(np.isfinite(d).sum()) - sub.chance(g, n_tests)
                 if m > margin:
                     margin, best = m, k

@@ -111,30 +111,63 @@ def coordinates(obj):
     return obj
 
 
+def _file_hint(obj, dim: int) -> str | None:
+    """The advice for a file path given where points were expected, else None."""
+    import os
+
+    if not isinstance(obj, (str, bytes, os.PathLike)):
+        return None
+    if dim == 2:
+        return ("read an image's corners first with `catadioptric.corners.detect_corners("
+                "catadioptric.read_image(path))`")
+    return "read the file first with `gatv.io.read_points(path)`"
+
+
+def _shape_hint(shape: tuple, dim: int) -> str:
+    """Advice for an array of the wrong shape: transpose it when it looks transposed."""
+    if len(shape) == 2 and shape[0] == dim and shape[1] != dim:
+        return f"; it looks transposed: pass its transpose `.T`, of shape ({shape[1]}, {dim})"
+    return ""
+
+
 def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarray:
-    """Return ``obj`` as a C-contiguous float64 ``(N, dim)`` array.
+    """Return ``obj`` as a C-contiguous, writable float64 ``(N, dim)`` array.
 
     Accepts array-likes and point containers (see :func:`coordinates`):
     PyVista meshes and point clouds, Open3D ``PointCloud`` (legacy and
     tensor) and ``TriangleMesh``, trimesh ``Trimesh`` and ``PointCloud``.
+    The array is always writable (a read-only input is copied), so that the
+    numba kernels are compiled for one kind of array only.
 
     Raises
     ------
-    ValueError
-        Wrong shape, too few rows, or non-finite values; the message names
-        the argument.
+    InputError
+        A file path (the message says how to read it), complex numbers,
+        wrong shape (a transposed array is named as such), too few rows,
+        or non-finite values; the message names the argument.
     """
     if obj is None:
         msg = f"Expected `{name}` to be an (N, {dim}) array of points, got None."
         raise InputError(msg)
+    hint = _file_hint(obj, dim)
+    if hint is not None:
+        msg = f"Expected `{name}` to be an (N, {dim}) array of points, got the path {str(obj)!r}; {hint}."
+        raise InputError(msg)
     obj = coordinates(obj)
     try:
-        arr = np.asarray(obj, dtype=np.float64)
+        raw = np.asarray(obj)
+        if np.iscomplexobj(raw):
+            msg = (f"Expected `{name}` to hold real numbers, got complex values ({raw.dtype}); "
+                   f"pass the real part (`.real`) if that is what you mean.")
+            raise InputError(msg)
+        arr = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
         msg = f"Expected `{name}` to be an (N, {dim}) array of numbers: {exc}."
         raise InputError(msg) from exc
     if arr.ndim != 2 or arr.shape[1] != dim:
-        msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}."
+        msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}{_shape_hint(arr.shape, dim)}."
         raise InputError(msg)
     if arr.shape[0] < min_points:
         msg = (
@@ -143,7 +176,8 @@ def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarra
         )
         raise InputError(msg)
     check_finite_array(arr, name)
-    return np.ascontiguousarray(arr)
+    arr = np.ascontiguousarray(arr)
+    return arr if arr.flags.writeable else arr.copy()
 
 
 def as_vectors(obj, name: str, n: int) -> np.ndarray:

@@ -333,3 +333,57 @@ def test_bad_scalars_name_the_argument_and_write_nothing(tmp_path, points, scala
     with pytest.raises(InputError, match=match):
         write_points(path, points, scalars=scalars)
     assert not path.exists() and not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------ what the Python API is handed (issue 42)
+@pytest.mark.parametrize("path", ["a.ply", "scan.pcd"])
+def test_register_given_file_paths_points_to_read_points(path):
+    import pathlib
+
+    import gatv
+
+    for given in (path, pathlib.Path(path)):
+        with pytest.raises(InputError, match=r"gatv\.io\.read_points") as info:
+            gatv.register(given, given)
+        assert "could not convert" not in str(info.value)
+
+
+def test_pixels_given_an_image_path_point_to_detect_corners():
+    from gatv._validation import as_points
+
+    with pytest.raises(InputError, match=r"catadioptric\.corners\.detect_corners"):
+        as_points("view.png", "pixels1", dim=2)
+
+
+@given(n=st.integers(4, 60), imag=st.floats(-1e3, 1e3).filter(lambda v: v != 0))
+@settings(max_examples=25, deadline=None)
+def test_complex_points_are_refused(n, imag):
+    from gatv._validation import as_points
+
+    pts = np.random.default_rng(n).normal(size=(n, 3)) + 1j * imag
+    with pytest.raises(InputError, match="complex"):
+        as_points(pts, "source")
+    with pytest.raises(InputError, match="complex"):
+        as_points(pts.astype(np.complex64) * 0 + 1, "source")  # zero imaginary part: still refused
+
+
+@given(n=st.integers(4, 60).filter(lambda n: n != 3))
+@settings(max_examples=25, deadline=None)
+def test_transposed_points_are_named_transposed(n):
+    from gatv._validation import as_points
+
+    pts = np.random.default_rng(n).normal(size=(n, 3))
+    with pytest.raises(InputError, match=rf"transpose.*\({n}, 3\)"):
+        as_points(pts.T, "source")
+
+
+def test_read_only_points_come_back_writable_and_equal():
+    from gatv._validation import as_points
+
+    pts = np.random.default_rng(1).normal(size=(20, 3))
+    pts.setflags(write=False)
+    out = as_points(pts, "source")
+    assert out.flags.writeable and out.flags.c_contiguous
+    np.testing.assert_array_equal(out, pts)
+    writable = np.ascontiguousarray(pts.copy())
+    assert as_points(writable, "source") is writable  # no copy when none is needed

@@ -20,7 +20,9 @@ extension           read     write    notes
                                       ``binary_compressed`` (LZF) read, any
                                       field types; written ``binary`` (or
                                       ``ascii``) with float32 ``x y z`` as PCL
-                                      and Open3D do (``double=True``: float64)
+                                      and Open3D do (``double=True``: float64,
+                                      as ``ascii``: Open3D's legacy reader
+                                      reads binary float64 as zeros)
 ==================  =======  =======  ==========================================
 
 Per-point scalars (a segmentation's ``motion`` label, an intensity) travel
@@ -609,7 +611,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double: bool = False,
+def write_points(path: str | os.PathLike, points, *, ascii: bool | None = None, double: bool = False,
                  scalars: Mapping | None = None) -> None:
     """Write points atomically; the format is chosen by the extension.
 
@@ -622,11 +624,15 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
         float64 precision (17 significant digits).
     points : (N, 3) array_like or point container
         Finite coordinates (an array, a PyVista, Open3D or trimesh object).
-    ascii : bool, default: False
-        ``.pcd`` only: ``DATA ascii`` instead of ``DATA binary``.
+    ascii : bool, optional
+        ``.pcd`` only: ``DATA ascii`` instead of ``DATA binary``.  Default:
+        binary for float32, ascii for ``double=True``.
     double : bool, default: False
         ``.pcd`` only: float64 coordinates (``SIZE 8``; exact) instead of
-        float32 (what PCL's ``PointXYZ`` and Open3D read and write).
+        float32 (what PCL's ``PointXYZ`` and Open3D read and write), written
+        as ascii with 17 significant digits.  ``double=True, ascii=False``
+        is refused: Open3D's legacy reader (``o3d.io.read_point_cloud``)
+        reads binary float64 fields as zeros, without a word.
     scalars : mapping of str to (N,) array_like, optional
         Per-point values written with the points, e.g. ``{"motion": labels}``
         (``.ply .vtk .vtp .csv``, :data:`SCALAR_EXTENSIONS`): a PLY vertex
@@ -654,6 +660,10 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
             f"cannot write points as {p.suffix or 'a file without extension'!r}; "
             f"expected one of {', '.join(WRITE_EXTENSIONS)}.",
         )
+    if ext == ".pcd" and double and ascii is not None and not ascii:
+        raise _fail(path, "cannot write a binary PCD of float64 coordinates: Open3D's legacy reader "
+                          "(o3d.io.read_point_cloud) reads them as zeros; write double=True as ascii "
+                          "(the default, exact) or float32 binary (double=False).")
     extra = _check_scalars(scalars, pts.shape[0])
     if extra and ext not in SCALAR_EXTENSIONS:
         raise _fail(path, f"cannot write `scalars` in {ext} (it has no named per-point values); "
@@ -673,7 +683,7 @@ def write_points(path: str | os.PathLike, points, *, ascii: bool = False, double
             with open(tmp, "wb") as fh:
                 np.save(fh, pts, allow_pickle=False)
         elif ext == ".pcd":
-            _write_pcd(tmp, pts, ascii=bool(ascii), double=bool(double))
+            _write_pcd(tmp, pts, ascii=bool(double) if ascii is None else bool(ascii), double=bool(double))
         else:
             sep = "," if ext == ".csv" else " "
             header = ",".join(["x", "y", "z", *extra]) if ext == ".csv" else ""

@@ -155,7 +155,7 @@ from gatv.io import read_log, read_matrix, write_log, write_matrix
 @pytest.mark.parametrize("ascii_", [False, True])
 def test_pcd_round_trip(tmp_path, points, ascii_):
     path = tmp_path / "cloud.pcd"
-    write_points(path, points, ascii=ascii_, double=True)  # float64: exact
+    write_points(path, points, double=True)  # float64: exact, as ascii
     np.testing.assert_array_equal(read_points(path), points)
     write_points(path, points, ascii=ascii_)  # float32, as PCL and Open3D
     np.testing.assert_array_equal(read_points(path).astype(np.float32), points.astype(np.float32))
@@ -387,3 +387,45 @@ def test_read_only_points_come_back_writable_and_equal():
     np.testing.assert_array_equal(out, pts)
     writable = np.ascontiguousarray(pts.copy())
     assert as_points(writable, "source") is writable  # no copy when none is needed
+
+
+def _open3d_legacy_pcd(path) -> np.ndarray:
+    """The coordinates Open3D's legacy PCD reader (io/file_format/FilePCD.cpp) gets: it
+    unpacks binary ``F`` fields of size 4 only and gives 0.0 for any other size, while
+    its ascii parser reads every ``F`` field with strtod."""
+    raw = path.read_bytes()
+    end = raw.index(b"DATA ")
+    end = raw.index(b"\n", end) + 1
+    head = dict(line.split(" ", 1) for line in raw[:end].decode().splitlines() if line and line[0] != "#")
+    sizes = [int(v) for v in head["SIZE"].split()]
+    n = int(head["POINTS"])
+    if head["DATA"].strip() == "ascii":
+        return np.loadtxt(raw[end:].decode().splitlines(), ndmin=2)[:, :3]
+    rows = np.frombuffer(raw[end:], dtype="<f%d" % sizes[0], count=3 * n).reshape(n, 3)
+    return rows.astype(np.float64) if sizes[0] == 4 else np.zeros((n, 3))
+
+
+@given(n=st.integers(1, 40), double=st.booleans(), seed=st.integers(0, 2**16))
+@settings(max_examples=30, deadline=None)
+def test_pcd_as_written_reads_right_in_open3d_legacy(tmp_path_factory, n, double, seed):
+    """Issue 42: binary float64 PCD read as zeros in o3d.io.read_point_cloud."""
+    pts = np.random.default_rng(seed).uniform(-100, 100, (n, 3))
+    path = tmp_path_factory.mktemp("pcd") / "c.pcd"
+    write_points(path, pts, double=double)
+    want = pts if double else pts.astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(_open3d_legacy_pcd(path), want, rtol=1e-15 if double else 1e-7)
+    np.testing.assert_array_equal(read_points(path), want)
+
+
+def test_binary_double_pcd_is_refused_and_nothing_written(tmp_path, points):
+    path = tmp_path / "c.pcd"
+    with pytest.raises(PointFileError, match="Open3D's legacy reader"):
+        write_points(path, points, ascii=False, double=True)
+    assert not path.exists() and os.listdir(tmp_path) == []
+
+
+def test_pcd_in_open3d_legacy_reader(tmp_path, points):
+    o3d = pytest.importorskip("open3d")
+    path = tmp_path / "c.pcd"
+    write_points(path, points, double=True)
+    np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(path)).points), points, rtol=1e-15)

@@ -962,7 +962,7 @@ def render_motions(source, target, motions: Sequence[RigidMotion], path, *,
         for k in range(len(motions)):
             col = motion_color(k)
             add_points(pl, s[owner_s == k], color=col, size=5)
-            add_points(pl, t[owner_t == k], color=col, size=9, label=f"motion {k + 1}")
+            add_points(pl, t[owner_t == k], color=col, size=9, label=f"motion {k}")
         add_axes_labels(pl)
         add_title(pl, f"(a) {len(motions)} motions (large: target, small: source)")
         add_legend(pl)
@@ -977,7 +977,7 @@ def render_motions(source, target, motions: Sequence[RigidMotion], path, *,
             add_points(pl, m.transform(s[c[:, 0]]), color=LINE_COLOR, size=4, label="source, moved")
             add_points(pl, t[c[:, 1]], color=col, size=13, opacity=0.45, label="target (halo)")
             add_axes_labels(pl)
-            add_title(pl, f"({chr(ord('b') + k)}) motion {k + 1}: {m.angle_deg:.1f} deg, {m.support} pairs")
+            add_title(pl, f"({chr(ord('b') + k)}) motion {k}: {m.angle_deg:.1f} deg, {m.support} pairs")
             add_legend(pl)
         pl.subplot(0, 0)
         set_view(pl, zoom=0.92)  # room for the tick labels of the near edges

@@ -261,3 +261,16 @@ def test_add_image_pair_names_bad_input(kwargs, match):
             render.add_image_pair(pl, **args)
     finally:
         pl.close()
+
+
+def test_render_motions_numbers_motions_from_0_as_the_cli_and_labels_do(tmp_path, rng, monkeypatch):
+    """Issue 42: stdout and the labelled file say motion 0, 1, ...; the picture must too."""
+    source, target, motions = three_motions(rng)
+    said = []
+    real_title, real_points = render.add_title, render.add_points
+    monkeypatch.setattr(render, "add_title", lambda pl, text, **k: (said.append(text), real_title(pl, text, **k))[1])
+    monkeypatch.setattr(render, "add_points", lambda pl, pts, **k: (said.append(k.get("label") or ""),
+                                                                  real_points(pl, pts, **k))[1])
+    render.render_motions(source, target, motions[:2], tmp_path / "m.png", size=(600, 240))
+    named = {w for text in said for w in __import__("re").findall(r"motion (\d+)", text)}
+    assert named == {"0", "1"}

@@ -429,3 +429,36 @@ def test_matrix_output_is_the_motion_as_4x4_text(tmp_path, monkeypatch):
     assert cli.main(["register", str(src), str(tgt), "--matrix", str(out), "-q"]) == 0
     np.testing.assert_array_equal(np.loadtxt(out), motion.matrix)
     assert cli.main(["register", str(src), str(tgt), "--matrix", str(tmp_path / "no" / "m.txt")]) == 2
+
+
+# ------------------------------------------------------------ labelled PLY (issue 42)
+@pytest.mark.parametrize("labels", [[0, 0, 1, 1, -1, 2, 0, 1, -1, 5], [-1] * 10, list(range(10))])
+def test_labelled_ply_is_read_by_gatv_pyvista_and_open3d(tmp_path, labels):
+    """gatv reads `motion`; PyVista (whose PLY reader takes no custom property) shows one
+    colour per motion, the picture's; Open3D's tensor reader reads `motion` (when installed)."""
+    from gatv import render
+
+    pts = np.random.default_rng(0).uniform(-1, 1, (10, 3))
+    labels = np.asarray(labels)
+    path = tmp_path / "l.ply"
+    segment_cmd.write_labelled(path, pts, labels)
+    back, scalars = read_points(path, scalars=True)
+    np.testing.assert_array_equal(scalars["motion"], labels)
+    np.testing.assert_allclose(back, pts, atol=1e-6)
+    pv = pytest.importorskip("pyvista")
+    mesh = pv.read(path)
+    colours = np.asarray(mesh["RGB"])
+    for k in np.unique(labels):
+        want = segment_cmd.UNEXPLAINED_RGB if k < 0 else render.rgb(render.motion_color(k))
+        assert (colours[labels == k] == want).all()
+
+
+def test_labelled_ply_is_read_by_open3d(tmp_path):
+    o3d = pytest.importorskip("open3d")
+    labels = np.array([0, 1, 1, -1, 2, 0])
+    path = tmp_path / "l.ply"
+    segment_cmd.write_labelled(path, np.random.default_rng(1).normal(size=(6, 3)), labels)
+    cloud = o3d.t.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(cloud.point["motion"].numpy().ravel(), labels)
+    legacy = o3d.io.read_point_cloud(str(path))
+    assert np.asarray(legacy.colors).shape == (6, 3)

@@ -29,11 +29,14 @@ from ._common import (
     result_record,
     write_outputs,
 )
+from .warmup import compile_notes
 
 __all__ = [
     "LABELLED_EXTENSIONS",
     "NAME",
+    "UNEXPLAINED_RGB",
     "add_parser",
+    "label_colors",
     "load_segment",
     "render_segmentation",
     "run",
@@ -103,18 +106,47 @@ def render_segmentation(source, target, segmentation, path) -> None:
     render(source, target, segmentation, path)
 
 
+#: Colour of points no motion explains in a labelled PLY (light grey).
+UNEXPLAINED_RGB = (190, 190, 190)
+
+
+def label_colors(labels) -> np.ndarray:
+    """``(N, 3)`` uint8 colours of motion labels: the picture's palette, grey for -1."""
+    from ..render import motion_color, rgb
+
+    labels = np.asarray(labels, dtype=np.int64)
+    out = np.empty((labels.shape[0], 3), dtype=np.uint8)
+    out[:] = UNEXPLAINED_RGB
+    for k in np.unique(labels[labels >= 0]):
+        out[labels == k] = rgb(motion_color(int(k)))
+    return out
+
+
 def write_labelled(path, points, labels) -> None:
     """Write ``points`` with an int ``motion`` scalar per point (``labels``) to ``path``.
 
     :func:`gatv.io.write_points` with ``scalars={"motion": labels}``:
-    ``.ply`` a binary little-endian PLY with ``float x, y, z`` and ``int
-    motion`` per vertex (what PyVista, Open3D's tensor API, CloudCompare
-    and MeshLab read as a scalar field), ``.vtk``/``.vtp`` a ``motion``
-    point array.
+
+    * ``.ply`` — a binary little-endian PLY with ``float x, y, z``, ``int
+      motion`` and ``uchar red, green, blue`` per vertex (the colour of the
+      point's motion in ``--render``'s picture, grey for -1).  gatv
+      (``read_points(path, scalars=True)["motion"]``), Open3D's tensor API
+      (``o3d.t.io.read_point_cloud(path).point["motion"]``), CloudCompare
+      and MeshLab read ``motion``.  PyVista's PLY reader (VTK's) reads no
+      property beyond coordinates, normals, colours and texture
+      coordinates: it shows the colours (``RGB``), and Open3D's legacy
+      reader too, but has no ``motion`` array — write ``.vtk`` or ``.vtp``
+      for that;
+    * ``.vtk``/``.vtp`` — a ``motion`` point array (PyVista, ParaView).
     """
     from ..io import write_points
 
-    write_points(path, np.asarray(points, dtype=np.float64), scalars={"motion": np.asarray(labels, dtype=np.int32)})
+    labels = np.asarray(labels, dtype=np.int32)
+    scalars = {"motion": labels}
+    if str(path).lower().endswith(".ply"):
+        colors = label_colors(labels)
+        scalars.update(red=colors[:, 0], green=colors[:, 1], blue=colors[:, 2])
+    write_points(path, np.asarray(points, dtype=np.float64), scalars=scalars)
 
 
 def _check_labelled(args, inputs) -> None:
@@ -161,7 +193,8 @@ def run(args) -> int:
         options["pipeline"] = args.pipeline
     progress = progress_printer(args)
     start = time.perf_counter()
-    result = segment(source, target, seed=args.seed, progress=progress, **options)
+    with compile_notes(progress, quiet=args.quiet) as notes:
+        result = segment(source, target, seed=args.seed, progress=notes.progress, **options)
     seconds = time.perf_counter() - start
     ok = bool(result)
     if not args.quiet:

@@ -13,8 +13,10 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 
+# installing also compiles the numba kernels once (`gatv warmup`): the first demo then starts at full speed
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q -e .
+	$(PY) -m gatv warmup
 	touch $@
 
 $(TSTAMP): pyproject.toml | $(PY)

@@ -1,4 +1,4 @@
-"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric``, ``batch`` and ``demo``.
+"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric``, ``batch``, ``demo`` and ``warmup``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -37,6 +37,7 @@ COMMANDS = {
     "catadioptric": "catadioptric",
     "batch": "batch",
     "demo": "demo",
+    "warmup": "warmup",
 }
 
 

@@ -30,6 +30,7 @@ from ._common import (
     result_record,
     write_outputs,
 )
+from .warmup import compile_notes
 
 __all__ = [
     "NAME",
@@ -156,10 +157,11 @@ def register_and_write(args, source, target, inputs: dict, extra: dict | None = 
     call = dict(options)
     if pipeline != "auto":
         call["pipeline"] = pipeline
-    if progress is not None:
-        call["progress"] = progress
     start = time.perf_counter()
-    motion = register(source, target, seed=args.seed, **call)
+    with compile_notes(progress, quiet=args.quiet) as notes:
+        if notes.progress is not None:
+            call["progress"] = notes.progress
+        motion = register(source, target, seed=args.seed, **call)
     seconds = time.perf_counter() - start
 
     ok = bool(motion)

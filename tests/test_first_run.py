@@ -1,0 +1,96 @@
+"""The first run of a fresh install (issue 42): it says that it compiles, and ``gatv warmup``
+compiles ahead so that the first ``gatv demo`` starts at full speed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from numba import njit
+
+from gatv import cli
+from gatv.cli.warmup import COMPILING, compile_notes
+
+
+def _fresh_kernel():
+    @njit  # not cached: compiles on its first call in every process
+    def twice(x):
+        return 2.0 * x
+
+    return twice
+
+
+def test_compile_notes_say_compiling_while_numba_compiles():
+    said = []
+    kernel = _fresh_kernel()
+    with compile_notes(lambda f, m="": said.append((f, m))) as notes:
+        notes.progress(0.25, "started")
+        assert kernel(np.ones(3)).sum() == 6.0
+    assert notes.count == 1 and notes.seconds > 0
+    assert said[0] == (0.25, "started")
+    assert said[1][0] == 0.25 and said[1][1].startswith(COMPILING) and "twice" in said[1][1]
+    said.clear()
+    with compile_notes(lambda f, m="": said.append((f, m))) as notes:
+        kernel(np.ones(3))  # compiled already: nothing to say
+    assert notes.count == 0 and said == []
+
+
+def test_compile_notes_without_progress_print_one_line(capsys):
+    with compile_notes(None) as notes:
+        _fresh_kernel()(1.0)
+        _fresh_kernel()(1.0)
+    assert notes.progress is None and notes.count == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and COMPILING in err[0] and "gatv warmup" in err[0]
+    with compile_notes(None, quiet=True):
+        _fresh_kernel()(1.0)
+    assert capsys.readouterr().err == ""
+
+
+def test_warmup_is_a_command_with_bad_input_exit_2(capsys):
+    assert cli.main(["warmup", "--jobs", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--jobs" in err[0]
+
+
+def _gatv(args, cache, timeout=900):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYVISTA_OFF_SCREEN="true")
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "gatv", *args], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+    return proc, time.perf_counter() - start
+
+
+@pytest.mark.slow
+def test_first_demo_after_warmup_starts_at_full_speed(tmp_path):
+    """Empty numba cache: `gatv warmup`, then `gatv demo` takes under 30 s and compiles nothing.
+
+    (Without the warmup, the first demo says it compiles.)"""
+    cache = tmp_path / "numba-cache"
+    cache.mkdir()
+    proc, _ = _gatv(["warmup"], cache)
+    assert proc.returncode == 0, proc.stderr
+    assert "done in" in proc.stdout
+    proc, seconds = _gatv(["demo", "--progress", "--out", str(tmp_path / "r.json")], cache)
+    assert proc.returncode == 0, proc.stderr
+    assert COMPILING not in proc.stderr
+    assert seconds < 30.0
+
+
+@pytest.mark.slow
+def test_first_register_says_it_compiles(tmp_path):
+    from gatv.datasets import table2_trial
+    from gatv.io import write_points
+
+    trial = table2_trial(0.5, seed=4)
+    write_points(tmp_path / "s.npy", trial.source)
+    write_points(tmp_path / "t.npy", trial.target)
+    cache = tmp_path / "numba-cache"
+    cache.mkdir()
+    proc, _ = _gatv(["register", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--progress"], cache)
+    assert proc.returncode == 0, proc.stderr
+    assert f"] {COMPILING}: " in proc.stderr

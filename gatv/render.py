@@ -87,6 +87,7 @@ __all__ = [
     "set_view",
     "save",
     "render_registration",
+    "sample_pairs",
     "render_motions",
     "render_segmentation",
     "add_image_pair",
@@ -610,7 +611,8 @@ def set_view(plotter, direction=VIEW, *, zoom: float = 1.0):
         plotter.camera.zoom(zoom)
 
 
-def add_axes_labels(plotter, xlabel: str = "x", ylabel: str = "y", zlabel: str = "z", *, ticks: int = 3):
+def add_axes_labels(plotter, xlabel: str = "x", ylabel: str = "y", zlabel: str = "z", *, ticks: int = 3,
+                    unlabelled: str | None = None):
     """Label the axes of the current panel: a box with round ticks and titles.
 
     Call after the data are drawn; the box encloses everything in the panel
@@ -622,13 +624,18 @@ def add_axes_labels(plotter, xlabel: str = "x", ylabel: str = "y", zlabel: str =
     xlabel, ylabel, zlabel : str
     ticks : int, default: 3
         Wanted tick intervals per axis.
+    unlabelled : {"x", "y", "z"}, optional
+        An axis drawn with its title but without tick labels: the one
+        pointing most nearly at the camera, whose foreshortened labels
+        crowd each other and the next axis's at their shared corner.
     """
     bounds, (nx, ny, nz) = nice_bounds(plotter.renderer.bounds, ticks)
     fs = font_size(plotter, 12.0)
+    shown = {f"show_{a}labels": a != unlabelled for a in "xyz"}
     plotter.show_bounds(bounds=bounds, xtitle=xlabel, ytitle=ylabel, ztitle=zlabel, color="#202020",
                         font_size=fs, font_family=_FONT, bold=False, location="outer", ticks="outside",
                         n_xlabels=nx, n_ylabels=ny, n_zlabels=nz, fmt=_tick_format(bounds, (nx, ny, nz)),
-                        grid=False, use_3d_text=False)
+                        grid=False, use_3d_text=False, **shown)
 
 
 def _tick_format(bounds, counts) -> str:
@@ -847,12 +854,54 @@ def save(plotter, path, size: Sequence[int] | None = None) -> Path:
 
 
 # ------------------------------------------------------------ figure level
-def render_registration(source, target, motion: RigidMotion, path, *, size: Sequence[int] = (1200, 800)) -> Path:
+#: Most correspondence lines :func:`render_registration` draws: a sample of
+#: the correspondences, so that the lines stay lines (27,000 of them between
+#: two range scans fill in as a black sheet).
+MAX_LINES = 150
+#: Camera direction for data with y up (range scans: the scanner's frame, y
+#: up and the scanner on the +z side).
+VIEW_Y_UP = (0.4, 0.3, 1.0)
+
+
+def _up_axis(motion, up) -> str:
+    """``"x"``, ``"y"`` or ``"z"``: ``up`` as given, else y for scans (their frame is y up), z otherwise."""
+    if up is None:
+        info = getattr(motion, "info", None) or {}
+        return "y" if info.get("pipeline") == "scans" else "z"
+    if up not in ("x", "y", "z"):
+        msg = f"Expected `up` to be 'x', 'y', 'z' or None, got {up!r}."
+        raise InputError(msg)
+    return up
+
+
+def _view(up: str) -> tuple[tuple, tuple]:
+    """Camera direction and view-up vector of a panel whose ``up`` axis points up."""
+    if up == "z":
+        return VIEW, (0.0, 0.0, 1.0)
+    if up == "y":
+        return VIEW_Y_UP, (0.0, 1.0, 0.0)
+    return (1.0, 0.4, 0.3), (1.0, 0.0, 0.0)
+
+
+def sample_pairs(pairs, k: int = MAX_LINES, seed: int = 0) -> np.ndarray:
+    """At most ``k`` rows of ``pairs``, drawn without replacement (same seed, same rows), in order."""
+    c = np.asarray(pairs)
+    if len(c) <= k:
+        return c
+    rows = np.sort(np.random.default_rng(seed).choice(len(c), size=k, replace=False))
+    return c[rows]
+
+
+def render_registration(source, target, motion: RigidMotion, path, *, size: Sequence[int] = (1200, 800),
+                        up: str | None = None, max_lines: int = MAX_LINES) -> Path:
     """Picture of one registration: before (left) and after (right).
 
-    Left: source and target with a line for each correspondence. Right: the
-    source moved by ``motion`` over the target, matched target points
-    highlighted. Unmatched points are drawn smaller.
+    Left: source and target with a line for a sample of the correspondences
+    (at most ``max_lines``, drawn thin; the legend says how many of how
+    many). Right: the source moved by ``motion`` over the target, matched
+    target points highlighted. Unmatched points are drawn smaller. One
+    legend, in the left panel; both panels look at the data with its ``up``
+    axis up.
 
     Parameters
     ----------
@@ -863,6 +912,11 @@ def render_registration(source, target, motion: RigidMotion, path, *, size: Sequ
     path : str or path-like
         Output picture (``.png``); written atomically.
     size : (int, int), default: (1200, 800)
+    up : {"x", "y", "z"}, optional
+        The axis drawn upwards.  Default: y for a result of the scans
+        pipeline (range scans and most meshes are y up, e.g. the Stanford
+        bunny), z otherwise.
+    max_lines : int, default: :data:`MAX_LINES`
 
     Returns
     -------
@@ -871,42 +925,57 @@ def render_registration(source, target, motion: RigidMotion, path, *, size: Sequ
     s = as_points(source, "source", min_points=1)
     t = as_points(target, "target", min_points=1)
     c = _as_pairs(motion.correspondences, s.shape[0], t.shape[0])
+    direction, viewup = _view(_up_axis(motion, up))
+    depth = _depth_axis(direction)
+    lines = sample_pairs(c, max(0, int(max_lines)))
     moved = motion.transform(s)
     src_col, tgt_col = PALETTE[1], PALETTE[0]
     matched_s = np.zeros(s.shape[0], bool)
     matched_s[c[:, 0]] = True
     matched_t = np.zeros(t.shape[0], bool)
     matched_t[c[:, 1]] = True
+    small, large = (2, 4) if max(s.shape[0], t.shape[0]) > 5000 else (5, 9)
     pl = new_plotter(size, shape=(1, 2))
     try:
         pl.subplot(0, 0)
-        add_points(pl, t[~matched_t], color=tgt_col, size=5)
-        add_points(pl, s[~matched_s], color=src_col, size=5)
-        add_points(pl, t[matched_t], color=tgt_col, size=9, label="target")
-        add_points(pl, s[matched_s], color=src_col, size=9, label="source")
-        add_correspondences(pl, s, t, c, width=1, label=f"{len(c)} correspondences")
-        add_axes_labels(pl)
+        add_points(pl, t[~matched_t], color=tgt_col, size=small)
+        add_points(pl, s[~matched_s], color=src_col, size=small)
+        add_points(pl, t[matched_t], color=tgt_col, size=large, label="target")
+        add_points(pl, s[matched_s], color=src_col, size=large, label="source (right: aligned)")
+        shown = f"{len(lines)} of {len(c)}" if len(lines) < len(c) else f"{len(c)}"
+        add_correspondences(pl, s, t, lines, width=1, opacity=0.8, label=f"{shown} correspondences")
+        add_axes_labels(pl, unlabelled=depth)
         add_title(pl, "(a) source and target")
-        add_legend(pl)
-        set_view(pl)
+        add_legend(pl, loc="lower left")
+        _look(pl, direction, viewup)
         pl.subplot(0, 1)
-        add_points(pl, t[~matched_t], color=tgt_col, size=5)
-        add_points(pl, moved[~matched_s], color=src_col, size=5)
+        add_points(pl, t[~matched_t], color=tgt_col, size=small)
+        add_points(pl, moved[~matched_s], color=src_col, size=small)
         # matched target points inside translucent halos of the aligned source
-        add_points(pl, t[matched_t], color=tgt_col, size=7, label="target")
-        add_points(pl, moved[matched_s], color=src_col, size=15, opacity=0.45, label="source, aligned")
-        add_axes_labels(pl)
+        add_points(pl, t[matched_t], color=tgt_col, size=max(small + 1, large - 2))
+        add_points(pl, moved[matched_s], color=src_col, size=large + (6 if large > 4 else 3), opacity=0.45)
+        add_axes_labels(pl, unlabelled=depth)
         if motion:
             add_title(pl, f"(b) aligned: {motion.angle_deg:.2f} deg, {motion.support} pairs")
         else:
             reason = motion.info.get("reason", "no motion found") if hasattr(motion, "info") else "no motion"
             add_title(pl, f"(b) registration failed: {reason}")
-        add_legend(pl)
-        set_view(pl)
+        _look(pl, direction, viewup)
     except BaseException:
         pl.close()
         raise
     return save(pl, path)
+
+
+def _look(plotter, direction, viewup) -> None:
+    plotter.view_vector(direction, viewup=viewup)
+    plotter.reset_camera()
+    plotter.camera.zoom(0.9)  # room for the axis titles at the panel's edges
+
+
+def _depth_axis(direction) -> str:
+    """The axis pointing most nearly at the camera."""
+    return "xyz"[int(np.argmax(np.abs(direction)))]
 
 
 def _grid(n: int) -> tuple[int, int]:

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gatv import render
+from gatv.errors import InputError
 from gatv.datasets import random_rotation, table2_trial
 from gatv.motion import RigidMotion
 
@@ -274,3 +277,65 @@ def test_render_motions_numbers_motions_from_0_as_the_cli_and_labels_do(tmp_path
     render.render_motions(source, target, motions[:2], tmp_path / "m.png", size=(600, 240))
     named = {w for text in said for w in __import__("re").findall(r"motion (\d+)", text)}
     assert named == {"0", "1"}
+
+
+# ------------------------------------------------ the registration picture (issue 42)
+@given(n=st.integers(0, 3000), k=st.integers(1, 400), seed=st.integers(0, 5))
+@settings(max_examples=40, deadline=None)
+def test_sample_pairs_is_a_sorted_subset_of_at_most_k(n, k, seed):
+    pairs = np.c_[np.arange(n), np.arange(n)[::-1]]
+    got = render.sample_pairs(pairs, k, seed)
+    assert len(got) == min(n, k)
+    assert np.all(np.diff(got[:, 0]) > 0) if len(got) > 1 else True
+    assert set(map(tuple, got)) <= set(map(tuple, pairs))
+    np.testing.assert_array_equal(got, render.sample_pairs(pairs, k, seed))
+
+
+@pytest.mark.parametrize("pipeline, up, viewup, depth", [("scans", None, (0, 1, 0), "z"),
+                                                         ("exact", None, (0, 0, 1), "y"),
+                                                         ("scans", "z", (0, 0, 1), "y")])
+def test_registration_picture_is_upright_sampled_with_one_legend(tmp_path, rng, monkeypatch, pipeline, up,
+                                                                viewup, depth):
+    """Scans (y up) drawn y up; at most MAX_LINES lines of many correspondences; one legend;
+    no tick labels on the axis facing the camera (they crowded the next axis's)."""
+    n = 3000
+    src = rng.uniform(-1, 1, (n, 3))
+    motion = RigidMotion(random_rotation(rng, (20, 40)), np.zeros(3), np.c_[np.arange(n), np.arange(n)],
+                         info={"pipeline": pipeline})
+    seen = {"legends": 0, "lines": [], "views": [], "unlabelled": []}
+    real = {name: getattr(render, name) for name in ("add_legend", "add_correspondences", "_look",
+                                                     "add_axes_labels")}
+
+    def legend(pl, **k):
+        seen["legends"] += 1
+        return real["add_legend"](pl, **k)
+
+    def lines(pl, s, t, pairs=None, **k):
+        seen["lines"].append(len(pairs))
+        return real["add_correspondences"](pl, s, t, pairs, **k)
+
+    def look(pl, direction, viewup):
+        seen["views"].append(tuple(viewup))
+        return real["_look"](pl, direction, viewup)
+
+    def axes(pl, *a, unlabelled=None, **k):
+        seen["unlabelled"].append(unlabelled)
+        return real["add_axes_labels"](pl, *a, unlabelled=unlabelled, **k)
+
+    for name, fn in (("add_legend", legend), ("add_correspondences", lines), ("_look", look),
+                     ("add_axes_labels", axes)):
+        monkeypatch.setattr(render, name, fn)
+    out = render.render_registration(src, motion.transform(src), motion, tmp_path / "r.png", size=(480, 240),
+                                     up=up)
+    assert_not_blank(out, size=(480, 240))
+    assert seen["legends"] == 1
+    assert seen["lines"] == [render.MAX_LINES]
+    assert seen["views"] == [viewup, viewup]
+    assert seen["unlabelled"] == [depth, depth]
+
+
+def test_registration_picture_names_a_bad_up(tmp_path, rng):
+    motion = RigidMotion(np.eye(3), np.zeros(3), np.c_[np.arange(5), np.arange(5)])
+    with pytest.raises(InputError, match="`up`"):
+        render.render_registration(_points(rng), _points(rng), motion, tmp_path / "r.png", up="w")
+    assert not (tmp_path / "r.png").exists()

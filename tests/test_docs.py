@@ -106,3 +106,14 @@ def test_sphinx_builds_without_running_the_gallery(tmp_path):
     assert (html / "index.html").exists() and (html / "api" / "batch.html").exists()
     assert "map_tasks" in (html / "api" / "batch.html").read_text()
     assert (html / "auto_examples" / "fig12_three_motions.html").exists()
+
+
+def test_license_file_matches_the_declared_license():
+    """pyproject declares BSD-3-Clause; the repository carries its text (issue 42)."""
+    import tomllib
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"]
+    text = (ROOT / "LICENSE").read_text()
+    assert declared == "BSD-3-Clause"
+    assert text.startswith("BSD 3-Clause License") and "the gatv developers" in text
+    assert "Neither the name of the copyright holder nor the names of its" in text

@@ -462,3 +462,32 @@ def test_labelled_ply_is_read_by_open3d(tmp_path):
     np.testing.assert_array_equal(cloud.point["motion"].numpy().ravel(), labels)
     legacy = o3d.io.read_point_cloud(str(path))
     assert np.asarray(legacy.colors).shape == (6, 3)
+
+
+# ----------------------------------------------------- help, models (issues 42, 37)
+@pytest.mark.parametrize("command", ["register", "segment", "nonrigid"])
+def test_help_lists_every_point_format(command, capsys):
+    from gatv.io import READ_EXTENSIONS
+
+    assert cli.main([command, "--help"]) == 0
+    text = capsys.readouterr().out
+    assert all(ext in text.split() or f"{ext}." in text.split() or f"{ext})" in text.split()
+               for ext in READ_EXTENSIONS), text
+
+
+def test_model_choices_come_from_the_registry():
+    from gatv.cli import build_parser
+    from gatv.models import MODEL_NAMES
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    for command in ("register", "segment"):
+        (model,) = [a for a in sub.choices[command]._actions if a.dest == "model"]
+        assert tuple(model.choices) == MODEL_NAMES
+
+
+@pytest.mark.parametrize("command", ["register", "segment"])
+def test_a_model_of_2d_points_is_exit_2_before_reading(command, tmp_path, capsys):
+    missing = tmp_path / "nowhere.ply"
+    assert cli.main([command, str(missing), str(missing), "--model", "affine2d"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "2D points" in err[0] and "nowhere" not in err[0]

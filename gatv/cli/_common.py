@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io import WRITE_EXTENSIONS, atomic_path, one_line, result_record
+from ..io import READ_EXTENSIONS, WRITE_EXTENSIONS, atomic_path, one_line, result_record
+from ..models import MODEL_NAMES
 
 __all__ = [
     "EXIT_FAILED",
@@ -37,11 +38,13 @@ __all__ = [
     "EXIT_USAGE",
     "IMAGE_EXTENSIONS",
     "MODELS",
+    "POINT_FILES",
     "PROG",
     "ArgumentParser",
     "ProgressBar",
     "ProgressLines",
     "UsageError",
+    "WRITTEN_POINT_FILES",
     "add_model",
     "add_noise",
     "add_outputs",
@@ -64,8 +67,14 @@ __all__ = [
 PROG = "gatv"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-#: Motion models of ``--model`` (``register`` and ``segment``).
-MODELS = ("rigid", "similarity")
+#: The point files the commands read and write, for their help (from :mod:`gatv.io`).
+POINT_FILES = " ".join(READ_EXTENSIONS)
+WRITTEN_POINT_FILES = " ".join(WRITE_EXTENSIONS)
+#: Motion models of ``--model`` (``register`` and ``segment``): the registry's
+#: (:data:`gatv.models.MODEL_NAMES`); one for other than 3D points is refused
+#: when the command runs (:func:`model_options`), not when the parser is built,
+#: which would import every model.
+MODELS = MODEL_NAMES
 
 
 class UsageError(InputError):
@@ -82,8 +91,8 @@ class ArgumentParser(argparse.ArgumentParser):
 # ------------------------------------------------------------------ options
 def add_point_files(p: argparse.ArgumentParser) -> None:
     """Positional ``source`` and ``target`` point files."""
-    p.add_argument("source", type=Path, help="source point file")
-    p.add_argument("target", type=Path, help="target point file")
+    p.add_argument("source", type=Path, help=f"source point file ({POINT_FILES})")
+    p.add_argument("target", type=Path, help="target point file (the same formats)")
 
 
 def add_outputs(p: argparse.ArgumentParser, *, out: str = "write the result as JSON",
@@ -93,7 +102,7 @@ def add_outputs(p: argparse.ArgumentParser, *, out: str = "write the result as J
     if aligned:
         p.add_argument(
             "--aligned", type=Path, metavar="FILE",
-            help="write the moved source points (.ply .vtk .vtp .xyz .txt .csv .pts .npy)",
+            help=f"write the moved source points ({WRITTEN_POINT_FILES})",
         )
     p.add_argument("--render", type=Path, metavar="PNG", help=render)
 
@@ -109,7 +118,7 @@ def add_noise(p: argparse.ArgumentParser) -> None:
 def add_model(p: argparse.ArgumentParser) -> None:
     """``--model {rigid,similarity}`` (default rigid)."""
     p.add_argument("--model", choices=MODELS, default="rigid",
-                   help="motion model: rigid, or similarity (rotation, uniform scale, "
+                   help="motion model of 3D points: rigid, or similarity (rotation, uniform scale, "
                         "translation) (default: rigid)")
 
 
@@ -120,10 +129,22 @@ def add_verbosity(p: argparse.ArgumentParser, *, progress: bool = True) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
 
 
-def model_options(args) -> dict:
-    """``{"model": ...}`` for a non-rigid ``--model``, else ``{}`` (rigid is the default)."""
+def model_options(args, dim: int = 3) -> dict:
+    """``{"model": ...}`` for a non-rigid ``--model``, else ``{}`` (rigid is the default).
+
+    UsageError for a registered model of other than ``dim``-dimensional
+    points (the commands read 3D point files).
+    """
     model = getattr(args, "model", "rigid")
-    return {} if model == "rigid" else {"model": model}
+    if model == "rigid":
+        return {}
+    from ..models import get_model
+
+    model_dim = getattr(get_model(model), "dim", dim)
+    if model_dim != dim:
+        raise UsageError(f"--model {model} is a model of {model_dim}D points; the point files here are "
+                         f"{dim}D (use the Python API for {model_dim}D points).")
+    return {"model": model}
 
 
 # ------------------------------------------------------------ input checks

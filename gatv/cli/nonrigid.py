@@ -9,6 +9,7 @@ import time
 from ._common import (
     EXIT_FAILED,
     EXIT_OK,
+    POINT_FILES,
     PROG,
     add_noise,
     add_outputs,
@@ -34,7 +35,7 @@ def add_parser(subparsers):
         description=(
             "Find one-to-one correspondences and a smooth warp taking SOURCE onto TARGET under a "
             "locally rigid, non-rigid motion (section 5.1), with no initial guess. Point files: "
-            ".ply .vtk .vtp .stl .obj .xyz .txt .csv .pts .npy."
+            f"{POINT_FILES}."
         ),
     )
     add_point_files(p)

@@ -13,6 +13,7 @@ from pathlib import Path
 from ._common import (
     EXIT_FAILED,
     EXIT_OK,
+    POINT_FILES,
     PROG,
     UsageError,
     add_model,
@@ -53,8 +54,8 @@ def add_parser(subparsers):
         help="find the motion taking SOURCE onto TARGET",
         description=(
             "Find the motion taking SOURCE onto TARGET (rigid: target = R source + t) and their "
-            "correspondences, with no initial guess. Point files: .ply .vtk .vtp .stl .obj "
-            ".xyz .txt .csv .pts .npy."
+            "correspondences, with no initial guess. Point files: "
+            f"{POINT_FILES}."
         ),
     )
     add_point_files(p)
@@ -192,6 +193,7 @@ def run(args) -> int:
     from ..io import read_points
 
     check_outputs(args, inputs=(args.source, args.target))
+    model_options(args)  # a model of 2D points is refused before reading
     source = read_points(args.source)
     target = read_points(args.target)
     inputs = {"source": str(args.source), "target": str(args.target)}

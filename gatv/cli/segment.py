@@ -180,6 +180,7 @@ def run(args) -> int:
     _check_labelled(args, (args.source, args.target))
     if args.max_motions is not None and args.max_motions < 1:
         raise UsageError(f"expected --max-motions >= 1, got {args.max_motions}.")
+    model_options(args)  # a model of 2D points is refused before reading
     source = read_points(args.source)
     target = read_points(args.target)
     check_point_counts((("source", source, args.source), ("target", target, args.target)))

@@ -64,6 +64,7 @@ import numpy as np
 from ._validation import check_int, check_progress
 from .errors import InputError
 from .io import one_line, result_record, to_jsonable, write_json, write_matrix
+from .models import MODEL_NAMES
 
 __all__ = [
     "COMMANDS",
@@ -84,7 +85,9 @@ __all__ = [
 #: Commands a batch can run.
 COMMANDS = ("register", "segment", "nonrigid")
 
-_MODELS = ("rigid", "similarity")
+#: Values of the ``model`` column: the registry's models (a model of 2D points
+#: fails its rows with the model's own message).
+_MODELS = MODEL_NAMES
 _PREALIGN = {"auto": "auto", "always": True, "never": False, "true": True, "false": False}
 
 
@@ -142,9 +145,11 @@ ROW_OPTIONS: dict[str, dict[str, Callable]] = {
                  "prealign": _choice(tuple(_PREALIGN))},
 }
 
-#: Columns of ``summary.csv``.
+#: Columns of ``summary.csv``.  The ``verdict_*`` columns hold the result's
+#: ``info["verdict"]`` (its support, the chance level it had to beat and its
+#: p-value; :mod:`gatv.verdict`) and are empty for a result without one.
 SUMMARY_HEADERS = ("row", "name", "status", "success", "support", "rms", "time_s", "source", "target",
-                   "seed", "reused", "error", "json")
+                   "seed", "reused", "error", "json", "verdict_support", "verdict_chance", "verdict_p")
 
 
 # ------------------------------------------------------------------ the rows
@@ -474,7 +479,16 @@ def _summary_row(r: RowResult, task: Task) -> list:
         support = sum(int(m.get("support", 0)) for m in rec["motions"])
     return [r.row, r.name, r.status, int(bool(rec.get("success"))), "" if support is None else support,
             "" if rec.get("rms") is None else rec["rms"], "" if rec.get("time_s") is None else rec["time_s"],
-            task.source, task.target, task.seed, int(r.reused), r.error, r.path.name]
+            task.source, task.target, task.seed, int(r.reused), r.error, r.path.name, *_verdict_cells(rec)]
+
+
+def _verdict_cells(record: dict) -> list:
+    """``verdict_support, verdict_chance, verdict_p`` of a record's ``info["verdict"]``; empty without one."""
+    info = record.get("info")
+    verdict = info.get("verdict") if isinstance(info, dict) else None
+    if not isinstance(verdict, dict):
+        return ["", "", ""]
+    return ["" if verdict.get(key) is None else verdict[key] for key in ("support", "chance", "p_value")]
 
 
 def _write_summary(path: Path, rows: Sequence[RowResult], tasks: Sequence[Task]) -> None:
@@ -583,6 +597,9 @@ def connect(scheduler="local", *, workers: int | None = None, timeout: float = 1
     if not isinstance(scheduler, str):
         msg = f"Expected `scheduler` to be 'local', 'serial', an address or a Client, got {scheduler!r}."
         raise InputError(msg)
+    refused = _refused(scheduler, timeout)
+    if refused is not None:  # nothing listens there: say so now rather than after `timeout`
+        raise InputError(f"cannot reach the Dask scheduler at {scheduler!r} ({one_line(refused)}).")
     try:
         client = distributed.Client(scheduler, timeout=f"{timeout}s")
     except (OSError, TimeoutError, ValueError) as exc:
@@ -592,6 +609,35 @@ def connect(scheduler="local", *, workers: int | None = None, timeout: float = 1
         yield client
     finally:
         client.close()
+
+
+def _refused(address: str, timeout: float) -> OSError | None:
+    """The error of a TCP connection to a ``tcp://host:port`` (or ``host:port``) scheduler that
+    the host refused (nothing listens on the port), else None.
+
+    A refused connection fails at once; Dask's client would retry it until
+    its timeout.  Anything else (a host that does not answer, another
+    protocol, a name that does not resolve) is left to Dask.
+    """
+    import socket
+    from urllib.parse import urlsplit
+
+    url = urlsplit(address if "://" in address else f"tcp://{address}")
+    if url.scheme != "tcp":
+        return None
+    try:
+        host, port = url.hostname, url.port
+    except ValueError:
+        return None
+    if not host or port is None:
+        return None
+    try:
+        with socket.create_connection((host, port), timeout=min(float(timeout), 2.0)):
+            return None
+    except ConnectionRefusedError as exc:
+        return exc
+    except OSError:
+        return None
 
 
 def _threads(client) -> int:

@@ -372,3 +372,62 @@ def test_local_workers_run_without_the_profiler(client):
 
     assert set(client.run(settings).values()) == {(False, "200ms")}
     assert dask.config.get("distributed.worker.profile.enabled") is True  # this process's config is left alone
+
+
+# ------------------------------------------------------------- issue 42 and 37
+def test_refused_scheduler_fails_at_once(tmp_path, pair_files, capsys):
+    """Nothing listens on the port: exit 2 in well under the 10 s connect timeout."""
+    import socket
+    import time
+
+    with socket.socket() as sock:  # a port that was free a moment ago, closed again
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    folder, _, rows = pair_files
+    table = _write_csv(folder / "pairs.csv", rows)
+    out = tmp_path / "out"
+    start = time.perf_counter()
+    status = cli.main(["batch", str(table), "--out", str(out), "--scheduler", f"tcp://127.0.0.1:{port}"])
+    assert status == 2 and time.perf_counter() - start < 3.0
+    _one_error(capsys, "cannot reach the Dask scheduler", "refused")
+    assert not out.exists()
+
+
+def test_summary_has_the_verdict_columns(tmp_path, pair_files, monkeypatch):
+    """verdict_support, verdict_chance, verdict_p from info['verdict'] when a result has one."""
+    from gatv.motion import RigidMotion
+
+    folder, trials, rows = pair_files
+    verdict = {"support": 20, "chance": 4.5, "n_tested": 1000.0, "p_value": 1.25e-9, "margin": 4.44,
+               "passed": True}
+    real_call = batch._call
+
+    def call(task):
+        source, target, opts, result, seconds = real_call(task)
+        info = dict(result.info)
+        info.pop("verdict", None)
+        if task.row == 0:
+            info["verdict"] = verdict
+        fake = RigidMotion(result.rotation, result.translation, result.correspondences, info=info)
+        return source, target, opts, fake, seconds
+
+    monkeypatch.setattr(batch, "_call", call)
+    table = [*({"source": str(folder / r["source"]), "target": str(folder / r["target"])} for r in rows[:2]),
+             {"source": str(folder / "missing.npy"), "target": str(folder / rows[0]["target"])}]
+    result = batch.run(table, tmp_path / "out", scheduler="serial")
+    with open(result.summary, newline="") as fh:
+        lines = list(csv.DictReader(fh))
+    assert tuple(lines[0]) == batch.SUMMARY_HEADERS
+    got = [(r["verdict_support"], r["verdict_chance"], r["verdict_p"]) for r in lines]
+    assert got == [("20", "4.5", "1.25e-09"), ("", "", ""), ("", "", "")]
+    assert [r["status"] for r in lines] == ["found", "found", "failed"]
+
+
+def test_model_column_takes_the_registrys_models():
+    from gatv.models import MODEL_NAMES
+
+    tasks = batch.read_pairs([{"source": "a", "target": "b", "model": m, "name": m} for m in MODEL_NAMES])
+    assert [dict(t.options)["model"] for t in tasks] == list(MODEL_NAMES)
+    assert all(not t.problem for t in tasks)
+    (bad,) = batch.read_pairs([{"source": "a", "target": "b", "model": "projective"}])
+    assert "projective" in bad.problem and all(m in bad.problem for m in MODEL_NAMES)

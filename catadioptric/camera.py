@@ -443,7 +443,7 @@ class UnifiedCamera:
         Returns
         -------
         xy : (N, 2) ndarray of float
-            Undistorted coordinates; |distort(xy) - xy_d| <= 1e-12 where
+            Undistorted coordinates; ``|distort(xy) - xy_d| <= 1e-12`` where
             converged.
         converged : (N,) ndarray of bool
             False where Newton did not converge or ended outside the

@@ -117,3 +117,48 @@ def test_license_file_matches_the_declared_license():
     assert declared == "BSD-3-Clause"
     assert text.startswith("BSD 3-Clause License") and "the gatv developers" in text
     assert "Neither the name of the copyright holder nor the names of its" in text
+
+
+#: ``|text|`` outside literals: reStructuredText reads it as a substitution reference,
+#: an error when no substitution of that name exists (issue 42: UnifiedCamera.undistort).
+_SUBSTITUTION = re.compile(r"(?<![`\w|])\|[^|\s`][^|`\n]*?[^|\s`]\|(?![`\w|])")
+
+
+def _without_literals(doc: str) -> str:
+    doc = re.sub(r"``.*?``", "", doc, flags=re.S)
+    doc = re.sub(r":math:`[^`]*`", "", doc)
+    doc = re.sub(r"(?m)^(\s*)\.\. math::\n(\n|\1 .*\n)*", "", doc)
+    return re.sub(r"(?m)^\s*(>>>|\.\.\.) .*$", "", doc)
+
+
+def test_no_docstring_holds_an_accidental_substitution():
+    import inspect
+    import pkgutil
+
+    hits = []
+    for package in ("gatv", "catadioptric"):
+        pkg = importlib.import_module(package)
+        for info in pkgutil.walk_packages(pkg.__path__, f"{package}."):
+            if "._" in info.name or info.name.endswith("__main__"):
+                continue
+            module = importlib.import_module(info.name)
+            objects = [module]
+            for name, obj in vars(module).items():
+                if name.startswith("_") or getattr(obj, "__module__", None) != module.__name__:
+                    continue
+                objects.append(obj)
+                if inspect.isclass(obj):
+                    objects += [m for k, m in vars(obj).items()
+                                if not k.startswith("_") and (callable(m) or isinstance(m, property))]
+            for obj in objects:
+                for match in _SUBSTITUTION.finditer(_without_literals(inspect.getdoc(obj) or "")):
+                    hits.append(f"{getattr(obj, '__qualname__', obj)}: {match.group()}")
+    assert hits == []
+    assert _SUBSTITUTION.findall("coordinates; |distort(xy) - xy_d| <= 1e-12") == ["|distort(xy) - xy_d|"]
+
+
+def test_gatv_register_is_indexed():
+    """`:func:`gatv.register`` links resolve only if its entry is indexed (no :no-index:)."""
+    text = (DOCS / "api" / "gatv.rst").read_text()
+    entry = re.search(r"\.\. autofunction:: gatv\.register\n((?:   .*\n)*)", text)
+    assert entry and ":no-index:" not in entry.group(1)

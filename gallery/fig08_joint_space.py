@@ -170,7 +170,7 @@ def main(out_dir, size=SIZE) -> dict:
     render.set_view(pl, view / np.linalg.norm(view) + 0.6 * q * np.sign(q @ render.VIEW))
     png = render.save(pl, out_dir / "fig08_joint_space.png")
     t_render = time.perf_counter() - t0
-    print(f"wrote {png} ({size[0]}x{size[1]}, rendered in {t_render:.1f} s)")
+    print(f"wrote {Path(png).name} ({size[0]}x{size[1]}, rendered in {t_render:.1f} s)")
 
     return {
         "pngs": [png],

@@ -108,7 +108,7 @@ def main(out_dir, size=SIZE) -> dict:
     # The picture: (a) all points by detected motion, (b)-(d) one motion each.
     t0 = time.perf_counter()
     png = render.render_segmentation(src, tgt, seg, out_dir / "fig12_three_motions.png", size=size)
-    print(f"wrote {png} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
+    print(f"wrote {Path(png).name} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
 
     return {"pngs": [png], "n_motions": len(seg), "n_true": scene.n_motions, "motions": rows,
             "colors": [render.motion_color(k) for k in range(len(seg))]}

@@ -165,7 +165,7 @@ def main(out_dir, size=SIZE) -> dict:
         render.add_legend(pl)
         render.set_view(pl, view)
     png = render.save(pl, out_dir / "fig13_twisted_plane.png")
-    print(f"wrote {png} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
+    print(f"wrote {Path(png).name} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
 
     return {"pngs": [png], "support": motion.support, "precision": precision, "recall": recall,
             "structure": d.structure, "n_kept": len(d.tokens), "n_kept_true": int(kept_true.sum()),

@@ -126,7 +126,7 @@ def main(out_dir, size=SIZE) -> dict:
     view = 0.6 * n * np.sign(n @ render.VIEW) + 0.8 * np.cross(n, u) + 0.3 * u
     render.set_view(pl, view / np.linalg.norm(view))
     png = render.save(pl, out_dir / "fig14_local_eq41.png")
-    print(f"wrote {png} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
+    print(f"wrote {Path(png).name} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
 
     return {"pngs": [png], "n_kept": len(d.tokens), "n_verified": int(d.verified.sum()),
             "n_close": len(close), "n_passed": len(passed), "n_failed": len(failed),

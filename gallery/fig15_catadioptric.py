@@ -260,7 +260,7 @@ def main(out_dir, size=SIZE, data_dir=None) -> dict:
                           f"{got.support} matches, precision {p_real:.2f}, recall {r_real:.2f}")
         render.add_legend(pl, loc="lower right")
     png = render.save(pl, out_dir / "fig15_catadioptric.png")
-    print(f"wrote {png} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
+    print(f"wrote {Path(png).name} ({size[0]}x{size[1]}, rendered in {time.perf_counter() - t0:.1f} s)")
     result["pngs"] = [png]
     return result
 

@@ -75,7 +75,9 @@ def test_figure_renders(tmp_path, script, capsys):
         px = _pixels(png)
         assert px.shape == (size[1], size[0], 3)
         assert float(px.astype(float).var()) > 20.0, f"{png.name} is blank"
-    assert capsys.readouterr().out.strip(), "a figure script prints its numbers"
+    out = capsys.readouterr().out
+    assert out.strip(), "a figure script prints its numbers"
+    assert str(tmp_path) not in out, "a gallery page shows what the script prints: no build path"
     if script.stem in MOTION_COLOURS:
         px = _pixels(pngs[0]).astype(np.uint8)
         shown = [c for c in render.PALETTE if _count_colour(px, c) > 20]

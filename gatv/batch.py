@@ -11,11 +11,20 @@ row, and ``summary.csv`` with one line per row.
 
 Where the work runs (``scheduler``):
 
-* ``"local"`` (default) — a :class:`dask.distributed.LocalCluster` on this
+* ``"auto"`` (default) — rows run in this process while their cost is
+  measured; a local cluster (as ``"local"``) is started for the rows left
+  only when it is expected to finish them sooner, its start included
+  (:func:`local_cluster_pays`: a batch of short rows stays serial, as a
+  cluster's start costs more than it saves); ``BatchResult.where`` says
+  which was chosen and why;
+* ``"local"`` — a :class:`dask.distributed.LocalCluster` on this
   machine: ``workers`` processes (default: one per core) with one thread
   each, numba limited to the cores a worker owns;
 * an address such as ``"tcp://10.0.0.5:8786"`` — an existing Dask
   scheduler; its workers must have gatv installed and see the input paths;
+  each worker thread runs numba on its host's cores over the worker
+  threads of that host (:func:`numba_plan`: one thread for two
+  single-threaded workers on two cores);
 * a :class:`dask.distributed.Client` — used as it is and not closed;
 * ``"serial"`` — in this process, one row after the other (no Dask).
 
@@ -69,15 +78,19 @@ from .models import MODEL_NAMES
 __all__ = [
     "COMMANDS",
     "LOCAL_CLUSTER_CONFIG",
+    "LOCAL_START_SECONDS",
     "ROW_OPTIONS",
     "SUMMARY_HEADERS",
     "TASK_SECONDS",
     "BatchResult",
     "RowResult",
+    "StartDecision",
     "Task",
     "compute",
     "connect",
+    "local_cluster_pays",
     "map_tasks",
+    "numba_plan",
     "read_pairs",
     "run",
 ]
@@ -384,10 +397,32 @@ def compute(task: Task) -> dict:
     return record
 
 
-def _compute_rows(tasks: tuple) -> tuple[list[dict], float]:
-    """:func:`compute` on several rows in one Dask task: their records and the seconds taken."""
+def _compute_rows(tasks: tuple, plan: Mapping | None = None) -> tuple[list[dict], float]:
+    """:func:`compute` on several rows in one Dask task: their records and the seconds taken.
+
+    ``plan`` maps worker addresses to numba threads (:func:`numba_plan`);
+    the worker thread running the task is pinned to its entry (1 for a
+    worker the plan does not know).
+    """
+    if plan is not None:
+        _pin_numba(plan)
     start = time.perf_counter()
     return [compute(t) for t in tasks], time.perf_counter() - start
+
+
+def _pin_numba(plan: Mapping) -> int | None:
+    """Limit numba's threads, for the calling thread, to this worker's entry of ``plan``."""
+    try:
+        from distributed import get_worker
+
+        address = get_worker().address
+    except (ImportError, ValueError):  # not on a Dask worker
+        return None
+    import numba
+
+    n = max(1, min(int(plan.get(address, 1)), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
 
 
 def _lost(task: Task, exc: BaseException) -> dict:
@@ -425,6 +460,8 @@ class RowResult:
 class BatchResult:
     """The rows of a batch, in table order, and where they were written.
 
+    ``where`` says where the rows ran and, for ``scheduler="auto"``, why
+    (serial, or a local cluster once the rows' measured cost paid for it).
     Falsy when a row failed.
     """
 
@@ -432,6 +469,7 @@ class BatchResult:
     out: Path
     summary: Path
     seconds: float
+    where: str = ""
 
     @property
     def failed(self) -> list[RowResult]:
@@ -640,6 +678,66 @@ def _refused(address: str, timeout: float) -> OSError | None:
         return None
 
 
+#: Seconds a local cluster costs before its first row on 2 cores: the cluster
+#: (1.3 s) and each worker's imports and numba kernels from the cache (2.3 s,
+#: the workers in parallel), measured on a shared 2-core machine.
+LOCAL_START_SECONDS = 4.0
+#: A local cluster is started only when it is expected to take at most this
+#: share of the serial time left (estimates of a few rows are rough).
+LOCAL_MARGIN = 0.8
+#: Dask's own cost on a row's CPU time (scheduler, worker, serialisation).
+LOCAL_OVERHEAD = 1.1
+
+
+@dataclass(frozen=True)
+class StartDecision:
+    """Whether a local cluster pays for the rows left (:func:`local_cluster_pays`) and why."""
+
+    start: bool
+    serial_s: float
+    cluster_s: float
+    why: str
+
+
+def local_cluster_pays(timed: Sequence[tuple[float, float]], rows_left: int, workers: int) -> StartDecision:
+    """Whether ``workers`` local single-threaded workers would finish the rows left sooner than this process.
+
+    ``timed`` holds the ``(wall, CPU)`` seconds of rows run here.  Serially
+    the rows left take their mean wall time each; on a cluster
+    :data:`LOCAL_START_SECONDS`, then each worker's share of rows at their
+    mean CPU time (this process's CPU time covers numba's threads, so a
+    row's single-thread cost is at most that) times
+    :data:`LOCAL_OVERHEAD`.  The cluster must take at most
+    :data:`LOCAL_MARGIN` of the serial time.
+    """
+    wall = sum(w for w, _ in timed) / max(len(timed), 1)
+    cpu = sum(c for _, c in timed) / max(len(timed), 1)
+    serial = wall * rows_left
+    cluster = LOCAL_START_SECONDS + LOCAL_OVERHEAD * cpu * math.ceil(rows_left / max(workers, 1))
+    start = workers > 1 and rows_left > 1 and cluster <= LOCAL_MARGIN * serial
+    why = (f"{rows_left} rows left at {wall:.3g} s each: ~{serial:.3g} s here, ~{cluster:.3g} s on "
+           f"{workers} local workers including ~{LOCAL_START_SECONDS:g} s to start them")
+    return StartDecision(bool(start), serial, cluster, why)
+
+
+def numba_plan(client) -> dict:
+    """Numba threads for each worker of ``client``'s cluster: its host's cores over the worker
+    threads on that host (at least 1), so that workers sharing a machine do not oversubscribe it."""
+    workers = client.scheduler_info(n_workers=-1)["workers"]
+    cores = client.run(_cores)
+    on_host = collections.Counter()
+    for info in workers.values():
+        on_host[info.get("host")] += int(info.get("nthreads", 1))
+    return {address: max(1, int(cores.get(address, 1)) // max(1, on_host[info.get("host")]))
+            for address, info in workers.items()}
+
+
+def _describe_client(scheduler, client) -> str:
+    nthreads = client.nthreads()
+    kind = "a local cluster" if scheduler in (None, "local") else f"the Dask scheduler at {client.scheduler.address}"
+    return f"{kind} of {len(nthreads)} workers, {sum(nthreads.values())} threads"
+
+
 def _threads(client) -> int:
     """Worker threads of the cluster behind ``client`` (at least 1: workers may join later)."""
     return max(1, sum(client.nthreads().values()))
@@ -725,7 +823,7 @@ def map_tasks(fn: Callable, tasks: Sequence, *, scheduler="local", workers: int 
 
 
 # ------------------------------------------------------------------ batch
-def run(pairs, out, *, command: str = "register", scheduler="local", workers: int | None = None,
+def run(pairs, out, *, command: str = "register", scheduler="auto", workers: int | None = None,
         seed: int = 0, defaults: Mapping | None = None, retries: int = 1, progress=None,
         timeout: float = 10.0, chunk: int | None = None) -> BatchResult:
     """Run ``command`` on every row of ``pairs``; one JSON per row in ``out``, and ``summary.csv``.
@@ -741,8 +839,12 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
         ``out/<name>.txt`` (:func:`gatv.io.write_matrix`, the text Open3D's
         examples load with ``numpy.loadtxt``).
     command : {"register", "segment", "nonrigid"}, default: "register"
-    scheduler : "local", "serial", str or Client, default: "local"
+    scheduler : "auto", "local", "serial", str or Client, default: "auto"
         Where the rows run (see the module docstring and :func:`connect`).
+        ``"auto"``: here, one after the other, until the rows' measured
+        cost says that a local cluster would finish the rest sooner
+        including its start (:func:`local_cluster_pays`), then on one;
+        ``"local"`` starts one at once.  The result's ``where`` says which.
     workers : int, optional
         Worker processes of a local cluster; default one per core.
     seed : int, default: 0
@@ -820,24 +922,54 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
         done += 1
         report(done / len(tasks), f"{done}/{len(tasks)} rows")
 
+    auto = scheduler == "auto"
+    if auto:
+        n_workers = check_int(workers, "workers", 1, allow_none=True) or _cores()
+        try:
+            import distributed  # noqa: F401
+        except ImportError:  # without the extra, "auto" stays serial
+            n_workers = 1
+    where_ran = "serial" if scheduler == "serial" else ""
     with contextlib.ExitStack() as stack:
         # connect before writing anything: an unreachable scheduler leaves DIR untouched
         client = None
-        if scheduler != "serial" and todo:
+        if scheduler not in ("serial", "auto") and todo:
             client = stack.enter_context(connect(scheduler, workers=workers, timeout=timeout))
+            where_ran = _describe_client(scheduler, client)
         try:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise InputError(f"{out}: cannot make the output folder ({exc.strerror or exc}).") from exc
         if done:
             report(done / len(tasks), f"{done}/{len(tasks)} rows (already done)")
-        if client is None:
-            for k in todo:
+        pending = collections.deque(todo)
+        if auto and pending:
+            # rows run here until their measured cost says that a local cluster pays for its start
+            timed = []  # (wall, CPU) seconds of the rows run here, the first (numba's cache) left out
+            while pending:
+                k = pending.popleft()
+                w0, c0 = time.perf_counter(), time.process_time()
                 finish(k, compute(tasks[k]))
-        elif todo:
+                timed.append((time.perf_counter() - w0, time.process_time() - c0))
+                if len(timed) < 2:  # the first row also loads the numba kernels: not a measure
+                    continue
+                decision = local_cluster_pays(timed[1:], len(pending), n_workers)
+                if pending and decision.start:
+                    report(done / len(tasks), f"starting {n_workers} local workers: {decision.why}")
+                    client = stack.enter_context(connect("local", workers=n_workers, timeout=timeout))
+                    where_ran = (f"{len(timed)} rows here, then a local cluster of {n_workers} workers "
+                                 f"({decision.why})")
+                    break
+            else:
+                whole = local_cluster_pays(timed[1:] or timed, max(len(timed) - 1, 1), n_workers)
+                where_ran = f"serial, in this process: a local cluster would not have paid (after the first row, {whole.why})"
+        if client is None:
+            for k in pending:
+                finish(k, compute(tasks[k]))
+            pending.clear()
+        if pending:
             distributed = _import_distributed()
             stamp = f"{os.getpid()}-{time.time_ns()}"
-            pending = collections.deque(todo)
             where: dict = {}  # key of a task in flight -> its rows
             spent = [0.0, 0]  # seconds and rows of the tasks finished so far
 
@@ -846,8 +978,8 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                 size = _rows_per_task(chunk, row_seconds, len(pending), threads)
                 ks = [pending.popleft() for _ in range(min(size, len(pending)))]
                 first = tasks[ks[0]]
-                future = client.submit(_compute_rows, tuple(tasks[k] for k in ks), pure=False, retries=retries,
-                                       key=f"gatv-{first.command}-{first.name}-{len(ks)}-{stamp}")
+                future = client.submit(_compute_rows, tuple(tasks[k] for k in ks), plan, pure=False,
+                                       retries=retries, key=f"gatv-{first.command}-{first.name}-{len(ks)}-{stamp}")
                 where[future.key] = ks
                 return future
 
@@ -857,6 +989,7 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                     queue.add(submit())
 
             threads, counted = _threads(client), time.monotonic()
+            plan = numba_plan(client)
             queue = distributed.as_completed()
             fill(queue)
             for future in queue:
@@ -873,7 +1006,9 @@ def run(pairs, out, *, command: str = "register", scheduler="local", workers: in
                 if pending:
                     if time.monotonic() - counted > 1.0:  # workers may have joined or left; ask the
                         threads, counted = _threads(client), time.monotonic()  # scheduler once a second
+                        plan = numba_plan(client)
                     fill(queue)
     summary = out / "summary.csv"
     _write_summary(summary, results, tasks)
-    return BatchResult(tuple(results), out, summary, time.perf_counter() - start)
+    return BatchResult(tuple(results), out, summary, time.perf_counter() - start,
+                       where_ran or "nothing to run: every row was done")

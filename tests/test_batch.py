@@ -431,3 +431,52 @@ def test_model_column_takes_the_registrys_models():
     assert all(not t.problem for t in tasks)
     (bad,) = batch.read_pairs([{"source": "a", "target": "b", "model": "projective"}])
     assert "projective" in bad.problem and all(m in bad.problem for m in MODEL_NAMES)
+
+
+# ------------------------------------------------- auto: serial until a cluster pays (issue 42)
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+
+@given(wall=st.floats(0.001, 100.0), share=st.floats(0.3, 2.0), left=st.integers(0, 10_000),
+       workers=st.integers(1, 16))
+@settings(max_examples=200, deadline=None)
+def test_local_cluster_starts_only_when_it_pays(wall, share, left, workers):
+    cpu = wall * share
+    d = batch.local_cluster_pays([(wall, cpu), (wall, cpu)], left, workers)
+    import math
+
+    expected_cluster = batch.LOCAL_START_SECONDS + batch.LOCAL_OVERHEAD * cpu * math.ceil(left / workers)
+    assert d.serial_s == pytest.approx(wall * left) and d.cluster_s == pytest.approx(expected_cluster)
+    if d.start:
+        assert workers > 1 and left > 1
+        assert d.cluster_s <= batch.LOCAL_MARGIN * d.serial_s  # expected to finish sooner, start included
+        assert d.serial_s > batch.LOCAL_START_SECONDS  # never for a batch shorter than a cluster's start
+    elif workers > 1 and left > 1:
+        assert d.cluster_s > batch.LOCAL_MARGIN * d.serial_s
+
+
+def test_short_batch_runs_serially_and_says_so(tmp_path, pair_files, capsys):
+    folder, _, rows = pair_files
+    table = _write_csv(folder / "pairs.csv", rows)
+    assert cli.main(["batch", str(table), "--out", str(tmp_path / "o"), "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "ran on:          serial, in this process: a local cluster would not have paid" in out
+    result = batch.run(table, tmp_path / "api", workers=2)
+    assert result.where.startswith("serial") and result.counts()["found"] == N_ROWS
+
+
+def test_auto_starts_a_local_cluster_for_long_rows_and_equals_serial(tmp_path, pair_files, monkeypatch):
+    """Rows made to look long (a cluster costs nothing to start, Dask nothing per row): the rest
+    runs on 2 workers."""
+    monkeypatch.setattr(batch, "LOCAL_START_SECONDS", 0.0)
+    monkeypatch.setattr(batch, "LOCAL_OVERHEAD", 0.1)
+    folder, _, rows = pair_files
+    many = [{**rows[k % N_ROWS], "name": f"a{k}", "seed": str(k)} for k in range(8)]
+    table = _write_csv(folder / "auto.csv", many, columns=("name", "source", "target", "seed"))
+    result = batch.run(table, tmp_path / "auto", workers=2)
+    assert "then a local cluster of 2 workers" in result.where, result.where
+    serial = batch.run(table, tmp_path / "serial", scheduler="serial")
+    for a, b in zip(serial.rows, result.rows):
+        assert _record_without_times(json.loads(a.path.read_text())) == \
+            _record_without_times(json.loads(b.path.read_text()))

@@ -1,8 +1,10 @@
 """``gatv batch PAIRS.csv --out DIR``: one command on every row of a table of pairs (:func:`gatv.batch.run`).
 
-Rows run as Dask tasks: on a local cluster by default (``--workers``
-processes), on a running scheduler with ``--scheduler ADDRESS``, or here
-one after the other with ``--scheduler serial``.  One JSON per row in DIR
+Rows run here one after the other until their measured cost says that a
+local Dask cluster (``--workers`` processes) would finish the rest sooner,
+its start included (``--scheduler auto``, the default; the output says
+which ran); ``--scheduler local`` starts the cluster at once, ``--scheduler
+ADDRESS`` uses a running scheduler, ``--scheduler serial`` never uses Dask.  One JSON per row in DIR
 (the schema of ``gatv register --out``) and ``summary.csv``; a second run
 skips the rows already done.
 
@@ -43,8 +45,9 @@ def add_parser(subparsers):
         description=(
             "Run a command on every row of PAIRS (a CSV with the columns source and target; "
             "relative paths are relative to the CSV's folder; optional columns: name, and the "
-            f"command's options — {columns}). Rows run as Dask tasks (short rows grouped, "
-            "see --chunk): a local cluster by default, an existing scheduler with --scheduler. Writes DIR/<name>.json per row "
+            f"command's options — {columns}). Rows run here until their cost says that a local Dask "
+            "cluster pays for its start (--scheduler auto), or as Dask tasks (short rows grouped, "
+            "see --chunk) on a local cluster or an existing scheduler (--scheduler). Writes DIR/<name>.json per row "
             "(the schema of `gatv register --out`) and DIR/summary.csv; rows already done are "
             "skipped on a second run."
         ),
@@ -53,8 +56,10 @@ def add_parser(subparsers):
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--command", choices=COMMANDS, default="register", dest="batch_command",
                    help="command run on each row (default: register)")
-    p.add_argument("--scheduler", default="local", metavar="ADDRESS",
-                   help="'local' (a Dask LocalCluster here, the default), a scheduler address "
+    p.add_argument("--scheduler", default="auto", metavar="ADDRESS",
+                   help="'auto' (the default: rows run here until their measured cost says that a local "
+                        "Dask cluster would finish the rest sooner, its start included; the summary line "
+                        "says which ran), 'local' (a Dask LocalCluster here at once), a scheduler address "
                         "(tcp://host:8786), or 'serial' (no Dask, one row after the other)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="worker processes of the local cluster (default: one per core)")
@@ -119,6 +124,7 @@ def run(args) -> int:
         print(f"{PROG} batch: {len(result)} rows ({args.batch_command}): {counts['found']} found, "
               f"{counts['not found']} not found, {counts['failed']} failed{reused}; "
               f"{result.seconds:.1f} s")
+        print(f"ran on:          {result.where}")
         print(f"wrote {result.summary}")
     if result.failed:
         first = result.failed[0]

@@ -54,10 +54,13 @@ from ._validation import (
 from .candidates import median_spacing
 from .congruent import TargetIndex, n_triples_needed, trial_motions
 from .errors import InputError
-from .ga import rotation_angle_deg
+from .fitting import fit_rigid
+from .ga import Rotor, rotation_angle_deg
 from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
+from .verdict import Verdict, wrong_motion_verdict
+from .voting import extract_surfaces, vote
 
 __all__ = [
     "LocalScatter",
@@ -346,8 +349,6 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     normals : (K, 3) ndarray
         Their unoriented unit normals (``e1`` of the final tensors).
     """
-    from .voting import extract_surfaces
-
     pts = as_points(points, "points", min_points=3)
     pick = np.arange(pts.shape[0])
     if pts.shape[0] > max_points:
@@ -420,8 +421,6 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
 
     Returns ``(rotation, translation)``.
     """
-    from .ga import Rotor
-
     tree = cKDTree(target) if tree is None else tree
     R = np.array(rotation, dtype=np.float64)
     t = np.array(translation, dtype=np.float64)
@@ -449,8 +448,6 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
-    from .voting import vote
-
     return np.asarray(vote(points).normals)
 
 
@@ -459,11 +456,9 @@ def register_scans(source, target, **options) -> RigidMotion:
 
     Takes the options of :func:`register_surfaces`.
     """
-    from .registration import register
-
-    common = ("seed", "confidence", "max_triples", "n_judged", "refine", "memory_budget", "progress")
-    call = {k: options.pop(k) for k in common if k in options}
-    return register(source, target, pipeline="scans", scan_options=options, **call)
+    out = register_surfaces(source, target, **options)
+    out.info.update(pipeline="scans", pipeline_reason="pipeline='scans' given")
+    return out
 
 
 #: Rival motions within this share of the best support make the answer
@@ -482,8 +477,6 @@ def _rivals(best, others, voxel: float) -> list:
     :data:`RIVAL_SHARE` of the best's support at full resolution as a
     different motion (and takes it when it does better).
     """
-    from .ga import rotation_angle_deg
-
     R0, t0 = best.matrix[:3, :3], best.matrix[:3, 3]
     out = []
     for fit in others:
@@ -613,6 +606,7 @@ def register_surfaces(
     match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
                            confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                            n_judged=n_judged, refine=refine, memory_budget=memory_budget,
+                           verdict=True,
                            progress=lambda f, m: report(0.05 + 0.95 * f, m))
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
@@ -622,15 +616,199 @@ def register_surfaces(
             info[key] += prepared
     if not match:
         return stages.failure(RIGID, info["reason"], info)
+    noise = pooled_noise(tx.noise.sigma, ty.noise.sigma)
+    on = Xs[match.pairs[:, 0]]
+    flat = thickness(on)
+    # noise-free data: flat to rounding, far below the exact pipeline's finest tolerance (1e-6 spacings)
+    if flat <= PLANE_THICKNESS * max(noise, 1e-6 * median_spacing(Ys)):
+        info.update(thickness=flat, noise=noise)
+        return stages.failure(RIGID, (f"degenerate: the {on.shape[0]} supporting points lie on one plane "
+                                      f"(thickness {flat:.3g}, noise {noise:.3g}), along which any slide fits "
+                                      "as well"), info)
     residual = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
     # Correspondences index the input points.
     kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
-    info.update(noise=pooled_noise(tx.noise.sigma, ty.noise.sigma),
+    info.update(noise=noise, thickness=flat,
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,
                 projected=tuple(0 if t.projection is None else t.projection.neighbours for t in (tx, ty)),
                 time_s=time.perf_counter() - t0)
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
+
+
+#: A motion's supporting points lie on one plane (and the motion can slide
+#: along it) when their spread along their least axis, ``sqrt(λ3)``, is within
+#: this many times the scans' noise: a floor or a wall is as thick as its
+#: noise, any solid object seen from one side far more.
+PLANE_THICKNESS = 3.0
+
+
+def thickness(points: np.ndarray) -> float:
+    """Standard deviation of the points along their least axis, ``sqrt(λ3)`` of their covariance (0 on a plane)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] < 4:
+        return 0.0
+    ev = np.linalg.eigvalsh(np.cov(pts.T))
+    return float(np.sqrt(max(ev[0], 0.0)))
+
+
+def aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A rotation taking unit vector ``a`` onto unit vector ``b``."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if c < -1.0 + 1e-12:  # opposite: a half-turn about any axis normal to a
+        u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        return 2.0 * np.outer(u, u) - np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def tangent_motions(source: np.ndarray, target: np.ndarray, n: int, rng: np.random.Generator, *,
+                    source_tree: cKDTree | None = None, target_tree: cKDTree | None = None,
+                    k: int = 12) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` wrong but plausible rigid motions: a random source point onto a random target point,
+    the source's surface normal there turned onto the target's (random sign), a random spin about it.
+
+    The two surfaces touch tangentially, as under the wrong hypotheses a
+    search of surface triples with agreeing normals makes.  Normals are the
+    least-variance axes of ``k`` nearest neighbours.  Returns ``(R, t)``
+    pairs; the draws use ``rng`` in a fixed order (points, signs, spins).
+    """
+    X = np.asarray(source, dtype=np.float64)
+    Y = np.asarray(target, dtype=np.float64)
+    ia = rng.integers(0, X.shape[0], n)
+    ib = rng.integers(0, Y.shape[0], n)
+    sx = cKDTree(X) if source_tree is None else source_tree
+    sy = cKDTree(Y) if target_tree is None else target_tree
+    na = local_scatter(X, X[ia], min(k, X.shape[0]), sx).normals
+    nb = local_scatter(Y, Y[ib], min(k, Y.shape[0]), sy).normals
+    signs = rng.choice([-1.0, 1.0], n)
+    spins = rng.uniform(0.0, 2.0 * np.pi, n)
+    out = []
+    for a, b, s, phi, p, q in zip(na, nb, signs, spins, X[ia], Y[ib]):
+        b = s * b
+        K = np.array([[0.0, -b[2], b[1]], [b[2], 0.0, -b[0]], [-b[1], b[0], 0.0]])
+        spin = np.eye(3) + np.sin(phi) * K + (1.0 - np.cos(phi)) * K @ K  # Rodrigues about b
+        R = spin @ aligning_rotation(a, b)
+        out.append((R, q - R @ p))
+    return out
+
+
+#: Wrong motions drawn for a scans motion's verdict (:func:`surface_verdict`),
+#: each screened by a short ICP at the voxel gate ...
+VERDICT_DRAWS = 128
+#: ... of which the best-screened are polished as the search polishes its own.
+VERDICT_POLISHED = 16
+#: Second word of the verdict's seed, ``[seed, VERDICT_STREAM]``: its draws leave the search's stream as it was.
+VERDICT_STREAM = 0x7E4D1C7
+#: Point-to-plane iterations a gate of a wrong motion's polish (the search's own: 30).
+VERDICT_ITERATIONS = 10
+#: Source points each draw is screened on.
+VERDICT_SCREEN = 1000
+#: Most gates the verdict counts supports at: the final gate and its halves
+#: down to its motion's own residual deviation (a true motion's pairs sit at
+#: the noise, a wrong one's fill the gate).
+VERDICT_GATES = 8
+#: The finest gate of the verdict, in robust deviations of the motion's
+#: point-to-plane residuals: about 95% of a true motion's pairs lie within it.
+VERDICT_FLOOR = 2.0
+
+
+def _screen_icp(X, Y, tree, R, t, gate, iterations=10):
+    """Point-to-point ICP inside ``gate``: the cheap screen of a wrong start."""
+    for _ in range(iterations):
+        d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        if np.count_nonzero(ok) < 3:
+            break
+        R_new, t_new = fit_rigid(X[ok], Y[j[ok]])
+        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
+            break
+        R, t = R_new, t_new
+    return R, t
+
+
+def _on_surface(X, Y, normals, tree, R, t, gates) -> np.ndarray:
+    """Source points on the target's surface under ``(R, t)``, at each of ``gates`` (descending).
+
+    Within ``gates[0]`` of a target point, and within each gate of its
+    tangent plane: the distance to the surface, not to its sample points,
+    so that a coarse sampling (a mesh's vertices) counts as a dense one.
+    """
+    moved = X @ R.T + t
+    d, j = tree.query(moved, k=1, distance_upper_bound=gates[0])
+    ok = np.flatnonzero(np.isfinite(d))
+    r = np.abs(np.einsum("ij,ij->i", moved[ok] - Y[j[ok]], normals[j[ok]]))
+    return np.array([ok.size] + [np.count_nonzero(r <= g) for g in gates[1:]])
+
+
+def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
+                    n_tested: float, rng: np.random.Generator, tree: cKDTree | None = None,
+                    n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED) -> tuple[Verdict, dict]:
+    """Whether the motion ``(rotation, translation)`` beats wrong motions polished as it was.
+
+    The verdict stage of the scans pipeline (:mod:`gatv.verdict`, null
+    ``"wrong motions"``).  ``n_draws`` tangent wrong motions
+    (:func:`tangent_motions`) are screened by a short ICP at the ``voxel``
+    gate; the ``n_polished`` best go through ``polish`` (the search's own
+    coarse-to-fine point-to-plane ICP, ``polish(R, t) -> (R, t, gate, _)``);
+    those that end on the motion itself (within 2° and 3 gates at the
+    source's centroid) are not wrong ones.  Supports are the source points
+    within ``gate`` of a target point and, at ``gate``'s halves down to
+    :data:`VERDICT_FLOOR` robust deviations of the motion's own
+    point-to-plane residuals (at most :data:`VERDICT_GATES` gates), within
+    that of its tangent plane (``target_normals``): two surfaces
+    that a wrong motion lays onto each other touch and cross, so its points
+    fill the gate, while a right motion's sit at the noise and stay within
+    the finer gates.  At each gate the level is the best wrong motion's
+    support (plus three of its Poisson deviations, for small counts) times
+    the search's gain (:func:`gatv.verdict.wrong_motion_verdict`); the gate
+    where the motion stands out most decides.  ``n_tested``: the motions
+    the search tried, recorded.  Returns the verdict and its per-gate
+    figures (``info["verdict_gates"]``).
+    """
+    R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    tree = cKDTree(Ys) if tree is None else tree
+    moved = Xs @ R0.T + t0
+    d, j = tree.query(moved, k=1, distance_upper_bound=gate)
+    ok = np.flatnonzero(np.isfinite(d))
+    r = np.einsum("ij,ij->i", moved[ok] - Ys[j[ok]], target_normals[j[ok]])
+    floor = VERDICT_FLOOR * 1.4826 * float(np.median(np.abs(r - np.median(r)))) if ok.size else gate
+    gates = [gate / 2.0**k for k in range(VERDICT_GATES) if k == 0 or gate / 2.0**k >= floor]
+    found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates)
+    starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
+    screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
+    ranks = []
+    for R, t in starts:
+        R, t = _screen_icp(screen, Ys, tree, R, t, voxel)
+        d, _ = tree.query(screen @ R.T + t, k=1, distance_upper_bound=voxel)
+        ranks.append(np.count_nonzero(np.isfinite(d)))
+    c = Xs.mean(axis=0)
+
+    def judged(wrong):
+        wrong = np.array(wrong, dtype=np.float64).reshape(-1, len(gates))
+        wrong = wrong + 3.0 * np.sqrt(wrong)  # small counts: three Poisson deviations above each
+        return wrong, [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
+                                             n_looks=len(gates)), g) for i, g in enumerate(gates)]
+
+    wrong = []
+    for k in np.argsort(ranks, kind="stable")[::-1][:n_polished]:
+        R, t, g, _ = polish(*starts[k])
+        same = rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
+        if not same:
+            wrong.append(_on_surface(Xs, Ys, target_normals, tree, R, t, gates))
+            # More draws only raise the levels: once every gate's is reached, the motion has failed.
+            if not any(v for v, _ in judged(wrong)[1]):
+                break
+    wrong, per_gate = judged(wrong)
+    # The gate where the motion stands out most over its level decides.
+    best, g = max(per_gate, key=lambda vg: vg[0].margin)
+    figures = {"gates": [float(x) for x in gates], "support": [int(x) for x in found],
+               "chance": [float(v.chance) for v, _ in per_gate], "p_value": [float(v.p_value) for v, _ in per_gate],
+               "gate": float(g), "wrong_motions": int(wrong.shape[0]), "drawn": int(n_draws),
+               "wrong_support": wrong.astype(int).tolist()}
+    return best, figures
 
 
 @dataclass(frozen=True, eq=False)
@@ -682,7 +860,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                    min_overlap: float = MIN_OVERLAP, confidence: float = 0.999, max_triples: int | None = None,
                    feature_tol: float = 0.15, n_judged: int = 4, refine: bool = True,
                    memory_budget: float | None = None, coarse_points: int = FINE_SAMPLE,
-                   progress=None) -> SurfaceMatch:
+                   verdict: bool = False, progress=None) -> SurfaceMatch:
     """Stages 2–5 of :func:`register_surfaces` on points already kept as surface.
 
     ``Xs``, ``Ys`` are the two scans' surface points (for example rows of
@@ -699,6 +877,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     polish runs on :data:`FINE_SAMPLE` source points, its levels above the
     finest on ``coarse_points`` of them (fewer: faster, but rivals a degree
     or two apart may stay apart and be reported as ambiguous).
+
+    ``verdict``: the motion must also pass the verdict
+    (:func:`surface_verdict`: wrong motions polished as it was), recorded
+    in ``info["verdict"]``; a motion that fails it gives a falsy match
+    whose reason says so.  False leaves the verdict to the caller (motion
+    segmentation has its own levels).
     """
     t0 = time.perf_counter()
     report = progress if progress is not None else (lambda fraction, message="": None)
@@ -754,13 +938,13 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
                                                                           replace=False)]
 
-    def polish(R, t):
+    def polish(R, t, finest=sub, iterations=30):
         """Point-to-plane ICP with a gate shrinking from a voxel; the points brought onto the surface."""
         g = gate
         if refine:
             while True:
-                R, t = refine_point_to_plane(sub if g <= fine else coarse, Ys, target_normals, R, t, g,
-                                             tree=tree)
+                R, t = refine_point_to_plane(finest if g <= fine else coarse, Ys, target_normals, R, t, g,
+                                             tree=tree, iterations=iterations)
                 if g <= fine:
                     break
                 g = max(fine, g / 2.0)
@@ -784,6 +968,17 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
-    pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
     info.update(final_gate=g, on_surface=on)
+    if verdict:
+        report(0.95, "verdict")
+        # The wrong motions polished as the search's, on the coarse sample and for fewer iterations a gate
+        # (a wrong start wanders where a right one settles at once): a tenth of the cost, nearly their level.
+        judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
+                                           polish=lambda R_, t_: polish(R_, t_, coarse, VERDICT_ITERATIONS),
+                                           n_tested=max(trials.n_congruent, 1), tree=tree,
+                                           rng=np.random.default_rng([seed, VERDICT_STREAM]))
+        info.update(verdict=judged.to_dict(), verdict_gates=figures, t_verdict=time.perf_counter() - t0)
+        if not judged:
+            return SurfaceMatch(None, None, g, none, 0, dict(info, reason=judged.reason()))
+    pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
     return SurfaceMatch(R, t, g, pairs, on, info)

@@ -69,7 +69,9 @@ from ..errors import InputError
 from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
-from ..scans import local_scatter
+from ..scans import PLANE_THICKNESS, local_scatter, match_surfaces, thickness, plane_noise, pooled_noise, surface_tokens, tangent_motions
+from ..verdict import chance_verdict
+from ..voting import vote
 from .segmentation import Segmentation
 
 __all__ = [
@@ -101,11 +103,6 @@ N_CHANCE = 64
 #: polished draws falls short of that now and then (the spread of their supports is
 #: as large as their mean).
 N_PART_CHANCE = 256
-#: A motion's supporting points lie on one plane (and the motion can slide
-#: along it) when their spread along their least axis, ``sqrt(λ3)``, is within
-#: this many times the scans' noise (:func:`local_noise`): a floor or a wall
-#: is as thick as its noise, any solid object seen from one side far more.
-PLANE_THICKNESS = 3.0
 #: A motion's point-to-plane residuals (:func:`residual_noise`) may exceed the
 #: scans' own noise at its points (:func:`local_noise`) by this factor: a
 #: right motion leaves residuals at the noise (its own error and curvature
@@ -146,15 +143,6 @@ COHERENCE_NEIGHBOURS = 10
 DISPLACED_Z = 3.0
 
 
-def thickness(points: np.ndarray) -> float:
-    """Standard deviation of the points along their least axis, ``sqrt(λ3)`` of their covariance (0 on a plane)."""
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.shape[0] < 4:
-        return 0.0
-    ev = np.linalg.eigvalsh(np.cov(pts.T))
-    return float(np.sqrt(max(ev[0], 0.0)))
-
-
 def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     """``n`` rotations uniform over SO(3) (unit quaternions from a 4D Gaussian)."""
     q = rng.normal(size=(n, 4))
@@ -176,18 +164,6 @@ def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: f
 def _unit_normals(points: np.ndarray, tree: cKDTree, at: np.ndarray, k: int = 12) -> np.ndarray:
     """Unit normals at rows ``at`` of ``points``: least-variance axis of their ``k`` nearest neighbours."""
     return local_scatter(points, points[at], min(k, points.shape[0]), tree).normals
-
-
-def _aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """A rotation taking unit vector ``a`` onto unit vector ``b``."""
-    v = np.cross(a, b)
-    c = float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: a half-turn about any axis normal to a
-        u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        u /= np.linalg.norm(u)
-        return 2.0 * np.outer(u, u) - np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
 def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_draws: int = N_CHANCE,
@@ -220,22 +196,13 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
     tree = cKDTree(Y) if tree is None else tree
     sub = X if X.shape[0] <= sample else X[rng.choice(X.shape[0], sample, replace=False)]
     scale = X.shape[0] / sub.shape[0]
-    ia = rng.integers(0, X.shape[0], n_draws)
-    ib = rng.integers(0, Y.shape[0], n_draws)
     if tangent:
-        na = _unit_normals(X, cKDTree(X), ia)
-        nb = _unit_normals(Y, tree, ib)
-        signs = rng.choice([-1.0, 1.0], n_draws)
-        spins = rng.uniform(0.0, 2.0 * np.pi, n_draws)
-        rots = []
-        for a, b, s, phi in zip(na, nb, signs, spins):
-            b = s * b
-            K = np.array([[0.0, -b[2], b[1]], [b[2], 0.0, -b[0]], [-b[1], b[0], 0.0]])
-            spin = np.eye(3) + np.sin(phi) * K + (1.0 - np.cos(phi)) * K @ K  # Rodrigues about b
-            rots.append(spin @ _aligning(a, b))
+        starts = tangent_motions(X, Y, n_draws, rng, target_tree=tree)
     else:
+        ia = rng.integers(0, X.shape[0], n_draws)
+        ib = rng.integers(0, Y.shape[0], n_draws)
         rots = _random_rotations(rng, n_draws)
-    starts = [(R, q - R @ p) for R, p, q in zip(rots, X[ia], Y[ib])]
+        starts = [(R, q - R @ p) for R, p, q in zip(rots, X[ia], Y[ib])]
     if polish and len(starts) > N_CHANCE_FINAL and sub.shape[0] > CHANCE_SCREEN:
         # Screen every draw on a smaller sample; only the best-ranked few are polished
         # and counted on the whole sample (the maximum is decided among them).
@@ -376,8 +343,6 @@ def residual_noise(X: np.ndarray, Y: np.ndarray, R: np.ndarray, t: np.ndarray, p
     local normals (as :func:`gatv.scans.plane_noise`): what
     :func:`local_noise` measures on each scan when the motion is right.
     """
-    from ..scans import plane_noise
-
     if pairs.shape[0] < 4:
         return float("inf")
     n = _unit_normals(Y, tree, pairs[:, 1])
@@ -451,9 +416,6 @@ def scan_surfaces(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     A noisy scan is projected onto its surfaces first, as
     :func:`gatv.register` does (:func:`gatv.scans.surface_tokens`).
     """
-    from ..scans import surface_tokens
-    from ..voting import vote
-
     n = points.shape[0]
     tokens = surface_tokens(points, clutter=clutter, seed=seed, memory_budget=memory_budget)
     mask = np.zeros(n, bool)
@@ -497,8 +459,6 @@ def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray
     Returns ``(R, t, info)`` with ``target ≈ R x + t``, or ``None`` with a
     reason in ``info`` when no trial motion is found.
     """
-    from ..scans import match_surfaces
-
     if clutter:
         src = src[surf_x.mask[src]]
         tgt = tgt[surf_y.mask[tgt]]
@@ -554,8 +514,6 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         itself displaced, which its coherent ``static_support`` must exceed
         too, :func:`displaced_level`).
     """
-    from ..scans import pooled_noise
-
     t_start = time.perf_counter()
     X = RIGID.check_points(source, "source")
     Y = RIGID.check_points(target, "target")
@@ -648,8 +606,11 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                 # a static plane: any slide along it fits as well; the identity is reported
                 degenerate.append({"points": support, "thickness": flat, "motion": "identity",
                                    "centroid": X[src[inl]].mean(axis=0).tolist()})
+            level = max(chance, rec.get("part_chance", 0))
+            draws = N_CHANCE + (N_PART_CHANCE if "part_chance" in rec else 0)
             kept.append((R, t, dict(extra, kind=kind, chance_support=chance, thickness=flat, noise=fit_noise,
-                                    scan_noise=scan_noise)))
+                                    scan_noise=scan_noise,
+                                    verdict=chance_verdict(support, level, draws, method="wrong motions").to_dict())))
             # every unexplained source point it explains, also beyond the part (an object cut in two)
             free = np.flatnonzero(free_s)
             mine = free[_support(X[free], tree, R, t, gate)]

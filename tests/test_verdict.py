@@ -1,0 +1,156 @@
+"""The verdict stage (gatv.verdict) and the scans pipeline's verdict on pairs with no true motion."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from gatv import register
+from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair, rotation_error_deg
+from gatv.stats import chance_support
+from gatv.verdict import SEARCH_GAIN, Verdict, chance_verdict, poisson_verdict, wrong_motion_verdict
+
+
+# ------------------------------------------------------------------ the value type
+@settings(max_examples=50, deadline=None)
+@given(n_source=st.integers(10, 5000), n_target=st.integers(10, 5000), gate=st.floats(1e-3, 1.0),
+       n_tested=st.floats(1.0, 1e8))
+def test_poisson_level_is_the_exact_pipelines_chance_support(n_source, n_target, gate, n_tested):
+    volume = 1000.0
+    expected = n_source * min(1.0, n_target * 4.0 / 3.0 * math.pi * gate**3 / volume)
+    level = chance_support(n_source, n_target, volume, gate, n_tests=n_tested)
+    v = poisson_verdict(level, expected, n_tested)
+    assert v.chance == level
+    assert not v.passed  # the level itself does not beat it
+    assert poisson_verdict(level + 1, expected, n_tested).passed
+
+
+@settings(max_examples=50, deadline=None)
+@given(expected=st.floats(0.0, 500.0), n_tested=st.floats(1.0, 1e8), a=st.integers(0, 2000),
+       b=st.integers(0, 2000))
+def test_poisson_p_value_falls_as_the_support_grows(expected, n_tested, a, b):
+    lo, hi = sorted((a, b))
+    p_lo = poisson_verdict(lo, expected, n_tested).p_value
+    p_hi = poisson_verdict(hi, expected, n_tested).p_value
+    assert 0.0 <= p_hi <= p_lo <= 1.0
+
+
+@settings(max_examples=50, deadline=None)
+@given(draws=st.lists(st.integers(0, 10000), min_size=3, max_size=40), support=st.integers(0, 30000),
+       extra=st.integers(0, 30000))
+def test_wrong_motion_level_is_the_gained_best_draw(draws, support, extra):
+    best = max(draws)
+    v = wrong_motion_verdict(support, draws, 100)
+    assert v.chance == pytest.approx(SEARCH_GAIN * best)
+    assert v.passed == (support > SEARCH_GAIN * best)
+    # on the odds of the points counted: below the count, at least the best draw, the plain gain when draws are rare
+    n_points = best + 1 + extra
+    w = wrong_motion_verdict(support, draws, 100, n_points=n_points)
+    assert best <= w.chance <= n_points
+    huge = wrong_motion_verdict(support, draws, 100, n_points=10**12)
+    assert huge.chance == pytest.approx(SEARCH_GAIN * best, rel=1e-6, abs=1e-6)
+    assert 0.0 <= w.p_value <= 1.0
+
+
+def test_verdict_figures_are_json_ready_and_falsy_when_failed():
+    v = chance_verdict(10, 12.0, 5, method="poisson")
+    assert not v and not v.passed and v.margin == pytest.approx(10 / 12)
+    d = v.to_dict()
+    assert d == {"support": 10, "chance": 12.0, "n_tested": 5.0, "p_value": d["p_value"], "margin": 10 / 12,
+                 "passed": False, "method": "poisson", "alpha": d["alpha"]}
+    assert "10 points" in v.reason() and "12" in v.reason()
+    assert Verdict(5, 0.0, 1.0, math.nan, "wrong motions").margin == math.inf
+
+
+# ------------------------------------------------------------ scans: pairs with no motion
+def test_two_unrelated_random_clouds_give_no_motion():
+    """The issue's example: two uniform clouds of 20,000 points used to give a found motion
+    (185 pairs) on the scans pipeline."""
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0, 10, (20000, 3)), rng.uniform(0, 10, (20000, 3))
+    m = register(a, b, seed=0)
+    assert m.info["pipeline"] == "scans"
+    assert not m, m.info
+    assert m.support == 0 and len(m.correspondences) == 0
+    v = m.info["verdict"]
+    assert not v["passed"] and v["support"] <= v["chance"]
+    assert "wrong motions" in m.info["reason"]
+
+
+def test_a_plane_against_a_plane_is_degenerate():
+    """Any slide of a plane along itself fits as well: no determined motion."""
+    rng = np.random.default_rng(1)
+
+    def square(n):
+        return np.column_stack([rng.uniform(0, 10, (n, 2)), np.zeros(n)])
+
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    m = register(square(6000) @ R.T + [1.0, 2.0, 3.0], square(6000), seed=0, pipeline="scans")
+    assert not m
+    assert "plane" in m.info["reason"] or "wrong motions" in m.info["reason"]
+
+
+def _blob(rng, n):
+    """``n`` random points of an asymmetric closed surface (a bumpy, stretched sphere)."""
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = 1.0 + 0.25 * np.sin(1.9 * u[:, 0] - 1.1 * u[:, 1] + 0.5) + 0.12 * np.cos(2.6 * u[:, 2] + 0.8 * u[:, 0])
+    return u * r[:, None] * [1.2, 0.9, 0.6]
+
+
+def test_a_true_scans_motion_passes_its_verdict():
+    """Two samplings of one surface, moved: the motion is found and beats its wrong motions."""
+    rng = np.random.default_rng(4)
+    R = Rotation.from_rotvec([1.2, -0.4, 0.9]).as_matrix()
+    src, tgt = _blob(rng, 4000), _blob(rng, 4000) @ R.T + [0.5, -1.0, 2.0]
+    m = register(src, tgt, seed=0, pipeline="scans", max_triples=60, scan_options={"n_points": 300})
+    assert m, m.info.get("reason")
+    assert rotation_error_deg(m.rotation, R) < 0.5
+    v = m.info["verdict"]
+    assert v["passed"] and v["support"] > v["chance"] and v["method"] == "wrong motions"
+    gates = m.info["verdict_gates"]
+    assert gates["gates"] == sorted(gates["gates"], reverse=True)
+    assert all(s >= 0 for s in gates["support"])
+
+
+def _rms(p):
+    return float(np.sqrt(((p - p.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
+def _like(p, ref):
+    return (p - p.mean(axis=0)) * (_rms(ref) / _rms(p)) + ref.mean(axis=0)
+
+
+def _objects(pair):
+    try:
+        if pair == "chef / bun315":
+            b315 = load_bunny_pair("bun000", "bun315")[1]
+            return b315 @ Rotation.from_rotvec([0.4, 1.0, -0.3]).as_matrix().T, _like(load_uwa_pair("chef")[0], b315)
+        if pair == "bun045 / parasaurolophus":
+            b45 = load_bunny_pair("bun000", "bun045")[1]
+            return _like(load_uwa_pair("parasaurolophus")[0], b45) @ Rotation.from_rotvec([2.0, 0.1, 0.3]).as_matrix().T, b45
+        b0 = load_bunny_pair("bun000", "bun045")[0]
+        left = b0[:, 0] < np.median(b0[:, 0])
+        return b0[left] @ Rotation.from_rotvec([0.0, 0.9, 0.2]).as_matrix().T, b0[~left]
+    except DataNotFoundError:
+        pytest.skip("shared real scans absent")
+
+
+@pytest.mark.parametrize("pair", [
+    "chef / bun315",
+    pytest.param("bun045 / parasaurolophus", marks=pytest.mark.slow),
+    pytest.param("bun000 halves", marks=pytest.mark.slow),
+])
+def test_different_real_objects_give_no_motion(pair):
+    """Different objects (the bunny against a UWA view scaled to its size) and disjoint halves of one
+    scan: each used to give a found motion with thousands of correspondences."""
+    source, target = _objects(pair)
+    m = register(source, target, seed=0)
+    assert m.info["pipeline"] == "scans"
+    assert not m, m.info["verdict"]
+    assert not m.info["verdict"]["passed"]

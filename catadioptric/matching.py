@@ -111,6 +111,7 @@ from gatv._validation import frozen_array as _frozen
 from gatv.errors import InputError
 from gatv.motion import rotation_angle_deg
 from gatv.stats import chance_support
+from gatv.verdict import chance_verdict
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
@@ -489,6 +490,10 @@ def match(
                 # the motion is as ambiguous as the pairs; the plane stage
                 # below compares whole-pattern supports instead
                 pairs, rotation, rot_support, motion = np.empty((0, 2), np.int64), None, 0, None
+        # The verdict (gatv.verdict): the first motion's pairs against the sphere's chance level.
+        if "chance_support" in info:
+            info["verdict"] = chance_verdict(pairs.shape[0], info["chance_support"],
+                                             info.get("n_trial_rotations", 1), method="poisson").to_dict()
         motions = []
         if pairs.shape[0]:
             first = np.column_stack([index1[pairs[:, 0]], index2[pairs[:, 1]]])

@@ -47,8 +47,9 @@ class Verdict:
     support : int
         The motion's support.
     chance : float
-        The level a wrong motion reaches (family-wise over ``n_tested``);
-        the motion passes when its support exceeds it.
+        The level a wrong motion reaches only with probability ``alpha``
+        (family-wise over ``n_tested``); the motion passes when its support
+        reaches it.
     n_tested : float
         Motions the search tried (the family the level accounts for).
     p_value : float
@@ -70,8 +71,8 @@ class Verdict:
 
     @property
     def passed(self) -> bool:
-        """Support above the level."""
-        return bool(self.support > self.chance)
+        """Support at or above the level (the count a wrong motion reaches with probability at most ``alpha``)."""
+        return bool(self.support >= self.chance)
 
     @property
     def margin(self) -> float:

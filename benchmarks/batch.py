@@ -1,36 +1,40 @@
-"""gatv batch: Table-2 pairs serially vs as Dask tasks on local workers, in one run.
+"""gatv batch: serial on 1 and on every thread vs Dask workers, short and long batches, and the first run.
 
-Two workloads of Table-2 trials (50 inliers, outlier fraction ``--fraction``,
-seeds from ``--seed``, written as ``.npy`` files and a ``pairs.csv``):
+Workloads of Table-2 trials written as ``.npy`` files and a ``pairs.csv``:
 
-* the issue's: ``--pairs`` noise-free pairs (default 100; ~50 ms each);
-* ``--noisy-pairs`` of the same seeds with Gaussian noise ``--noise`` (default
-  30 pairs at 1% of the extent; 1-2 s of CPU each), where a registration
-  costs enough for the batch's fixed costs to vanish (0 skips it).
+* ``--pairs`` Table-2 rows (default 100: 50 inliers, outlier fraction
+  ``--fraction`` 0.75; ~50 ms each);
+* ``--short-pairs`` short rows (default 40: 20 inliers, f = 0.5; ~20 ms
+  each), where a cluster's start costs more than the batch;
+* ``--noisy-pairs`` of the Table-2 seeds with Gaussian noise ``--noise``
+  (default 0: off; 1-2 s of CPU each).
 
-Each workload runs through ``gatv.batch.run`` as: ``serial`` (this process,
-numba on every core: the baseline), ``serial, numba 1 thread`` (what each
-worker gets), ``Dask, N workers`` (a ``LocalCluster`` of ``--workers``
-single-threaded processes with the default task sizing: what ``gatv batch
---workers N`` runs) and, for the noise-free pairs, the same cluster with one
-row per task (``chunk=1``).  Both sides are warmed up first (numba kernels
-loaded from the cache: pairs 1-3 of each workload here and on each worker,
-after pair 0, whose cost is reported), and the cluster's
-start-up is reported apart, as the issue's ratio is of the batch itself.
+Each workload runs through ``gatv.batch.run`` as: ``serial, numba 1
+thread`` (the baseline of the speed-up), ``serial, numba N threads`` (this
+process on every core), ``auto`` (``gatv batch``'s default: serial until
+the rows' measured cost pays for a local cluster; its start included when
+it starts one, and the ``where`` it reports), ``Dask, W local workers``
+(a ``LocalCluster`` of ``--workers`` single-threaded processes, started and
+warmed apart) and ``Dask, W-process cluster`` (``python -m dask
+scheduler`` and ``--workers`` ``python -m dask worker`` processes on
+127.0.0.1, reached at ``tcp://...`` as a cluster of machines is: what
+``gatv batch --scheduler tcp://host:8786`` meets; numba pinned to one
+thread per worker on 2 cores).  Kernels are loaded from the cache first on
+every side (warm-up rows, not timed).
 
-Prints one table (wall and CPU seconds — for Dask the workers' plus this
-process's, which holds the client and the scheduler —, the load average
-before and after each run, found pairs, and whether every record equals the
-serial one apart from times), then where the Dask time goes (cluster start,
-worker imports and numba cache, Dask's cost per task, measured with no-op
-tasks) and the bound on the ratio that the single-thread CPU time sets.
-Writes ``batch.csv`` to ``--out``.  On 2 idle cores it should take 2-4
-minutes (estimated from the runs' CPU seconds), several times that on a loaded machine.
+Then, unless ``--no-first-run``: ``gatv demo`` in a fresh process with an
+empty ``NUMBA_CACHE_DIR`` (a fresh install's first run), again (the second
+run), and after ``gatv warmup`` into another empty cache.
+
+Prints the table (wall and CPU seconds, speed-up over serial on one thread
+and over serial on every thread, found pairs, records equal to the serial
+ones apart from times), the load average (the machine may be shared) and
+writes ``batch.csv`` to ``--out``.
 
 Usage::
 
-    python benchmarks/batch.py [--pairs 100] [--noisy-pairs 30] [--noise 0.01] [--fraction 0.75]
-                               [--workers 2] [--seed 0] [--out benchmarks/results]
+    python benchmarks/batch.py [--pairs 100] [--short-pairs 40] [--noisy-pairs 0] [--fraction 0.75]
+                               [--workers 2] [--seed 0] [--no-first-run] [--out benchmarks/results]
 """
 
 from __future__ import annotations
@@ -51,11 +55,6 @@ from _common import DEFAULT_OUT, markdown_table, trial_seed, write_csv
 from gatv import batch
 from gatv.datasets import table2_trial
 from gatv.io import write_points
-
-
-def peak_rss_mib() -> float:
-    """Peak resident memory of the calling process, MiB (Linux: ru_maxrss is KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def cpu_seconds() -> float:
@@ -90,15 +89,11 @@ def warm_more(pairs) -> None:
         warm_up(source, target)
 
 
-def noop(x):
-    return x
-
-
-def make_pairs(folder: Path, n: int, fraction: float, seed: int, noise: float = 0.0) -> Path:
+def make_pairs(folder: Path, n: int, fraction: float, seed: int, noise: float = 0.0, inliers: int = 50) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     lines = ["source,target,seed"]
     for k in range(n):
-        trial = table2_trial(fraction, noise=noise, seed=trial_seed(seed, fraction, k))
+        trial = table2_trial(fraction, n_inliers=inliers, noise=noise, seed=trial_seed(seed, fraction, k))
         write_points(folder / f"s{k:04d}.npy", trial.source)
         write_points(folder / f"t{k:04d}.npy", trial.target)
         lines.append(f"s{k:04d}.npy,t{k:04d}.npy,{k}")
@@ -164,117 +159,151 @@ def same_records(runs: list[dict]) -> int:
                for k in range(len(base)))
 
 
+def run_auto(table: Path, out: Path, workers: int) -> dict:
+    """``batch.run(..., scheduler="auto")``: the whole call, a local cluster's start included."""
+    l0, c0 = load(), cpu_seconds()
+    result = batch.run(table, out, scheduler="auto", workers=workers)
+    return {"result": result, "wall": result.seconds, "cpu": cpu_seconds() - c0, "load": (l0, load()),
+            "where": result.where}
+
+
+def first_runs(folder: Path) -> list[tuple[str, float]]:
+    """``gatv demo`` wall seconds in fresh processes: empty numba cache, second run, after ``gatv warmup``."""
+    import subprocess
+
+    def timed(args, cache):
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "gatv", *args], env=env, check=True, capture_output=True,
+                       cwd=folder)
+        return time.perf_counter() - t0
+
+    cold, warm = folder / "cache-cold", folder / "cache-warm"
+    cold.mkdir()
+    warm.mkdir()
+    out = [("gatv demo, empty NUMBA_CACHE_DIR (first run)", timed(["demo", "-q"], cold)),
+           ("gatv demo, second run", timed(["demo", "-q"], cold)),
+           ("gatv warmup, empty NUMBA_CACHE_DIR", timed(["warmup", "-q"], warm))]
+    out.append(("gatv demo, first run after gatv warmup", timed(["demo", "-q"], warm)))
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--pairs", type=int, default=100, help="noise-free Table-2 pairs (default: 100)")
-    parser.add_argument("--noisy-pairs", type=int, default=30,
-                        help="noisy Table-2 pairs, the same seeds (default: 30; 0 skips them)")
+    parser.add_argument("--pairs", type=int, default=100, help="Table-2 pairs, 50 inliers (default: 100)")
+    parser.add_argument("--short-pairs", type=int, default=40,
+                        help="short pairs, 20 inliers, f = 0.5 (default: 40; 0 skips them)")
+    parser.add_argument("--noisy-pairs", type=int, default=0,
+                        help="noisy Table-2 pairs, the same seeds (default: 0, skipped)")
     parser.add_argument("--noise", type=float, default=0.01,
                         help="noise of the noisy pairs, fraction of the extent (default: 0.01)")
     parser.add_argument("--fraction", type=float, default=0.75, help="outlier fraction (default: 0.75)")
-    parser.add_argument("--workers", type=int, default=2, help="local Dask workers (default: 2)")
+    parser.add_argument("--workers", type=int, default=2, help="Dask workers (default: 2)")
     parser.add_argument("--seed", type=int, default=0, help="base seed of the trials (default: 0)")
+    parser.add_argument("--no-first-run", action="store_true", help="skip the first-run timings of gatv demo")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"CSV folder (default: {DEFAULT_OUT})")
     args = parser.parse_args(argv)
-    if args.pairs < 1 or args.workers < 1 or args.noisy_pairs < 0:
-        parser.error("--pairs and --workers must be >= 1, --noisy-pairs >= 0")
+    if args.pairs < 1 or args.workers < 1 or args.noisy_pairs < 0 or args.short_pairs < 0:
+        parser.error("--pairs and --workers must be >= 1, --short-pairs and --noisy-pairs >= 0")
+    import numba
+    from distributed import Client
 
-    workloads = [("noise-free", args.pairs, 0.0)]
+    from gatv._dask import process_cluster
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    all_threads = numba.get_num_threads()
+    workloads = [("Table-2", args.pairs, args.fraction, 0.0, 50)]
+    if args.short_pairs:
+        workloads.append(("short", args.short_pairs, 0.5, 0.0, 20))
     if args.noisy_pairs:
-        workloads.append((f"noise {args.noise:g}", args.noisy_pairs, args.noise))
+        workloads.append((f"noise {args.noise:g}", args.noisy_pairs, args.fraction, args.noise, 50))
+    one, every = "serial, numba 1 thread", f"serial, numba {all_threads} threads"
+    local, procs = f"Dask, {args.workers} local workers", f"Dask, {args.workers}-process cluster (tcp)"
     runs, fixed = {}, {}
     stamp = sources_stamp()
     with tempfile.TemporaryDirectory(prefix="gatv-batch-bench-") as tmp:
         folder = Path(tmp)
-        tables = {name: make_pairs(folder / f"w{k}", n, args.fraction, args.seed, noise)
-                  for k, (name, n, noise) in enumerate(workloads)}
-        first = [str(tables["noise-free"].parent / f"{x}0000.npy") for x in "st"]
+        tables = {name: make_pairs(folder / f"w{k}", n, f, args.seed, noise, inliers)
+                  for k, (name, n, f, noise, inliers) in enumerate(workloads)}
+        first = [str(tables["Table-2"].parent / f"{x}0000.npy") for x in "st"]
         more = [tuple(str(t.parent / f"{x}{k:04d}.npy") for x in "st")
                 for t in tables.values() for k in range(1, 4) if (t.parent / f"s{k:04d}.npy").exists()]
-        c0 = cpu_seconds()
         import_command()
-        fixed["serial import"] = cpu_seconds() - c0
-        fixed["serial warm-up"] = warm_up(*first)
+        warm_up(*first)
         warm_more(more)
         for name, table in tables.items():
-            runs[name, "serial"] = run_serial(table, folder / name / "serial")
-            runs[name, "serial, numba 1 thread"] = run_serial(table, folder / name / "single", threads=1)
+            runs[name, one] = run_serial(table, folder / name / "single", threads=1)
+            runs[name, every] = run_serial(table, folder / name / "serial", threads=all_threads)
+            runs[name, "auto"] = run_auto(table, folder / name / "auto", args.workers)
 
         t0 = time.perf_counter()
         with batch.connect("local", workers=args.workers) as client:
-            fixed["cluster start"] = time.perf_counter() - t0
-            fixed["worker start"] = max(client.run(cpu_seconds).values())
-            fixed["worker import"] = max(client.run(import_command).values())
-            fixed["worker warm-up"] = max(client.run(warm_up, *first).values())
+            fixed["local cluster start"] = time.perf_counter() - t0
+            client.run(warm_up, *first)
             client.run(warm_more, more)
-            dask_run = f"Dask, {args.workers} workers"
             for name, table in tables.items():
-                runs[name, dask_run] = run_dask(client, table, folder / name / "dask", chunk=None)
-                if name == "noise-free":
-                    runs[name, dask_run + ", 1 row/task"] = run_dask(client, table, folder / name / "dask1", chunk=1)
-            # Dask's own cost per task: no-op tasks carrying a row's Task
-            tasks = batch.read_pairs(tables["noise-free"])
-            w0, c0, t1 = sum(client.run(cpu_seconds).values()), cpu_seconds(), time.perf_counter()
-            client.gather(client.map(noop, tasks, pure=False))
-            noop_wall = time.perf_counter() - t1
-            noop_cpu = sum(client.run(cpu_seconds).values()) - w0 + cpu_seconds() - c0
-            rss_workers = sorted(client.run(peak_rss_mib).values())
-        rss_serial = peak_rss_mib()
-        equal = {name: same_records([r for (w, _), r in runs.items() if w == name]) for name in tables}
+                runs[name, local] = run_dask(client, table, folder / name / "dask", chunk=None)
+        t0 = time.perf_counter()
+        # the workers run with the local cluster's settings (no sampling profiler, 200 ms tick), as
+        # environment variables: what a user sets on a cluster's machines (docs/batch.rst)
+        dask_env = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
+                    "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "200ms"}
+        with process_cluster(args.workers, threads=1, env=dask_env) as address, Client(address) as client:
+            fixed["process cluster start"] = time.perf_counter() - t0
+            client.run(warm_up, *first)
+            client.run(warm_more, more)
+            fixed["process cluster numba threads"] = sorted(batch.numba_plan(client).values())
+            for name, table in tables.items():
+                runs[name, procs] = run_dask(client, table, folder / name / "procs", chunk=None)
+        equal = {name: same_records([runs[name, one]] + [r for (w, k), r in runs.items() if w == name and k != one])
+                 for name in tables}
+        firsts = [] if args.no_first_run else first_runs(folder)
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    print(f"gatv batch: Table-2 pairs, f = {args.fraction}, seed {args.seed}; {cores} cores; serial in-process "
-          f"(numba on every core) vs {args.workers} local Dask workers (1 thread each)\n")
+    print(f"gatv batch: {cores} cores (shared machine: see the load averages); serial in this process on 1 "
+          f"and on {all_threads} numba threads, auto, {args.workers} local Dask workers and a "
+          f"{args.workers}-process Dask cluster (1 thread and 1 numba thread each)\n")
     rows, csv_rows = [], []
     order = [name for name, *_ in workloads]
-    for (name, run), r in sorted(runs.items(), key=lambda item: order.index(item[0][0])):
+    kinds = [one, every, "auto", local, procs]
+    for (name, run), r in sorted(runs.items(), key=lambda item: (order.index(item[0][0]), kinds.index(item[0][1]))):
         n = len(r["result"])
-        serial = runs[name, "serial"]
+        base, base_all = runs[name, one], runs[name, every]
         cpu = f"{r['cpu']:.1f}" if "workers_cpu" not in r else \
             f"{r['cpu']:.1f} ({r['workers_cpu']:.1f} + {r['client_cpu']:.1f})"
-        rows.append([name, n, run, f"{r['wall']:.1f}", f"{serial['wall'] / r['wall']:.2f}", cpu,
-                     f"{r['cpu'] / r['wall']:.2f}", r.get("tasks", ""),
-                     f"{100 * r['busy']:.0f}%" if "busy" in r else "",
+        rows.append([name, n, run, f"{r['wall']:.2f}", f"{base['wall'] / r['wall']:.2f}",
+                     f"{base_all['wall'] / r['wall']:.2f}", cpu, r.get("tasks", ""),
                      f"{r['load'][0]:.1f} -> {r['load'][1]:.1f}",
                      f"{r['result'].counts()['found']}/{n}", f"{equal[name]}/{n}"])
-        csv_rows.append([name, n, args.fraction, args.workers, run, r["wall"], serial["wall"] / r["wall"], r["cpu"],
-                         r.get("workers_cpu", ""), r.get("client_cpu", ""), r.get("tasks", ""), r.get("busy", ""),
-                         *r["load"], r["result"].counts()["found"], equal[name]])
-    print(markdown_table(["pairs", "n", "run", "wall (s)", "speed-up", "CPU (s)", "cores used", "tasks", "busy",
-                          "load avg", "found", "= serial"], rows, align="llrrrrrrrrrr"))
-    print("\nspeed-up = serial wall / this wall; CPU of a Dask run = workers + this process (client and "
-          "scheduler); cores used = CPU / wall; tasks: Dask tasks the rows ran as; busy: share of the workers' wall time "
-          "spent computing rows (the rest: Dask's own work, waiting, the first and last tasks); load avg = 1-minute load before -> after the run: on a shared "
-          "machine the ratio measures the cores this run got, not only gatv.  '= serial': records equal to the "
-          "serial run's apart from times.")
-
-    print("\nWhere the Dask time goes (noise-free pairs):")
-    single, dask = runs["noise-free", "serial, numba 1 thread"], runs["noise-free", dask_run]
-    n = len(single["result"])
-    print(f"- not timed: cluster start {fixed['cluster start']:.1f} s wall; per worker before its first row "
-          f"(CPU): process start {fixed['worker start']:.2f} s, importing gatv's register modules "
-          f"{fixed['worker import']:.2f} s, numba kernels from the cache (one pair) {fixed['worker warm-up']:.2f} s "
-          f"(this process: {fixed['serial import']:.2f} s + {fixed['serial warm-up']:.2f} s)")
-    print(f"- Dask's cost per task, {n} no-op tasks: {1000 * noop_cpu / n:.1f} ms CPU per task "
-          f"({noop_wall:.2f} s wall for all)")
-    extra = dask["cpu"] - single["cpu"]
-    print(f"- the batch on Dask took {dask['cpu']:.1f} s CPU vs {single['cpu']:.1f} s serially on one thread: "
-          f"{extra:+.1f} s ({1000 * extra / n:+.0f} ms per row) for the workers' and scheduler's own work")
-    bound = runs["noise-free", "serial"]["wall"] / (single["cpu"] / args.workers)
-    print(f"- bound: {args.workers} single-thread workers cannot finish before {single['cpu'] / args.workers:.1f} s "
-          f"(one-thread CPU / {args.workers}) even with no Dask cost, so the ratio cannot exceed "
-          f"{bound:.2f} here; serial keeps {runs['noise-free', 'serial']['cpu'] / runs['noise-free', 'serial']['wall']:.2f} "
-          f"cores busy through numba's parallel kernels")
-    for name, *_ in workloads[1:]:
-        s1 = runs[name, "serial, numba 1 thread"]
-        print(f"- {name}: the same bound is {runs[name, 'serial']['wall'] / (s1['cpu'] / args.workers):.2f}")
-    print(f"\npeak RSS: this process {rss_serial:.0f} MiB, workers "
-          f"{' / '.join(f'{m:.0f}' for m in rss_workers)} MiB")
-    print(f"speed-up of the noise-free batch including the cluster's start and the workers' warm-up: "
-          f"{runs['noise-free', 'serial']['wall'] / (dask['wall'] + fixed['cluster start'] + fixed['worker import'] + fixed['worker warm-up']):.2f}")
+        csv_rows.append([name, n, args.workers, run, r["wall"], base["wall"] / r["wall"],
+                         base_all["wall"] / r["wall"], r["cpu"], r.get("tasks", ""), *r["load"],
+                         r["result"].counts()["found"], equal[name], r.get("where", "")])
+    print(markdown_table(["rows", "n", "run", "wall (s)", "vs 1 thread", f"vs {all_threads} threads", "CPU (s)",
+                          "tasks", "load avg", "found", "= serial"], rows, align="llrrrrrrrrr"))
+    print("\nvs 1 thread / vs N threads: serial wall on 1 / on every numba thread over this run's wall; "
+          "Dask runs exclude their cluster's start and warm-up (below), 'auto' includes whatever it started. "
+          "CPU of a Dask run = workers + this process.  '= serial': records equal to serial on 1 thread's "
+          "apart from times.")
+    for name in tables:
+        print(f"- auto on {name}: {runs[name, 'auto']['where']}")
+    for name in tables:
+        for run in (local, procs):
+            r = runs[name, run]
+            print(f"- {name}, {run}: on {args.workers} cores of their own the workers would run "
+                  f"{runs[name, one]['cpu'] / (r['workers_cpu'] / args.workers):.2f}x serial on 1 thread "
+                  f"(serial 1-thread CPU {runs[name, one]['cpu']:.1f} s over the workers' CPU per worker "
+                  f"{r['workers_cpu'] / args.workers:.1f} s; Dask's bookkeeping and contention included, "
+                  f"other processes' load excluded)")
+    print(f"- not timed: local cluster start {fixed['local cluster start']:.1f} s; process cluster start "
+          f"{fixed['process cluster start']:.1f} s; the process cluster's numba threads per worker: "
+          f"{fixed['process cluster numba threads']}")
+    if firsts:
+        print()
+        print(markdown_table(["first run", "wall (s)"], [[what, f"{sec:.1f}"] for what, sec in firsts],
+                             align="lr"))
+        csv_rows += [[what, "", "", "", sec, "", "", "", "", "", "", "", "", ""] for what, sec in firsts]
     out = write_csv(args.out / "batch.csv",
-                    ["pairs", "n", "fraction", "workers", "run", "wall_s", "speedup", "cpu_s", "workers_cpu_s",
-                     "client_cpu_s", "tasks", "busy", "load_before", "load_after", "found", "records_equal"], csv_rows)
+                    ["rows", "n", "workers", "run", "wall_s", "speedup_vs_1_thread", "speedup_vs_all_threads",
+                     "cpu_s", "tasks", "load_before", "load_after", "found", "records_equal", "where"], csv_rows)
     if sources_stamp() != stamp:
         print("\nWARNING: gatv's source files changed during this run; the workers may have imported other "
               "code than the serial runs, so records can differ for that reason alone.")

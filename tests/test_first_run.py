@@ -94,3 +94,20 @@ def test_first_register_says_it_compiles(tmp_path):
     proc, _ = _gatv(["register", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--progress"], cache)
     assert proc.returncode == 0, proc.stderr
     assert f"] {COMPILING}: " in proc.stderr
+
+
+def test_progress_bar_shows_no_time_left_while_compiling(monkeypatch):
+    """The frozen bar said 1:50:46 left while numba compiled: no estimate while compiling."""
+    import io
+
+    from gatv.cli._common import ProgressBar
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    bar = ProgressBar()
+    bar(0.01, "tolerance 1e-06: 2 triples")
+    assert "{remaining}" in bar.bar.bar_format
+    bar(0.01, f"{COMPILING}: triple_hypotheses")
+    assert "{remaining}" not in bar.bar.bar_format and "{elapsed}" in bar.bar.bar_format
+    bar(0.5, "tolerance 0.01: 40 triples")
+    assert "{remaining}" in bar.bar.bar_format
+    bar.close()

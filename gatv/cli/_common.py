@@ -227,13 +227,16 @@ class ProgressBar:
     ``total`` counts items (rows of a batch) when given, else percent.
     """
 
+    #: Bar without the time left: while numba compiles, the rate (and so the estimate) means nothing.
+    COMPILING_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]{postfix}"
+
     def __init__(self, total: int | None = None, unit: str = "%", desc: str = PROG):
         from tqdm import tqdm
 
         self.total = int(total) if total else 100
+        self.format = None if total else "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]{postfix}"
         self.bar = tqdm(total=self.total, unit=unit if total else "%", desc=desc, file=sys.stderr,
-                        dynamic_ncols=True, leave=False,
-                        bar_format=None if total else "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]{postfix}")
+                        dynamic_ncols=True, leave=False, bar_format=self.format)
 
     def __call__(self, fraction, message=""):
         if self.bar is None:
@@ -243,6 +246,8 @@ class ProgressBar:
         if n > self.bar.n:
             self.bar.update(n - self.bar.n)
         if message:
+            compiling = str(message).startswith("compiling kernels")
+            self.bar.bar_format = self.COMPILING_FORMAT if compiling else self.format
             self.bar.set_postfix_str(str(message)[:60], refresh=True)
         if fraction >= 1.0:
             self.close()

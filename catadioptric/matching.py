@@ -82,6 +82,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -244,8 +245,13 @@ class SphereMatch:
 
 # --------------------------------------------------------------- validation
 def _check_pixels(pixels, name: str) -> NDArray[np.float64]:
+    """``pixels`` as an (N, 2) float64 array (NaN rows allowed: they are dropped, rows kept)."""
     if pixels is None:
         msg = f"Expected `{name}` to be an (N, 2) array of pixels, got None."
+        raise InputError(msg)
+    if isinstance(pixels, (str, os.PathLike)):
+        msg = (f"Expected `{name}` to be an (N, 2) array of pixels, got the path {str(pixels)!r}; find the "
+               "image's corners first with catadioptric.corners.detect_corners(catadioptric.read_image(path)).")
         raise InputError(msg)
     try:
         arr = np.asarray(pixels, dtype=np.float64)

@@ -173,3 +173,12 @@ def test_catadioptric_match_of_unrelated_rays_says_no_and_records_its_verdict():
     assert len(m.motions) == 0
     v = m.info["verdict"]
     assert not v["passed"] and v["support"] < v["chance"] and v["method"] == "poisson"
+
+
+def test_catadioptric_match_given_image_paths_points_to_detect_corners():
+    from catadioptric import UnifiedCamera, match
+    from gatv.errors import InputError
+
+    cam = UnifiedCamera(xi=1.0, fx=300.0, fy=300.0, cx=640.0, cy=512.0)
+    with pytest.raises(InputError, match="detect_corners"):
+        match("x.png", "y.png", cam)

@@ -26,8 +26,14 @@ def test_pure_rotation_is_matched_exactly():
     assert isinstance(m, SphereMatch) and m.strategy == "rigid"
     assert precision == 1.0 and recall >= 0.95
     assert rotation_error_deg(m.rotation, v.rotation) < 0.5
+    # a rotation only: no translation, and the epipolar strategy, forced, says why it has nothing
+    assert m.translation is None and m.essential is None
+    forced = match(v.pixels1, v.pixels2, v.camera1, strategy="epipolar")
+    assert not forced and forced.strategy == "none"
+    assert "no parallax" in forced.info["reason"]
 
 
+@pytest.mark.slow  # fast suite: the xi=0.8 epipolar pair of the swap test and the 50%-outlier pair below
 def test_translation_reaches_good_precision():
     v = synthetic_views(200, xi=0.8, rotation_deg=30.0, translation=(0.3, 0.1, 0.05), noise_px=1.0,
                         outlier_fraction=0.3, seed=1)
@@ -89,6 +95,7 @@ def test_swapping_the_views_gives_the_inverse_motion():
         assert precision >= 0.95
 
 
+@pytest.mark.slow  # fast suite: the same checks on the outlier-free rotation of the first test
 def test_pure_rotation_has_no_translation():
     v = synthetic_views(150, xi=0.8, rotation_deg=35.0, translation=(0, 0, 0), noise_px=1.0,
                         outlier_fraction=0.5, seed=3)
@@ -149,7 +156,7 @@ def _shifted_grid_views(seed, rotation_deg, n_outliers=5):
     return p1, p2[perm], cam, truth
 
 
-@pytest.mark.parametrize(("seed", "rotation_deg"), [(0, 20.0), (1, 60.0)])
+@pytest.mark.parametrize(("seed", "rotation_deg"), [(0, 20.0), pytest.param(1, 60.0, marks=pytest.mark.slow)])
 def test_grid_cut_differently_in_the_views_is_matched_as_a_whole_pattern(seed, rotation_deg, monkeypatch):
     """The limit of geometry on a repeated pattern, stated as a test.
 

@@ -154,9 +154,15 @@ def test_plane_stage_without_any_plane_finds_nothing_above_chance():
 
 
 # ------------------------------------------------------------ every motion
-def test_two_motions_static_scene_and_moved_board():
+@pytest.fixture(scope="module")
+def two_motions():
+    """Scene 0 and its match at the default seed (0), shared by the tests below."""
     p1, p2, static, board = two_motion_scene(0)
-    m = match(p1, p2, CAMERA)
+    return p1, p2, static, board, match(p1, p2, CAMERA)
+
+
+def test_two_motions_static_scene_and_moved_board(two_motions):
+    p1, p2, static, board, m = two_motions
     assert len(m.motions) >= 2 and isinstance(m.motions[0], SphereMotion)
     first, second = m.motions[0], m.motions[1]
     assert first.strategy == "rigid" and first.angle_deg < 0.5
@@ -176,9 +182,9 @@ def test_two_motions_static_scene_and_moved_board():
     assert len(record["motions"]) == len(m.motions) and record["motions"][1]["strategy"] == "plane"
 
 
-def test_same_seed_same_motions():
-    p1, p2, _, _ = two_motion_scene(1)
-    a, b = match(p1, p2, CAMERA, seed=4), match(p1, p2, CAMERA, seed=4)
+def test_same_seed_same_motions(two_motions):
+    p1, p2, _, _, a = two_motions
+    b = match(p1, p2, CAMERA, seed=0)
     assert len(a.motions) == len(b.motions)
     for x, y in zip(a.motions, b.motions, strict=True):
         assert np.array_equal(x.correspondences, y.correspondences) and x.strategy == y.strategy

@@ -107,7 +107,10 @@ def test_triple_hypotheses_find_the_best_congruent_triple(seed):
     offsets = rng.integers(0, 1 << 30, tri.shape[0])  # any start: the full scan wraps around
     scores, _, _, _, _, _, _ = k.triple_hypotheses(
         x, y, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
-        index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15)
+        index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15,
+        # every argument given, as gatv.congruent.trial_motions gives them: omitted array defaults make
+        # a specialisation numba cannot cache (13 s of compilation in every run)
+        0, k._NO_VISIT, 0.0, 0.0, k._NO_OCC, k._ORIGIN, 1.0, k._DIMS, k._HALF_BOX)
     for q in range(tri.shape[0]):
         assert scores[q] == _reference_best(x, y, tri[q], eps, radius)
 

@@ -131,6 +131,14 @@ def test_bent_bar_among_half_outliers_is_found_by_local_windows():
     # windows registered before the one that counted did not count; the last one did
     windows = m.info["local_windows"]
     assert windows[-1]["support"] >= 0.1 * len(bar) and windows[-1]["chance"] <= 0.25 * windows[-1]["support"]
+
+
+@pytest.mark.slow
+def test_bent_bar_without_the_fallbacks_runs_neither_the_rigid_start_nor_the_windows():
+    """The bent bar's second half (fast suite: the same check on the elastic warp, prealign=False)."""
+    bar = deform.sample_plane(200, 10.0, seed=0) * [1.0, 0.3, 1.0]
+    y = deform.rigid(deform.bend(bar, 60.0), 20.0, translation=(1.0, 2.0, 1.0))
+    trial = deform.nonrigid_trial(bar, y, 0.5, seed=10)
     # without the fallbacks (prealign=False) neither the rigid start nor the windows run
     off = register(trial.source, trial.target, prealign=False)
     assert "local_windows" not in off.info and "rigid" not in off.info.get("hypotheses", {})
@@ -155,13 +163,21 @@ def test_large_rigid_motion_on_top_of_a_twist_needs_the_rigid_hypothesis():
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.95 and recall >= 0.9
     assert trial.warp_error(m.warp) < 0.05
+    forced = register(trial.source, trial.target, prealign=True)
+    assert correspondence_stats(forced.correspondences, trial.true_pairs)[0] >= 0.95
+
+
+@pytest.mark.slow
+def test_large_rigid_motion_on_top_of_a_twist_without_the_rigid_start_is_annealed():
+    """The case above with prealign=False (fast suite: the annealed hypothesis on the elastic warp)."""
+    x = deform.sample_plane(200, 10.0, seed=3)
+    y = deform.rigid(deform.twist(x, 60.0), 70.0, axis=(1, 1, 0), translation=(3, -2, 1))
+    trial = deform.nonrigid_trial(x, y, 0.25, seed=4)
     # without the rigid start the annealed soft matching finds part of it, precisely
     off = register(trial.source, trial.target, prealign=False)
     assert off.info["hypothesis"] == "anneal"
     precision, recall = correspondence_stats(off.correspondences, trial.true_pairs)
     assert precision >= 0.95 and recall >= 0.5
-    forced = register(trial.source, trial.target, prealign=True)
-    assert correspondence_stats(forced.correspondences, trial.true_pairs)[0] >= 0.95
 
 
 def test_near_identity_deformation_with_sparse_outliers():
@@ -200,6 +216,8 @@ def test_large_elastic_warp_with_outliers_is_found_by_the_annealed_hypothesis():
     m = register(trial.source, trial.target, prealign=False)
     assert m.info["hypothesis"] == "anneal"
     assert m.info["hypotheses"]["coarse"]["support"] < 0.1 * len(trial.source)
+    # without the fallbacks (prealign=False) neither the rigid start nor the windows run
+    assert "local_windows" not in m.info and "rigid" not in m.info["hypotheses"]
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.95 and recall >= 0.6
     assert trial.warp_error(m.warp) < 0.1

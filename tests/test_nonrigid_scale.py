@@ -263,6 +263,7 @@ def test_large_result_warp_is_local_and_linear_in_memory():
     np.testing.assert_allclose(m.warp(x[:100]), y[:100], atol=1e-6)
 
 
+@pytest.mark.slow  # 8,000 points a set; the fast suite's multiscale solves are the twisted_multi tests
 def test_windows_hold_the_structure_among_volume_outliers():
     """A curved sheet (its centroid off the surface), differently sampled (80%/80%), among as many
     outliers again in the bounding box: the windows are the structure's rows, centred on its denser

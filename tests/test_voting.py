@@ -454,7 +454,7 @@ def test_exp_neg_small_matches_math_exp():
 # helper, compiled once for all hypothesis examples.
 
 
-@njit
+@njit(cache=True)
 def _collect_both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b, da, dbb):
     c = np.zeros(3, np.int64)
     ca = K._collect_simd(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, da, 0)
@@ -462,7 +462,7 @@ def _collect_both(xs, ys, zs, j0, j1, xi, yi, zi, r2, a, b, da, dbb):
     return ca, cb
 
 
-@njit
+@njit(cache=True)
 def _stick_both(buf, cnt, n, wi, both, inv_s2, out_v, out_s):
     g4 = 4.0 * _fields.GAMMA
     lm2 = 1.0 / _fields.SIGMA_REF**2
@@ -471,12 +471,12 @@ def _stick_both(buf, cnt, n, wi, both, inv_s2, out_v, out_s):
     return a, b
 
 
-@njit
+@njit(cache=True)
 def _ball_both(db, cnt, tab, tscale, out_v, out_s):
     return K._ball_pairs_simd(db, cnt, tab, tscale, out_v), K._ball_pairs(db, cnt, tab, tscale, out_s)
 
 
-@njit
+@njit(cache=True)
 def _eig_both(t6, v_new, e_new, v_old, e_old):
     E.eig_rows_simd(t6, v_new, e_new, 0, t6.shape[0])
     for i in range(t6.shape[0]):

@@ -44,6 +44,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -108,7 +109,9 @@ def null_pairs(kinds, sizes, rng):
 
 def true_pairs(seed):
     """``(name, source, target, R, t, tolerance)`` of the scans benchmark's true pairs."""
-    import scans as S
+    spec = importlib.util.spec_from_file_location("scans_benchmark", Path(__file__).resolve().parent / "scans.py")
+    S = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(S)
 
     out = []
     for name in ["bun000<-bun045", "bun000<-bun315", "bun000<-bun090", "bun045<-bun090", "bun315<-bun045",

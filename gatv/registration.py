@@ -1,7 +1,7 @@
 """Registration without initialization (paper sections 2.1–3.4, Algorithm 1).
 
 :func:`register` finds the rigid motion (or, with ``model="similarity"``,
-the similarity) between two point sets with an unknown motion of any size
+the similarity; with any model of :mod:`gatv.models`, its motion) between two point sets with an unknown motion of any size
 and many outliers in both sets, and a one-to-one set of correspondences,
 with no initial guess.  It is a short sequence of the stages of
 :mod:`gatv.stages`: ``prepare`` → the model's ``trial_motions`` → ``judge``
@@ -67,38 +67,24 @@ from ._validation import (
     check_int,
     check_positive,
     check_progress,
+    memory_budget_limit,
 )
 from .candidates import bounded_pairs
-from .congruent import n_triples_needed
+from .congruent import TargetIndex, trial_motions
 from .errors import InputError
 from .ga import rotation_angle_deg
 from .models import Motion, apply_matrix, get_model
+from .models.base import MAX_WORK
+from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
+from .stats import samples_needed
+from .verdict import chance_verdict
+from .voting import default_sigma, extract_surfaces
 
-__all__ = ["NOISE_SCHEDULE", "NOISY_SCHEDULE", "choose_pipeline", "register", "reject_exact_options", "resolve_pipeline", "surface_likeness",
-           "symmetry_rival"]
+__all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "choose_pipeline", "register",
+           "reject_exact_options", "resolve_pipeline", "surface_likeness", "symmetry_rival"]
 
-#: Matches scored per source triple in the rigid search (the chance level
-#: counts them as tests).  Exact data rarely has more than a few; under noise
-#: a triple matches hundreds of target triples and a cap of 64 would mostly
-#: drop the true one.
-NOISY_MAX_MATCHES = 512
-#: Congruent matches listed per source triple, of which the
-#: ``NOISY_MAX_MATCHES`` tightest are scored.
-MAX_ENUMERATED = 32768
-#: Candidate triples drawn for each one matched (:func:`gatv.congruent.trial_motions`'s
-#: ``wide``): the one with the fewest expected matches is kept.  Fewer chance
-#: matches make both the listing cheaper and the true match rank among the
-#: scored tightest more often; the candidates cost a few searches each.
-WIDE = 128
-#: Options of the rigid model's trial motions in :func:`register` (see
-#: :func:`gatv.congruent.trial_motions`).
-RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
-#: Default work bound of a search, in the search's work units (about a
-#: microsecond of CPU each, :func:`gatv.stages.chunk_work`): a call fails
-#: with a reason instead of running on, after about 100 s of CPU, under a
-#: minute on two cores.  Deterministic: the same seed stops at the same point.
-MAX_WORK = 1e8
+# MAX_WORK (gatv.models.base): the default work bound of register's search.
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
 #: machine the work bound alone can take minutes.
 TIME_LIMIT = 60.0
@@ -106,10 +92,9 @@ TIME_LIMIT = 60.0
 
 def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memory_budget, info):
     """Small-motion mode: vote on the bounded candidate pairs, no search."""
-    from .voting import default_sigma, extract_surfaces
-
     pairs = bounded_pairs(P.source, P.target, max_angle, max_translation, memory_budget=memory_budget)
     info["n_tokens"] = int(pairs.shape[0])
+    info["verdict"] = chance_verdict(0, P.chance(gate(levels[0])), 1.0, method="poisson").to_dict()
     if pairs.shape[0] < 3:
         return None
     xs, ys = P.source[pairs[:, 0]], P.target[pairs[:, 1]]
@@ -126,6 +111,7 @@ def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memo
     saliency = np.zeros(pairs.shape[0])
     saliency[idx] = surf.surfaceness
     votes = stages.Votes(saliency, np.zeros((pairs.shape[0], 3)), float(surf.sigma))
+    best_seen = None
     for tol in levels:
         g = gate(tol)
         best = stages.constraint(tokens, votes, 2.0 * g, P.model)
@@ -135,14 +121,20 @@ def _bounded(P: Problem, max_angle, max_translation, levels, sigma, refine, memo
         fit = stages.fit_and_gate(P, pairs, pairs[sub], g)
         if fit is None:
             continue
-        if fit.support >= P.chance(g):
+        level = P.chance(g)
+        if best_seen is None or fit.support / max(level, 1e-300) > best_seen.margin:
+            best_seen = chance_verdict(fit.support, level, 1.0, method="poisson")
+        if fit.support >= level:
             if refine:
                 fit = stages.refine(P, fit, g)
             if len(levels) > 1:
                 fit, grown = stages.grow_tolerance(P, fit, levels, levels.index(tol))
                 tol = levels[grown]
-            info.update(tolerance=tol, sigma=float(surf.sigma))
+            info.update(tolerance=tol, sigma=float(surf.sigma),
+                        verdict=chance_verdict(fit.support, level, 1.0, method="poisson").to_dict())
             return stages.make_result(P, fit, info, score=float(np.mean(surf.surfaceness)))
+    if best_seen is not None:
+        info["verdict"] = best_seen.to_dict()
     return None
 
 
@@ -172,8 +164,6 @@ def surface_likeness(points: np.ndarray, *, k: int = 12, sample: int = 400, seed
     seed).  Near 0 for points on a surface, about 0.1–0.2 for points
     scattered through a volume.
     """
-    from .scans import local_scatter
-
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     k = min(int(k), n)
@@ -198,8 +188,6 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
     scans never sample at the same points.
     Exact otherwise.
     """
-    from ._validation import memory_budget_limit
-
     X = as_points(source, "source")
     Y = as_points(target, "target")
     n1, n2 = X.shape[0], Y.shape[0]
@@ -215,8 +203,6 @@ def choose_pipeline(source, target, *, memory_budget: float | None = None) -> tu
             return "scans", (f"{n1} and {n2} points on surfaces (local planarity {flat:.3g} < "
                              f"{SURFACE_PLANARITY})")
         # Noisier than the sampling, a surface is not flat at twelve neighbours; at the noise's own scale it is.
-        from .scans import scan_noise
-
         share = scan_noise(X).neighbours / n1
         if share <= SURFACE_NEIGHBOURHOOD:  # the target's only when the source passes
             share = max(share, scan_noise(Y).neighbours / n2)
@@ -238,9 +224,7 @@ def reject_exact_options(options: dict, why: str) -> None:
 
 def _check_exact_memory(target, memory_budget) -> None:
     """The exact search's index over the budget: an error that names the scans pipeline."""
-    from ._validation import memory_budget_limit
-
-    n2 = as_points(target, "target").shape[0]
+    n2 = int(target.shape[0])  # validated by stages.prepare
     need, limit = 20.0 * n2 * n2, memory_budget_limit(memory_budget)
     if need > limit:
         msg = (f"The exact pipeline's congruent-triple index of {n2} target points would need about "
@@ -254,23 +238,25 @@ def resolve_pipeline(source, target, model, pipeline: str = "auto", memory_budge
     """``(pipeline, reason)`` for ``register``'s (and ``segment``'s) ``pipeline=`` argument.
 
     ``"exact"`` and ``"scans"`` are taken as given (the scans pipeline is for
-    rigid motions only); ``"auto"`` is :func:`choose_pipeline` for the rigid
-    model and ``"exact"`` for the others.  The model's own point checks run
-    first, so their errors name the model's dimension.
+    models whose :class:`~gatv.models.SearchPolicy` has ``scans``: rigid
+    motions); ``"auto"`` is :func:`choose_pipeline` for those and
+    ``"exact"`` for the others.  The model's own point checks run first, so
+    their errors name the model's dimension.
     """
     if pipeline not in ("auto", "exact", "scans"):
         raise InputError(f"Expected `pipeline` 'auto', 'exact' or 'scans', got {pipeline!r}.")
     model = get_model(model)
     name = model.name
+    scans = model.search_policy().scans
     if pipeline == "exact":
         return "exact", "pipeline='exact' given"
     if pipeline == "scans":
-        if name != "rigid":
+        if not scans:
             raise InputError(f"The scans pipeline registers rigid motions; got model={name!r}.")
         model.check_points(source, "source")
         model.check_points(target, "target")
         return "scans", "pipeline='scans' given"
-    if name != "rigid":
+    if not scans:
         return "exact", f"the {name!r} model has the exact pipeline only"
     # The model's own checks first: their errors name the model's dimension.
     return choose_pipeline(model.check_points(source, "source"), model.check_points(target, "target"),
@@ -305,10 +291,15 @@ def register(
     Parameters
     ----------
     source, target : (N, 3) array_like or object with ``.points``
-        The two point sets; any share of either may be outliers.
-    model : {"rigid", "similarity"} or MotionModel, default: "rigid"
+        The two point sets; any share of either may be outliers ((N, 2)
+        for ``model="affine2d"``).
+    model : {"rigid", "similarity", "affine2d"}, a registered name or a MotionModel, default: "rigid"
         The kind of motion (:mod:`gatv.models`): ``"similarity"`` adds a
-        uniform scale (``target ≈ scale · source @ rotation.T + translation``).
+        uniform scale (``target ≈ scale · source @ rotation.T + translation``);
+        ``"affine2d"`` is one 2D affine map.  The search follows the
+        model's :class:`~gatv.models.SearchPolicy` (tolerances, matches per
+        sample, noise settling, the symmetry rival; which of the small-motion
+        mode and the scans pipeline apply).
     pipeline : {"auto", "exact", "scans"}, default: "auto"
         ``"exact"``: the congruent-triple search on the points themselves,
         for sets whose inliers are the same points in both (synthetic sets,
@@ -378,10 +369,15 @@ def register(
 
     Returns
     -------
-    RigidMotion or SimilarityMotion
-        ``target ≈ source @ rotation.T + translation`` with one-to-one
-        ``correspondences``. Falsy, with ``info["reason"]``, when no motion
-        beats the chance level.  ``info["ambiguous"]`` is true when a
+    Motion
+        The model's result (``RigidMotion``, ``SimilarityMotion``,
+        ``Affine2DMotion``, ...): ``target ≈ source @ rotation.T + translation``
+        with one-to-one ``correspondences``. Falsy, with ``info["reason"]``,
+        when no motion beats the chance level.  ``info["verdict"]`` (found
+        or not, exact pipeline): the support, the chance level it had to
+        reach and the tests that level is family-wise over
+        (:meth:`gatv.verdict.Verdict.to_dict`); without a motion, the best
+        trial support the search saw against its level.  ``info["ambiguous"]`` is true when a
         distinct motion explains the data nearly as well (a symmetric
         object; :func:`symmetry_rival` on the exact path, the surface
         rivals on the scans path), with ``info["rival"]`` describing it.
@@ -410,8 +406,6 @@ def register(
         reject_exact_options({"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
                               "sigma": sigma,
                               "min_inlier_share": None if min_inlier_share == 0.04 else min_inlier_share}, why)
-        from .scans import register_surfaces
-
         out = register_surfaces(source, target, seed=seed, confidence=confidence, max_triples=max_triples,
                                 n_judged=n_judged, refine=refine, memory_budget=memory_budget,
                                 progress=progress, **(scan_options or {}))
@@ -422,10 +416,7 @@ def register(
     P = stages.prepare(source, target, model)
     if max_angle is None:
         _check_exact_memory(P.target, memory_budget)
-    if P.model.name not in ("rigid", "similarity"):
-        msg = (f"`register` handles the 'rigid' and 'similarity' models, got {P.model.name!r}; "
-               "use gatv.motions.segment for 'affine2d'.")
-        raise InputError(msg)
+    policy = P.model.search_policy()
     noise = check_positive(noise, "noise", allow_none=True)
     check_fraction(min_inlier_share, "min_inlier_share")
     check_fraction(confidence, "confidence", open_high=True)
@@ -437,15 +428,15 @@ def register(
     time_limit = check_positive(time_limit, "time_limit", allow_none=True)
     rng = as_rng(seed)
     report = check_progress(progress)
-    schedule = NOISY_SCHEDULE if P.model.name == "rigid" else NOISE_SCHEDULE
-    levels = stages.tolerance_levels(P, noise, schedule)
+    levels = stages.tolerance_levels(P, noise, policy.schedule)
     n, n2 = P.source.shape[0], P.target.shape[0]
     info: dict = {"model": P.model.name, "pipeline": "exact", "pipeline_reason": why, "n_source": int(n),
                   "n_target": int(n2), "spacing": P.spacing}
 
     if max_angle is not None:
-        if P.model.name != "rigid":
-            raise InputError("`max_angle` (the small-motion mode) is for the 'rigid' model only.")
+        if not policy.small_motion:
+            raise InputError(f"`max_angle` (the small-motion mode) is for the 'rigid' model only; got "
+                             f"model={P.model.name!r}.")
         ang = check_positive(max_angle, "max_angle")
         if ang > 180.0:
             raise InputError(f"Expected `max_angle` in degrees, at most 180, got {ang!r}.")
@@ -458,31 +449,33 @@ def register(
         raise InputError("`max_translation` needs `max_angle` (the small-motion mode).")
 
     info["mode"] = "congruent-triples"
-    share = max(float(min_inlier_share), 3.0 / n)
-    need = n_triples_needed(share, confidence)
-    n_possible = n * (n - 1) * (n - 2) // 6
+    share = max(float(min_inlier_share), P.model.sample_size / n)
+    need = samples_needed(share, confidence, stages.sample_points(P.model))
+    n_possible = stages.sample_space(P.model, n)
     budget = int(min(need, 3 * n_possible if n_possible < 10**6 else need))
     if max_triples is not None:
         budget = min(budget, max_triples)
     tried: list = []
-    rigid = P.model.name == "rigid"
+    settle = noise is None and policy.settle_noise
     found = stages.search(P, levels, budget=budget, rng=rng, keep=n_judged, sigma=sigma,
-                          max_candidates=max_candidates, polish=refine, grow=noise is None and not rigid,
+                          max_candidates=max_candidates, polish=refine,
+                          grow=noise is None and not policy.settle_noise,
                           memory_budget=memory_budget, progress=report, tried=tried,
-                          max_matches=NOISY_MAX_MATCHES if rigid else stages.MAX_MATCHES,
-                          max_work=max_work, confidence=confidence,
-                          trial_options=dict(RIGID_TRIALS, min_share=share) if rigid else None,
+                          max_matches=policy.max_matches, max_work=max_work, confidence=confidence,
+                          trial_options=policy.trials(share),
                           deadline=None if time_limit is None else t_start + time_limit)
     if found is None:
         info.update(trials=tried, time_s=time.perf_counter() - t_start)
+        info["verdict"] = stages.search_verdict(tried).to_dict()
         return stages.failure(P.model, stages.search_failure(tried, time_limit), info)
     fit, tolerance = found.fit, found.tolerance
-    if noise is None and rigid:
+    if settle:
         fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])
+    info["verdict"] = stages.found_verdict(found, fit.support).to_dict()
     info.update(tolerance=tolerance, noise=tolerance, sigma=found.judged.sigma,
                 n_tokens=found.judged.n_tokens, trials=tried, trial_support=found.trial_support,
                 chance_support=found.threshold)
-    if rigid:
+    if policy.rival_check:
         info.update(symmetry_rival(P, fit, tolerance, rng, memory_budget=memory_budget))
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {fit.support} correspondences")
@@ -510,9 +503,6 @@ def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.
     motion's.  The inliers are at most the target's points, so their
     index fits the ``memory_budget`` the search's did.
     """
-    from .congruent import TargetIndex, trial_motions
-    from .scans import RIVAL_SHARE
-
     X = problem.source[fit.correspondences[:, 0]]
     if X.shape[0] < 4:
         return {"ambiguous": False}

@@ -18,15 +18,20 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass, replace
-from math import erf
+from math import comb, erf
 
 import numpy as np
 from numba.core import event as numba_event
+from scipy.optimize import brentq
 from scipy.spatial import cKDTree
+from scipy.stats import chi
 
 from .candidates import median_spacing, one_to_one
 from .models import Motion, MotionModel, apply_matrix, get_model, split_matrix
+from .models.base import MAX_MATCHES, NOISE_SCHEDULE, NOISY_SCHEDULE
 from .stats import ALPHA, ball_measure, chance_count, samples_needed
+from .verdict import Verdict, chance_verdict
+from .voting import vote
 
 __all__ = [
     "DENSITY_NEIGHBOURS",
@@ -46,6 +51,7 @@ __all__ = [
     "density_tests",
     "failure",
     "fit_and_gate",
+    "found_verdict",
     "gate",
     "grow_tolerance",
     "joint_spaces",
@@ -60,7 +66,10 @@ __all__ = [
     "refine",
     "regate",
     "search",
+    "sample_points",
+    "sample_space",
     "search_failure",
+    "search_verdict",
     "select_one_to_one",
     "settle_noise",
     "tolerance_levels",
@@ -73,16 +82,9 @@ __all__ = [
 #: estimate's relative error is about ``1 / sqrt(k)``.
 DENSITY_NEIGHBOURS = 16
 
-#: Tolerances tried when the noise is not given, relative to the point spacing.
-NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
-
-#: :data:`NOISE_SCHEDULE` continued to the noise of real sensors: a few
-#: percent of an object's size is a sizeable share of its point spacing.
-#: Beyond about a third of the spacing a point's true partner is no longer
-#: distinguishable from its neighbours.  Steps of about 2.5: a level at or
-#: above the data's noise finds the motion, and :func:`settle_noise` then
-#: measures the noise itself.
-NOISY_SCHEDULE = NOISE_SCHEDULE + (0.12, 0.3)
+#: Tolerances tried when the noise is not given, relative to the spacing
+#: (:data:`gatv.models.base.NOISE_SCHEDULE`); :data:`NOISY_SCHEDULE`
+#: continues it to the noise of real sensors (the rigid model's policy).
 
 
 def tolerance_levels(problem: Problem, noise: float | None, schedule=NOISE_SCHEDULE) -> list[float]:
@@ -90,6 +92,17 @@ def tolerance_levels(problem: Problem, noise: float | None, schedule=NOISE_SCHED
     if noise is not None:
         return [noise]
     return [r * problem.spacing for r in schedule]
+
+
+def sample_space(model: MotionModel, n: int) -> int:
+    """Distinct trial samples among ``n`` points: the model's ``sample_space(n)`` or C(n, sample_size)."""
+    f = getattr(model, "sample_space", None)
+    return int(f(n)) if f is not None else comb(n, model.sample_size)
+
+
+def sample_points(model: MotionModel) -> int:
+    """Points a trial sample of ``model`` draws: its ``trial_sample_size``, else ``sample_size``."""
+    return int(getattr(model, "trial_sample_size", model.sample_size))
 
 
 def gate(tolerance: float) -> float:
@@ -311,8 +324,6 @@ def vote_tokens(tokens: Tokens, sigma: float, model: MotionModel | None = None) 
     them: its saliency is the geometric mean over the spaces; the normals
     are those of the first space.
     """
-    from .voting import vote
-
     spaces = (tokens.coords,) if model is None else joint_spaces(model, tokens)
     balls = [vote(c, sigma) for c in spaces]
     if len(balls) == 1:
@@ -469,8 +480,6 @@ def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3, *,
     M-step takes the weighted median (:func:`_mixture_scale`), started from
     the median's ``s``.
     """
-    from scipy.stats import chi
-
     r = np.asarray(residuals, dtype=np.float64)
     r = r[r <= gate]
     if r.size < 3:
@@ -489,8 +498,6 @@ def noise_from_residuals(residuals: np.ndarray, gate: float, dim: int = 3, *,
 
 def _median_scale(m: float, gate: float, dist) -> float:
     """The scale ``s`` whose chi distribution ``dist``, cut at ``gate``, has median ``m``."""
-    from scipy.optimize import brentq
-
     def excess(s):
         return dist.cdf(m / s) / dist.cdf(gate / s) - 0.5
 
@@ -709,7 +716,12 @@ class Found:
     trial_support : int
         The trial's density-test support.
     threshold : int
-        The support it had to reach.
+        The support it had to reach (the verdict's chance level).
+    n_tested : float
+        The tests that level is family-wise over (the judge's calls, or
+        every match the budget scores behind the density test's screen).
+    gate : float
+        The gate the level was computed at (the accepting level's).
     """
 
     fit: Fit
@@ -717,6 +729,8 @@ class Found:
     judged: Judged
     trial_support: int
     threshold: int
+    n_tested: float = 1.0
+    gate: float = float("nan")
 
 
 #: Wrong trial motions :func:`search`'s density test may pass on to tensor
@@ -818,8 +832,8 @@ LISTING = 2.5
 
 #: Work units per round of :func:`search` at each tolerance (see there).
 SEARCH_SHARE = 20000.0
-#: Best model matches scored per trial sample.
-MAX_MATCHES = 64
+#: Best model matches scored per trial sample: :data:`gatv.models.base.MAX_MATCHES`
+#: (a model's policy may score more, :class:`gatv.models.SearchPolicy`).
 # Work units of :func:`search`, about a microsecond of CPU each: the costs
 # below were fitted (non-negative least squares) to the CPU time each
 # tolerance level took in whole searches, so that the round robin's equal
@@ -993,14 +1007,16 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
             idx.set_radius(gate(tol))
             indexes.append(idx)
         accept = [model.chance(n, n2, idx.volume, idx.radius, density_tests(budget * max_matches, judged_wrong))
-                  for idx in indexes]
+                  for idx in indexes]  # each level's density test (the screen)
         k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
         # Each side of a true sample stays within the listing's tolerance
         # (listed_share of one side): one factor a point of the sample.
         side_kept = listed_share(listing, 1)
         caps = [min(budget, samples_needed(min(1.0, a / n) * side_kept, confidence, k_pts)) for a in accept]
+        screen_tests = density_tests(budget * max_matches, judged_wrong)
         records = [{"tolerance": tol, "triples": 0, "candidates": 0, "congruent": 0, "listed": 0, "visited": 0,
-                    "work": 0.0, "best_support": 0, "threshold": a} for tol, a in zip(levels, accept)]
+                    "work": 0.0, "best_support": 0, "threshold": a, "n_tests": screen_tests}
+                   for tol, a in zip(levels, accept)]
         if tried is not None:
             tried.extend(records)
         triple_cost = getattr(model, "triple_cost", None)
@@ -1103,8 +1119,27 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     if grow:
                         fit, grown = grow_tolerance(problem, fit, levels, level)
                         tol = levels[grown]
-                    return Found(fit, tol, judged, int(trials.support[k]), int(final))
+                    n_tested = n_final if final > threshold else n_judge_tests
+                    return Found(fit, tol, judged, int(trials.support[k]), int(final), float(n_tested), g)
         return None
+
+
+# ------------------------------------------------------------------ verdict
+def found_verdict(found: Found, support: int | None = None) -> Verdict:
+    """The verdict on a :func:`search`'s motion: ``support`` (default the found fit's) against the
+    level it had to reach (:attr:`Found.threshold`, family-wise over :attr:`Found.n_tested`)."""
+    return chance_verdict(found.fit.support if support is None else support, found.threshold, found.n_tested,
+                          method="poisson")
+
+
+def search_verdict(tried: list) -> Verdict:
+    """The verdict on a :func:`search` that found nothing: the best trial support it saw, against
+    that level's density-test level (its ``tried`` records; the closest to passing, by ratio)."""
+    recs = [r for r in tried if "best_support" in r]
+    if not recs:
+        return chance_verdict(0, 0.0, 1.0, method="poisson")
+    best = max(recs, key=lambda r: r["best_support"] / max(float(r["threshold"]), 1e-300))
+    return chance_verdict(best["best_support"], best["threshold"], best.get("n_tests", 1.0), method="poisson")
 
 
 # ------------------------------------------------------------------- result

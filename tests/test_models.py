@@ -158,3 +158,40 @@ def test_density_tests_needs_a_positive_judged_wrong(judged_wrong):
     with pytest.raises(ValueError, match="judged_wrong"):
         stages.density_tests(1e6, judged_wrong)
     assert stages.density_tests(1e6, None) == 1e6
+
+
+# ----------------------------------------------------------- search policy
+def test_each_model_returns_its_search_policy():
+    from gatv.models import DEFAULT_POLICY, SearchPolicy
+    from gatv.models.base import MAX_WORK, NOISE_SCHEDULE, NOISY_SCHEDULE
+    from gatv.models.rigid import NOISY_MAX_MATCHES, RIGID_TRIALS
+
+    rigid = get_model("rigid").search_policy()
+    assert rigid.schedule == NOISY_SCHEDULE and rigid.max_matches == NOISY_MAX_MATCHES == 512
+    assert dict(rigid.trial_options) == RIGID_TRIALS
+    assert rigid.trials(0.1) == dict(RIGID_TRIALS, min_share=0.1)
+    assert rigid.settle_noise and rigid.rival_check and rigid.small_motion and rigid.scans
+    assert rigid.graph_grouping and rigid.merge_motions and rigid.max_work == MAX_WORK
+    for name in ("similarity", "affine2d"):
+        p = get_model(name).search_policy()
+        assert isinstance(p, SearchPolicy)
+        assert p.schedule == NOISE_SCHEDULE and p.max_matches == stages.MAX_MATCHES == 64
+        assert p.trials(0.1) is None and not (p.settle_noise or p.rival_check or p.scans or p.graph_grouping)
+    assert get_model("similarity").search_policy().moment_prealign
+    assert get_model("affine2d").search_policy() == DEFAULT_POLICY == SearchPolicy()
+    assert stages.NOISE_SCHEDULE == NOISE_SCHEDULE and stages.NOISY_SCHEDULE == NOISY_SCHEDULE
+    with pytest.raises(TypeError):
+        rigid.trial_options["wide"] = 2  # frozen
+
+
+def test_no_module_outside_the_models_branches_on_a_model_name():
+    import re
+    from pathlib import Path
+
+    root = Path(gatv.__file__).parent
+    pattern = re.compile(r"\.name\s*(==|!=|in\b|not in\b)|model\s*==\s*\"|\bname\s*!=\s*\"rigid\"")
+    skip = {"models", "cli"}  # the CLI's choices belong to the CLI
+    hits = [f"{p.relative_to(root)}:{n}" for p in root.rglob("*.py") if p.relative_to(root).parts[0] not in skip
+            and p.name != "batch.py" for n, line in enumerate(p.read_text().splitlines(), 1)
+            if pattern.search(line)]
+    assert not hits, hits

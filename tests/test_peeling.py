@@ -280,7 +280,7 @@ def test_points_a_rejected_wrong_motion_held_out_go_back_to_the_search(monkeypat
 def test_rounds_at_the_measured_noise_rank_LISTING_WIDE_candidates_and_list_at_LISTING(monkeypatch):
     """The first round searches as register (its WIDE, the search's listing); later ones at LISTING, LISTING_WIDE."""
     from gatv.motions.peeling import LISTING_WIDE
-    from gatv.registration import RIGID_TRIALS
+    from gatv.models.rigid import RIGID_TRIALS
 
     real, seen = stages.search, []
 

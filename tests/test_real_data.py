@@ -16,10 +16,8 @@ from gatv.datasets import (
     rotation_error_deg,
     table2_trial,
 )
+from gatv.models.rigid import NOISY_MAX_MATCHES, RIGID_TRIALS, WIDE
 from gatv.registration import (
-    NOISY_MAX_MATCHES,
-    RIGID_TRIALS,
-    WIDE,
     choose_pipeline,
     surface_likeness,
 )

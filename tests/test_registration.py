@@ -352,3 +352,30 @@ def test_a_generic_set_is_not_ambiguous(seed, noise):
     trial = table2_trial(0.5, noise=noise, seed=seed)
     m = register(trial.source, trial.target, seed=seed)
     assert m and m.info["ambiguous"] is False and "rival" not in m.info
+
+
+# ----------------------------------------------------------- every model
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_single_affine2d_motion_among_outliers_is_registered(seed):
+    """register takes every registered model: one 2D affine map, (N, 2) arrays, half outliers."""
+    rng = np.random.default_rng(seed)
+    A = np.array([[1.2, 0.3], [-0.2, 0.8]]) @ np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])
+    t = np.array([40.0, -25.0])
+    x = rng.uniform(0, 200, (60, 2))
+    src = np.vstack([x, rng.uniform(0, 200, (60, 2))])
+    y = x @ A.T + t
+    tgt = np.vstack([y, rng.uniform(y.min(0), y.max(0), (60, 2))])
+    perm = rng.permutation(len(tgt))
+    m = register(src, tgt[perm], model="affine2d", seed=seed)
+    assert m and m.model == "affine2d"
+    np.testing.assert_allclose(m.linear, A, atol=1e-8)
+    np.testing.assert_allclose(m.translation, t, atol=1e-6)
+    true = set(zip(range(60), np.argsort(perm)[:60].tolist()))
+    assert true <= _pairs_set(m)
+    assert m.info["verdict"]["passed"] and m.info["verdict"]["support"] == m.support
+
+
+def test_the_small_motion_mode_is_refused_for_a_model_without_it():
+    x = np.random.default_rng(0).uniform(0, 10, (20, 2))
+    with pytest.raises(ValueError, match="small-motion"):
+        register(x, x + 1.0, model="affine2d", max_angle=5.0)

@@ -43,9 +43,10 @@ from scipy.spatial import cKDTree
 
 from .. import _affine_kernels as _k
 from .._validation import as_points, check_memory
+from ..congruent import TrialPool, accept_level
 from ..errors import InputError
 from ..stats import chance_support
-from .base import Motion, freeze_fields, homogeneous, matrix_residuals
+from .base import DEFAULT_POLICY, Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
 from .rigid import check_dimension, check_spread
 
 __all__ = ["Affine2D", "Affine2DMotion", "AffineIndex", "MODEL", "fit_affine", "Affine2DTrials"]
@@ -272,8 +273,6 @@ class Affine2D:
         Returns :class:`gatv.congruent.TrialMotions` with ``rotations`` the
         (K, 2, 2) linear parts and ``translations`` the (K, 2) vectors.
         """
-        from ..congruent import TrialPool, accept_level
-
         n = source.shape[0]
         m = index.target.shape[0]
         threshold = self.chance(n, m, index.volume, index.radius, max_triples * max_matches)
@@ -347,6 +346,10 @@ class Affine2D:
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,
                rms: float, info: dict) -> Motion:
         return Affine2DMotion(matrix[:2, :2], matrix[:2, 2], correspondences, score, rms, info)
+
+    def search_policy(self) -> SearchPolicy:
+        """The defaults: :data:`gatv.models.base.NOISE_SCHEDULE`, motions peeled one at a time."""
+        return DEFAULT_POLICY
 
 
 MODEL = Affine2D()

@@ -29,6 +29,10 @@ then measures the spacing in the target alone) and ``triple_cost(m)``
 (work units of one trial sample against ``m`` targets, for the round robin
 of :func:`gatv.register`).
 
+How the pipelines search for a model's motions (tolerance schedule, match
+cap, trial options, noise settling, rival check, which paths apply) is the
+model's :class:`SearchPolicy`, from ``search_policy()``.
+
 Every motion is carried between stages as its ``(dim + 1) × (dim + 1)``
 homogeneous matrix ``T``: ``target ≈ source @ T[:d, :d].T + T[:d, d]``.
 See ``docs/extending.md`` for a worked example (the 2D affine model).
@@ -36,7 +40,9 @@ See ``docs/extending.md`` for a worked example (the 2D affine model).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -48,8 +54,113 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..congruent import TrialMotions
     from ..stages import Tokens
 
-__all__ = ["MotionModel", "Motion", "Rotational", "freeze_fields", "homogeneous", "split_matrix",
-           "apply_matrix", "matrix_residuals"]
+__all__ = ["MAX_MATCHES", "MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "MotionModel", "Motion",
+           "Rotational", "SearchPolicy", "freeze_fields", "homogeneous", "split_matrix", "apply_matrix",
+           "matrix_residuals"]
+
+#: Tolerances tried when the noise is not given, relative to the point spacing.
+NOISE_SCHEDULE = (1e-6, 1e-3, 1e-2, 0.05)
+
+#: :data:`NOISE_SCHEDULE` continued to the noise of real sensors: a few
+#: percent of an object's size is a sizeable share of its point spacing.
+#: Beyond about a third of the spacing a point's true partner is no longer
+#: distinguishable from its neighbours.  Steps of about 2.5: a level at or
+#: above the data's noise finds the motion, and
+#: :func:`gatv.stages.settle_noise` then measures the noise itself.
+NOISY_SCHEDULE = NOISE_SCHEDULE + (0.12, 0.3)
+
+#: Best model matches scored per trial sample (:func:`gatv.stages.search`'s default).
+MAX_MATCHES = 64
+
+#: Default work bound of a search, in the search's work units (about a
+#: microsecond of CPU each, :func:`gatv.stages.chunk_work`): a call fails
+#: with a reason instead of running on, after about 100 s of CPU, under a
+#: minute on two cores.  Deterministic: the same seed stops at the same point.
+MAX_WORK = 1e8
+
+
+@dataclass(frozen=True)
+class SearchPolicy:
+    """How the pipelines search for a model's motions (:meth:`MotionModel.search_policy`).
+
+    Every choice the searches of :func:`gatv.register`,
+    :func:`gatv.motions.segment` and :func:`gatv.motions.peel` make by the
+    kind of motion is read here; no module outside :mod:`gatv.models`
+    branches on a model's name.  The defaults are those of a model with no
+    tuning of its own (the similarity and 2D affine models).
+
+    Attributes
+    ----------
+    schedule : tuple of float
+        Tolerances a search tries when the noise is not given, relative to
+        the point spacing (:data:`NOISE_SCHEDULE`; the rigid model goes on
+        to real sensors' noise, :data:`NOISY_SCHEDULE`).
+    max_matches : int
+        Matches scored per trial sample (:data:`MAX_MATCHES`; the chance
+        level counts them as tests).
+    trial_options : mapping
+        Options of the model's ``trial_motions`` for samples that list many
+        matches (:func:`gatv.stages.search`'s ``trial_options``); the
+        callers add ``min_share`` (the smallest motion wanted, a share of
+        the source).  Empty: none.
+    settle_noise : bool
+        Noise not given: measure it on a found motion and re-gate its pairs
+        there (:func:`gatv.stages.settle_noise`), and peel several motions
+        with the noise-aware search (:func:`gatv.motions.peel`'s
+        ``noisy``).  False: grow the tolerance while the support grows
+        beyond chance (:func:`gatv.stages.grow_tolerance`).
+    max_work : float or None
+        Work bound of each round of a noise-aware peel (None: none).
+    rival_check : bool
+        Look for a distinct motion explaining the found pairs nearly as
+        well (a symmetric set, :func:`gatv.registration.symmetry_rival`).
+    small_motion : bool
+        ``register``'s small-motion mode (``max_angle``) applies.
+    scans : bool
+        The scans pipeline (:mod:`gatv.scans`) registers this model's
+        motions; ``pipeline="auto"`` then chooses from the data.
+    graph_grouping : bool
+        :func:`gatv.motions.segment` groups the tokens of several motions
+        by the eq.-41 graph in the eq.-30 joint space (section 5); False:
+        it peels one motion at a time.
+    merge_motions : bool
+        A noise-aware peel joins two motions that are one
+        (:func:`gatv.motions.peeling.merge_same_motions`).
+    moment_prealign : bool
+        :func:`gatv.nonrigid.register`'s pre-alignment falls back to
+        principal axes and similarity ICP when the search finds no motion.
+    """
+
+    schedule: tuple[float, ...] = NOISE_SCHEDULE
+    max_matches: int = MAX_MATCHES
+    trial_options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    settle_noise: bool = False
+    max_work: float | None = None
+    rival_check: bool = False
+    small_motion: bool = False
+    scans: bool = False
+    graph_grouping: bool = False
+    merge_motions: bool = False
+    moment_prealign: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "schedule", tuple(float(r) for r in self.schedule))
+        object.__setattr__(self, "trial_options", MappingProxyType(dict(self.trial_options)))
+
+    def __hash__(self) -> int:
+        return hash((self.schedule, self.max_matches, tuple(sorted(self.trial_options.items())),
+                     self.settle_noise, self.max_work, self.rival_check, self.small_motion, self.scans,
+                     self.graph_grouping, self.merge_motions, self.moment_prealign))
+
+    def trials(self, min_share: float) -> dict | None:
+        """:attr:`trial_options` with ``min_share`` added, or None when the model has none."""
+        if not self.trial_options:
+            return None
+        return dict(self.trial_options, min_share=min_share)
+
+
+#: The policy of a model with no tuning of its own.
+DEFAULT_POLICY = SearchPolicy()
 
 
 def homogeneous(linear, translation) -> np.ndarray:
@@ -153,6 +264,9 @@ class MotionModel(Protocol):
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,
                rms: float, info: dict) -> Motion:
         """The frozen result of this model."""
+
+    def search_policy(self) -> SearchPolicy:
+        """How the pipelines search for this model's motions (``SearchPolicy()``: the defaults)."""
 
 
 class Motion:

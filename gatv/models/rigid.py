@@ -13,14 +13,41 @@ from __future__ import annotations
 import numpy as np
 
 from .._validation import as_points, coordinates
+from ..congruent import TargetIndex, trial_motions
 from ..errors import InputError
 from ..fitting import kabsch
 from ..ga import eq41_length_residual, eq41_residual
 from ..motion import RigidMotion
 from ..stats import chance_support
-from .base import Motion, homogeneous, matrix_residuals
+from .base import MAX_WORK, NOISY_SCHEDULE, Motion, SearchPolicy, homogeneous, matrix_residuals
 
-__all__ = ["Rigid", "MODEL", "check_spread", "plane_normal"]
+__all__ = ["MAX_ENUMERATED", "MODEL", "NOISY_MAX_MATCHES", "RIGID_TRIALS", "WIDE", "Rigid", "check_spread",
+           "plane_normal"]
+
+#: Matches scored per source triple in the rigid search (the chance level
+#: counts them as tests).  Exact data rarely has more than a few; under noise
+#: a triple matches hundreds of target triples and a cap of 64 would mostly
+#: drop the true one.
+NOISY_MAX_MATCHES = 512
+#: Congruent matches listed per source triple, of which the
+#: ``NOISY_MAX_MATCHES`` tightest are scored.
+MAX_ENUMERATED = 32768
+#: Candidate triples drawn for each one matched (:func:`gatv.congruent.trial_motions`'s
+#: ``wide``): the one with the fewest expected matches is kept.  Fewer chance
+#: matches make both the listing cheaper and the true match rank among the
+#: scored tightest more often; the candidates cost a few searches each.
+WIDE = 128
+#: Options of the rigid model's trial motions in a search (see
+#: :func:`gatv.congruent.trial_motions`); the callers add ``min_share``.
+RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
+
+#: The rigid model's search: the tolerances continued to real sensors'
+#: noise, which is measured on each motion found; many matches a triple,
+#: ranked by wide draws; the symmetry rival; the small-motion mode, the
+#: scans pipeline and the graph grouping of section 5.
+POLICY = SearchPolicy(schedule=NOISY_SCHEDULE, max_matches=NOISY_MAX_MATCHES, trial_options=RIGID_TRIALS,
+                      settle_noise=True, max_work=MAX_WORK, rival_check=True, small_motion=True, scans=True,
+                      graph_grouping=True, merge_motions=True)
 
 
 def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | None = None) -> None:
@@ -112,14 +139,10 @@ class Rigid:
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
         """The target's pair-length table and scoring grid (:class:`gatv.congruent.TargetIndex`)."""
-        from ..congruent import TargetIndex
-
         return TargetIndex(target, radius, memory_budget=memory_budget)
 
     def trial_motions(self, source: np.ndarray, index, **options):
         """Trial motions from congruent triples (:func:`gatv.congruent.trial_motions`)."""
-        from ..congruent import trial_motions
-
         return trial_motions(source, index, **options)
 
     # ----------------------------------------------------------- tokens
@@ -141,6 +164,10 @@ class Rigid:
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,
                rms: float, info: dict) -> Motion:
         return RigidMotion(matrix[:3, :3], matrix[:3, 3], correspondences, score, rms, info)
+
+    def search_policy(self) -> SearchPolicy:
+        """:data:`POLICY`."""
+        return POLICY
 
 
 MODEL = Rigid()

@@ -34,11 +34,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import _congruent_kernels as _k
 from .._validation import as_points, check_int
+from ..congruent import TargetIndex, TrialPool, accept_level, sample_triples
 from ..errors import InputError
 from ..fitting import umeyama
 from ..stats import chance_support
-from .base import Motion, Rotational, freeze_fields, homogeneous, matrix_residuals
+from .base import Motion, Rotational, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
 from .rigid import check_dimension, check_spread, eq41_consistent
 
 __all__ = ["DEFAULT_SCALE_RANGE", "MODEL", "Similarity", "SimilarityMotion", "order_triples",
@@ -193,8 +195,6 @@ def _select_triples(source: np.ndarray, count: int, rng: np.random.Generator) ->
     (near-collinear triangles fix the rotation badly and short sides the
     scale); the ranking does not look at which points are inliers.
     """
-    from ..congruent import sample_triples
-
     tri = order_triples(source, sample_triples(source.shape[0], 2 * count, rng))
     p = source
     ab = np.linalg.norm(p[tri[:, 0]] - p[tri[:, 1]], axis=1)
@@ -251,9 +251,6 @@ def similar_trial_motions(
         Its ``rotations`` field holds the trial's **linear part** ``s R``
         (not a rotation), so that ``.matrices`` are the trial similarities.
     """
-    from .. import _congruent_kernels as _k
-    from ..congruent import TrialPool, accept_level
-
     s_min, s_max = _check_scale_range(scale_range)
     max_triples = check_int(max_triples, "max_triples", 1)
     n = source.shape[0]
@@ -366,8 +363,6 @@ class Similarity:
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
         """The target's sorted neighbour lists and scoring grid (:class:`gatv.congruent.TargetIndex`)."""
-        from ..congruent import TargetIndex
-
         return TargetIndex(target, radius, memory_budget=memory_budget)
 
     def trial_motions(self, source: np.ndarray, index, **options):
@@ -441,5 +436,14 @@ class Similarity:
         return SimilarityMotion.from_matrix(matrix, correspondences, score=score, rms=rms,
                                             info=info)
 
+    def search_policy(self) -> SearchPolicy:
+        """:data:`POLICY`."""
+        return POLICY
+
+
+#: The similarity's search: the defaults (tolerances up to 5% of the
+#: spacing, grown while the support grows), and principal axes as
+#: :func:`gatv.nonrigid.register`'s fallback pre-alignment.
+POLICY = SearchPolicy(moment_prealign=True)
 
 MODEL = Similarity()

@@ -14,10 +14,12 @@ build test scenes with known motions.
 from __future__ import annotations
 
 from .peeling import peel
+from .pipelines import segment
 from .ransac import ransac_segment
+from .result import Segmentation
 from .scans import segment_scans
 from .scenes import MotionScene, ScanScene, fig12_scene, multi_motion_scene, scan_scene
-from .segmentation import Segmentation, joint_space_residuals, segment, segment_points
+from .segmentation import joint_space_residuals, segment_points
 
 __all__ = [
     "MotionScene",

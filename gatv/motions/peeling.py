@@ -41,10 +41,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from math import comb
+from math import gamma
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from .. import stages
 from .._validation import (
@@ -57,7 +61,8 @@ from .._validation import (
 from ..errors import InputError
 from ..models.base import split_matrix
 from ..stages import Fit, Problem, listed_share
-from .segmentation import Segmentation
+from ..verdict import chance_verdict
+from .result import Segmentation
 
 __all__ = [
     "LISTING",
@@ -82,18 +87,12 @@ LISTING = 1.0
 #: Candidate triples ranked a sample (``trial_motions``' ``wide``) in those
 #: rounds.  They list 7-25 matches a sample (1-2% noise), where ranking
 #: costs as much as scoring: on 1%/2% K=4 rounds 32 beat 2, 8 and 128
-#: (:data:`gatv.registration.WIDE`, which suits wide listings).
+#: (:data:`gatv.models.rigid.WIDE`, which suits wide listings).
 LISTING_WIDE = 32
 #: Passes of a noisy peel, after the first, that return to the search the
 #: points held out by motions rejected at their noise or dropped at the
 #: pooled noise.
 RETURNS = 1
-
-
-def _sample_space(model, n: int) -> int:
-    """Distinct trial samples among ``n`` points: the model's ``sample_space`` or C(n, sample_size)."""
-    f = getattr(model, "sample_space", None)
-    return int(f(n)) if f is not None else comb(n, model.sample_size)
 
 
 def _support_weighted_noise(fits: list[Fit], noises) -> float:
@@ -185,10 +184,6 @@ def assign_pairs(pairs: np.ndarray, gain: np.ndarray) -> np.ndarray:
     selection (cheapest first) instead drops a point whose nearest target
     went to another, even when its second nearest is free.
     """
-    from scipy.optimize import linear_sum_assignment
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     gain = np.asarray(gain, np.float64)
     ok = np.flatnonzero(gain > 0)
@@ -233,7 +228,7 @@ MERGE_OUTSIDE = 0.2
 
 def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *,
                        level: float = MERGE_LEVEL) -> tuple[list[Fit], list[float], list[dict]]:
-    """Join motions that are one motion found in two rounds (rigid model, 3D).
+    """Join motions that are one motion found in two rounds (models whose policy has ``merge_motions``).
 
     A round may keep part of a motion (a trial pose a little off brings only
     some of its points within the gate) and a later round the rest.  For two
@@ -253,14 +248,12 @@ def merge_same_motions(problem: Problem, fits: list[Fit], noises: list[float], *
     weighted noise), and the test repeats.  Returns the fits, their noises and
     a record of each join.
     """
-    from scipy.stats import chi2
-
     P = problem
-    if P.model.name != "rigid" or P.dim != 3:
+    if not P.model.search_policy().merge_motions:
         return list(fits), list(noises), []
     fits, noises = list(fits), [float(x) for x in noises]
     s2 = 2.0 * _support_weighted_noise(fits, noises) ** 2
-    limit = float(chi2.isf(level, 6))
+    limit = float(chi2.isf(level, P.model.n_params))
     joined = []
 
     def rss(pairs):
@@ -322,8 +315,6 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     is used only when it brings in more pairs than random points would
     collect in the added shell (their expected number).  Poses are unchanged.
     """
-    from math import gamma
-
     P = problem
     sigma = _support_weighted_noise(fits, noises)
     g = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
@@ -392,20 +383,22 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     max_candidates : int, default: 8
     memory_budget : float, optional
     noisy : bool, optional
-        The noise-aware search of :func:`gatv.register` (rigid model): the
-        tolerances of :data:`gatv.stages.NOISY_SCHEDULE`, the trial options
-        :data:`gatv.registration.RIGID_TRIALS` with
-        :data:`gatv.registration.NOISY_MAX_MATCHES` matches scored per
-        triple, and each motion's noise measured from its residuals and its
-        correspondences re-gated there (:func:`gatv.stages.settle_noise`).
-        Default: for the rigid model when ``noise`` is not given.
+        The noise-aware search of :func:`gatv.register`, for a model whose
+        :class:`~gatv.models.SearchPolicy` has ``settle_noise`` (the rigid
+        model): the policy's tolerances, trial options and matches scored
+        per sample (:data:`gatv.models.rigid.RIGID_TRIALS`,
+        :data:`gatv.models.rigid.NOISY_MAX_MATCHES`), and each motion's
+        noise measured from its residuals and its correspondences re-gated
+        there (:func:`gatv.stages.settle_noise`).  Default: for such a
+        model when ``noise`` is not given.
     schedule : sequence of float, optional
         Tolerances tried when ``noise`` is not given, relative to the
-        spacing; default :data:`gatv.stages.NOISY_SCHEDULE` for a noisy
-        search, else :data:`gatv.stages.NOISE_SCHEDULE`.
+        spacing; default the policy's ``schedule`` (for the rigid model
+        :data:`gatv.stages.NOISY_SCHEDULE`; :data:`gatv.stages.NOISE_SCHEDULE`
+        for its search with ``noisy=False``).
     max_work : float, optional
         Work bound of each round's search (:func:`gatv.stages.search`);
-        default :data:`gatv.registration.MAX_WORK` for a noisy search, none
+        default the policy's ``max_work`` for a noisy search, none
         otherwise.  A round that runs out stops the peeling with that reason.
     progress : callable, optional
         ``progress(fraction, message)``.
@@ -443,26 +436,25 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     deadline = None if time_limit is None else t_start + time_limit
     report = check_progress(progress)
     rng = as_rng(seed)
+    policy = model.search_policy()
     if noisy is None:
-        noisy = model.name == "rigid" and noise is None
+        noisy = policy.settle_noise and noise is None
     noisy = bool(noisy)
-    if noisy and model.name != "rigid":
+    if noisy and not policy.settle_noise:
         raise InputError(f"`noisy=True` is the rigid model's search; got model={model.name!r}.")
     search_options = {}
     if noisy:
-        from ..registration import MAX_WORK, NOISY_MAX_MATCHES, RIGID_TRIALS
-
-        search_options = {"max_matches": NOISY_MAX_MATCHES, "trial_options": RIGID_TRIALS,
-                          "max_work": MAX_WORK if max_work is None else float(max_work)}
+        search_options = {"max_matches": policy.max_matches, "trial_options": policy.trial_options,
+                          "max_work": policy.max_work if max_work is None else float(max_work)}
     elif max_work is not None:
         search_options["max_work"] = float(max_work)
     if schedule is None:
-        schedule = stages.NOISY_SCHEDULE if noisy else stages.NOISE_SCHEDULE
+        schedule = policy.schedule if noisy or not policy.settle_noise else stages.NOISE_SCHEDULE
     schedule = tuple(float(check_positive(r, "schedule")) for r in schedule)
     if not schedule:
         raise InputError("Expected `schedule` to hold at least one tolerance.")
     n1, n2 = P.source.shape[0], P.target.shape[0]
-    k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
+    k_pts = stages.sample_points(model)
     config = _Rounds(levels=tuple(stages.tolerance_levels(P, noise, schedule)), noisy=noisy, noise=noise,
                      sample_points=k_pts, smallest=max(float(min_inlier_share) * n1, float(k_pts)),
                      confidence=confidence,
@@ -581,6 +573,7 @@ def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motion
             state.measured_noise = _support_weighted_noise([*state.fits, fit], [*state.tolerances, tol])
             state.round_levels = [max(state.measured_noise, config.levels[0])]
         state.log.append({**record, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
+                          "n_tested": found.n_tested,
                           "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
                           "sigma": found.judged.sigma})
         kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
@@ -605,7 +598,7 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
     need_min = config.smallest
     if config.noisy:
         need_min = max(config.smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
-    cap = int(min(3 * _sample_space(model, n_src), config.max_triples))
+    cap = int(min(3 * stages.sample_space(model, n_src), config.max_triples))
     # Once the noise is measured (one sensor), a round lists congruent
     # matches at LISTING standard deviations of a side's noise, not the
     # search's default stages.LISTING: fewer all-inlier samples are listed
@@ -662,7 +655,7 @@ def _settle_and_check(P: Problem, S: Problem, config: _Rounds, state: _PeelState
     """
     round_levels = state.round_levels
     level = round_levels.index(tol)
-    floor = P.spacing * stages.NOISY_SCHEDULE[0] if config.noise is None else config.levels[0]
+    floor = P.spacing * P.model.search_policy().schedule[0] if config.noise is None else config.levels[0]
     fit, tol = stages.settle_noise(S, fit, round_levels, level, floor=floor)
     # Kept only when, at its measured noise, it still beats chance as the
     # judge asks (its pairs within gate(σ) against the chance level there,
@@ -771,17 +764,24 @@ def _segmentation(P: Problem, state: _PeelState, info: dict, t_start: float, rep
     order = sorted(range(len(fits)), key=lambda k: (-fits[k].support, k))
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(n2, -1, np.int64)
-    motions, tokens, labels = [], [], []
+    motions, tokens, labels, verdicts = [], [], [], []
     for new, k in enumerate(order):
         fit = fits[k]
         c = fit.correspondences
         src_lab[c[:, 0]] = new
         tgt_lab[c[:, 1]] = new
+        found = state.log[state.fit_rounds[k]]
+        verdicts.append(chance_verdict(fit.support, found["threshold"], found["n_tested"], method="poisson"))
         motions.append(stages.make_result(P, fit, {"label": new, "tolerance": tolerances[k], "noise": tolerances[k],
-                                                   "round": state.fit_rounds[k]}))
+                                                   "round": state.fit_rounds[k], "verdict": verdicts[-1].to_dict()}))
         c = c[np.argsort(c[:, 0], kind="stable")]
         tokens.append(c)
         labels.append(np.full(c.shape[0], new, np.int64))
+    searched = [rec for rec in state.log if "levels" in rec]
+    if verdicts:
+        info["verdict"] = min(verdicts, key=lambda v: v.margin).to_dict()
+    else:  # the last search's best trial against its level
+        info["verdict"] = stages.search_verdict(searched[-1]["levels"] if searched else []).to_dict()
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {len(motions)} motions ({info['reason']})")
     return Segmentation(tuple(motions), src_lab, tgt_lab,

@@ -18,7 +18,7 @@ from ..candidates import one_to_one
 from ..fitting import fit_rigid, kabsch
 from ..models.base import homogeneous
 from ..stages import NOISE_SCHEDULE
-from .segmentation import Segmentation
+from .result import Segmentation
 
 __all__ = ["ransac_segment"]
 

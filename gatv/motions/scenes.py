@@ -5,8 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .._validation import frozen_array as _frozen
+from ..candidates import median_spacing
 from ..errors import InputError
 from ..ga import Rotor
 
@@ -181,8 +183,6 @@ def scan_scene(pairs, *, n_points: int = 40000, clutter: float = 0.2, static_pat
         is rotated about its centroid by a random rotation (any angle) and
         shifted by up to a fifth of its size.
     """
-    from ..candidates import median_spacing
-
     if seed is None:
         raise InputError("Pass `seed` so that the scene is reproducible.")
     pairs = list(pairs)
@@ -245,8 +245,6 @@ def scan_scene(pairs, *, n_points: int = 40000, clutter: float = 0.2, static_pat
     (S, ls), (T, lt) = out
     # A point is explained by its motion where the other scene sees its surface:
     # its counterpart lies within three point spacings; elsewhere -1.
-    from scipy.spatial import cKDTree
-
     gate = 3.0 * float(np.median(spacing))
     rots_a, ts_a = np.array(rots), np.array(ts)
     for k in range(len(rots)):

@@ -50,7 +50,7 @@ family-wise level over all hypotheses judged.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,7 +62,6 @@ from .._validation import (
     check_positive,
     check_progress,
 )
-from .._validation import frozen_array as _frozen
 from ..candidates import one_to_one
 from ..congruent import n_triples_needed
 from ..errors import InputError
@@ -75,78 +74,14 @@ from ..ga import (
     joint_space_planes,
 )
 from ..models.base import homogeneous
-from ..motion import RigidMotion
-from ..registration import TIME_LIMIT
 from ..stages import Fit, Problem
+from ..verdict import Verdict, chance_verdict
+from .peeling import peel
+from .result import Segmentation
 
-__all__ = ["Segmentation", "joint_space_residuals", "segment", "segment_points"]
+__all__ = ["Segmentation", "joint_space_residuals", "segment_points", "segment_problem"]
 
 GROUPINGS = ("graph", "greedy")
-
-
-@dataclass(frozen=True, eq=False)
-class Segmentation:
-    """Rigid motions found between two point sets, and who belongs to which.
-
-    Attributes
-    ----------
-    motions : tuple of RigidMotion
-        Largest support first; each with its own one-to-one
-        ``correspondences``.  No source or target point is in two motions.
-    source_labels, target_labels : (N,) ndarray of int
-        Index into ``motions`` of each point's motion, ``-1`` when no
-        motion explains it.
-    tokens : (T, 2) ndarray of int
-        Candidate pairs ``(source, target)`` that voted: every pair within
-        the residual gate of a hypothesis, multiple matches included.
-    token_labels : (T,) ndarray of int
-        Motion (plane) each token was given to, ``-1`` for none.  A
-        motion's ``correspondences`` are a one-to-one subset of its tokens.
-    info : dict
-        Diagnostics: tolerance, support threshold, trials, hypotheses,
-        surfaces and which of them were split, timings.  Not compared.
-    """
-
-    motions: tuple
-    source_labels: np.ndarray
-    target_labels: np.ndarray
-    tokens: np.ndarray
-    token_labels: np.ndarray
-    info: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        object.__setattr__(self, "motions", tuple(self.motions))
-        for name in ("source_labels", "target_labels", "token_labels"):
-            object.__setattr__(self, name, _frozen(getattr(self, name), np.int64))
-        object.__setattr__(self, "tokens", _frozen(np.asarray(self.tokens).reshape(-1, 2), np.int64))
-
-    def __len__(self) -> int:
-        return len(self.motions)
-
-    def __bool__(self) -> bool:
-        return len(self.motions) > 0
-
-    def __iter__(self):
-        return iter(self.motions)
-
-    def __getitem__(self, k) -> RigidMotion:
-        return self.motions[k]
-
-    def to_dict(self) -> dict:
-        """JSON-friendly dictionary."""
-        return {
-            "n_motions": len(self.motions),
-            "motions": [m.to_dict() for m in self.motions],
-            "source_labels": self.source_labels.tolist(),
-            "target_labels": self.target_labels.tolist(),
-            "tokens": self.tokens.tolist(),
-            "token_labels": self.token_labels.tolist(),
-        }
-
-    def __repr__(self) -> str:
-        inner = ", ".join((f"{m.angle_deg:.2f} deg/{m.support}" if hasattr(m, "angle_deg")
-                           else f"{m.model}/{m.support}") for m in self.motions)
-        return f"Segmentation({len(self.motions)} motions: [{inner}])"
 
 
 # ------------------------------------------------------------------ helpers
@@ -261,7 +196,7 @@ def _trial_search(P: Problem, index, tol, rng, threshold, opts: SearchOptions, l
     explained = np.zeros(n1, bool)
     found: list[Trial] = []
     drawn = since_new = n_congruent = 0
-    beat = 0
+    beat = best = 0
     while drawn < opts.max_triples:
         pool = np.flatnonzero(~explained)
         if pool.size < max(3, threshold):
@@ -276,6 +211,8 @@ def _trial_search(P: Problem, index, tol, rng, threshold, opts: SearchOptions, l
         drawn += trials.n_triples
         since_new += trials.n_triples
         n_congruent += trials.n_congruent
+        if len(trials):
+            best = max(best, int(trials.support[0]))
         for k, matrix in enumerate(trials.matrices):
             if trials.support[k] < trials.threshold:
                 break
@@ -289,7 +226,7 @@ def _trial_search(P: Problem, index, tol, rng, threshold, opts: SearchOptions, l
             found.append(Trial(matrix, int(np.count_nonzero(inl))))
             since_new = 0
     log.append({"tolerance": tol, "triples": drawn, "congruent": n_congruent, "beat_chance": beat,
-                "kept": len(found)})
+                "kept": len(found), "best_support": best, "threshold": threshold, "n_tests": opts.max_judged})
     return found
 
 
@@ -441,155 +378,6 @@ PROBE_TRIPLES = 20000
 NOISY_FROM = 0.04
 
 
-def segment(
-    source,
-    target,
-    *,
-    model="rigid",
-    pipeline: str = "auto",
-    max_motions: int | None = None,
-    min_support: int | None = None,
-    seed=0,
-    noise: float | None = None,
-    grouping: str = "auto",
-    refine: bool = True,
-    min_inlier_share: float = 0.03,
-    confidence: float = 0.999,
-    max_triples: int | None = None,
-    max_judged: int = 32,
-    sigma: float | None = None,
-    max_candidates: int = 8,
-    memory_budget: float | None = None,
-    scan_options: dict | None = None,
-    progress=None,
-    time_limit: float | None = TIME_LIMIT,
-) -> Segmentation:
-    """Find every motion between ``source`` and ``target``, K unknown (section 5).
-
-    Parameters
-    ----------
-    source, target : (N, 3) array_like or object with ``.points``
-        The two point sets; any share of either may be outliers ((N, 2)
-        for ``model="affine2d"``).
-    model : {"rigid", "similarity", "affine2d"} or MotionModel, default: "rigid"
-        The kind of each motion (:mod:`gatv.models`).  The rigid model runs
-        the grouping of section 5 below; the others peel one motion at a
-        time (:func:`gatv.motions.peel`).
-    pipeline : {"auto", "exact", "scans"}, default: "auto"
-        As :func:`gatv.register`: ``"scans"`` for dense, differently
-        sampled range scans (:func:`gatv.motions.scans.segment_scans`: the
-        identity first, then motions peeled with the surface pipeline, each
-        kept only when it beats chance and fits at the scans' noise; planes
-        reported as degenerate), ``"exact"`` for sets whose inliers are the
-        same points in both; ``"auto"`` chooses from the data
-        (:func:`gatv.registration.choose_pipeline`).  ``info["pipeline"]``
-        and ``info["pipeline_reason"]`` say which and why.
-    grouping : {"auto", "graph", "greedy", "peel"}, default: "auto"
-        Exact pipeline, rigid model.  ``"graph"``: one trial search, then
-        dense components of the eq.-41 graph inside each salient surface
-        (the shared-axis split of eqs. 27–29); ``"greedy"``: each judged
-        hypothesis's own correspondences; ``"peel"``: one motion at a time
-        with the noise-aware search of :func:`gatv.register`
-        (:func:`gatv.motions.peel` with ``noisy=True``: noise measured from
-        each motion's residuals).  ``"auto"``: a short probe at the exact
-        tolerance (:data:`PROBE_TRIPLES` triples); motions there mean
-        noise-free data and ``"graph"``, none mean noise and ``"peel"``
-        (given ``noise=``: ``"graph"`` at that noise).
-    scan_options : dict, optional
-        Options of each round's surface registration on scans
-        (:data:`gatv.motions.scans.PART_OPTIONS`: ``n_points``, ``voxel``,
-        ``min_overlap``, ``feature_tol``, ``clutter``, as in
-        :func:`gatv.scans.register_surfaces`).
-    time_limit : float or None, default: :data:`gatv.registration.TIME_LIMIT`
-        Seconds of wall-clock time for the noisy point-set search
-        (``grouping="peel"``, or ``"auto"`` on noisy sets), counted from
-        the call; past it the motions found so far are returned and
-        ``info["reason"]`` says that the time ran out.  As in
-        :func:`gatv.register`, numba's compilation is not counted.
-        ``None``: no bound.
-
-    Other parameters are those of the exact pipeline's graph grouping
-    (:func:`segment_points`); ``max_motions``, ``seed``, ``confidence``,
-    ``max_triples``, ``refine`` and ``memory_budget`` apply to every path.
-
-    Returns
-    -------
-    Segmentation
-        Falsy (no motions) when no motion beats the chance level;
-        ``info["reason"]`` says why the search stopped.
-
-    Raises
-    ------
-    ValueError
-        Bad points (as :func:`gatv.register`), ``max_motions < 1``,
-        ``min_support < 3``, options of the exact pipeline when the data
-        took the scans pipeline, or other bad options.
-
-    Examples
-    --------
-    >>> from gatv.motions import fig12_scene, segment
-    >>> scene = fig12_scene(seed=0)
-    >>> seg = segment(scene.source, scene.target)
-    >>> len(seg), sorted(m.support for m in seg)
-    (3, [40, 40, 40])
-    """
-    from ..registration import reject_exact_options, resolve_pipeline
-
-    t_call = time.perf_counter()
-    time_limit = check_positive(time_limit, "time_limit", allow_none=True)
-    chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
-    if grouping not in GROUPINGS + ("auto", "peel"):
-        raise InputError(f"Expected `grouping` to be one of {('auto',) + GROUPINGS + ('peel',)}, "
-                         f"got {grouping!r}.")
-    if chosen == "scans":
-        reject_exact_options({"noise": noise, "sigma": sigma, "min_support": min_support,
-                              "grouping": None if grouping == "auto" else grouping}, why)
-        from .scans import segment_scans
-
-        out = segment_scans(source, target, max_motions=max_motions, seed=seed, confidence=confidence,
-                            max_triples=max_triples, refine=refine, memory_budget=memory_budget,
-                            scan_options=scan_options, progress=progress)
-        out.info.update(pipeline="scans", pipeline_reason=why)
-        return out
-    if scan_options:
-        raise InputError("`scan_options` apply to the scans pipeline only; pass pipeline='scans'.")
-    common = {"model": model, "max_motions": max_motions, "min_support": min_support, "seed": seed,
-              "refine": refine, "min_inlier_share": min_inlier_share, "confidence": confidence,
-              "max_triples": max_triples, "max_judged": max_judged, "sigma": sigma,
-              "max_candidates": max_candidates, "memory_budget": memory_budget, "progress": progress}
-    P = stages.prepare(source, target, model)
-    if P.model.name != "rigid" or grouping in GROUPINGS or (grouping == "auto" and noise is not None):
-        out = segment_points(source, target, noise=noise,
-                             grouping="graph" if grouping == "auto" else grouping, **common)
-    else:
-        out = None
-        if grouping == "auto":
-            t0 = time.perf_counter()
-            probe = segment_points(source, target, noise=P.spacing * stages.NOISE_SCHEDULE[0],
-                                   **dict(common, max_triples=min(max_triples or PROBE_TRIPLES, PROBE_TRIPLES),
-                                          progress=None))
-            if probe:
-                out = segment_points(source, target, noise=None, grouping="graph", **common)
-            probe_s = time.perf_counter() - t0
-        if out is None:
-            from .peeling import peel
-
-            schedule = stages.NOISY_SCHEDULE
-            if grouping == "auto":  # the probe found no exact motion: skip the exact levels
-                schedule = tuple(r for r in schedule if r >= NOISY_FROM)
-            out = peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
-                       refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
-                       max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
-                       memory_budget=memory_budget, noisy=True, schedule=schedule, progress=progress,
-                       time_limit=None if time_limit is None
-                       else max(time_limit - (time.perf_counter() - t_call), 1e-9))
-            out.info["grouping"] = "peel"
-        if grouping == "auto":
-            out.info["probe_s"] = probe_s
-    out.info.update(pipeline="exact", pipeline_reason=why)
-    return out
-
-
 def segment_points(
     source,
     target,
@@ -683,11 +471,25 @@ def segment_points(
     >>> len(seg), sorted(m.support for m in seg)
     (3, [40, 40, 40])
     """
-    t_start = time.perf_counter()
-    P = stages.prepare(source, target, model)
-    if P.model.name != "rigid":
-        from .peeling import peel
+    return segment_problem(stages.prepare(source, target, model), max_motions=max_motions,
+                           min_support=min_support, seed=seed, noise=noise, grouping=grouping, refine=refine,
+                           min_inlier_share=min_inlier_share, confidence=confidence, max_triples=max_triples,
+                           max_judged=max_judged, sigma=sigma, max_candidates=max_candidates,
+                           memory_budget=memory_budget, progress=progress)
 
+
+def segment_problem(P: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
+                    noise: float | None = None, grouping: str = "graph", refine: bool = True,
+                    min_inlier_share: float = 0.03, confidence: float = 0.999, max_triples: int | None = None,
+                    max_judged: int = 32, sigma: float | None = None, max_candidates: int = 8,
+                    memory_budget: float | None = None, progress=None) -> Segmentation:
+    """:func:`segment_points` on a prepared :class:`~gatv.stages.Problem` (validated once by its caller).
+
+    A model whose :class:`~gatv.models.SearchPolicy` has no
+    ``graph_grouping`` is peeled one motion at a time (:func:`gatv.motions.peel`).
+    """
+    t_start = time.perf_counter()
+    if not P.model.search_policy().graph_grouping:
         return peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
                     refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
                     max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
@@ -740,7 +542,8 @@ def segment_points(
     threshold = threshold_fn(gate)
     info.update(tolerance=tol, support_threshold=threshold, trials=log)
     if not hyps:
-        info.update(reason="no trial motion beat the chance level", time_s=time.perf_counter() - t_start)
+        info.update(reason="no trial motion beat the chance level", time_s=time.perf_counter() - t_start,
+                    verdict=stages.search_verdict(log).to_dict())
         return _empty(P, info)
 
     report(0.8, f"{len(hyps)} hypotheses: grouping")
@@ -769,13 +572,16 @@ def segment_points(
     labels = remap[labels]
     src_lab = np.full(n1, -1, np.int64)
     tgt_lab = np.full(P.target.shape[0], -1, np.int64)
-    out = []
+    out, verdicts = [], []
+    n_tests = 1.0 if min_support is not None else float(max_judged)
     for new, m in enumerate(order):
         fit = motions[m]
         kept = fit.correspondences
         src_lab[kept[:, 0]] = new
         tgt_lab[kept[:, 1]] = new
-        out.append(stages.make_result(P, fit, {"label": new}))
+        verdicts.append(chance_verdict(fit.support, threshold, n_tests, method="poisson"))
+        out.append(stages.make_result(P, fit, {"label": new, "verdict": verdicts[-1].to_dict()}))
+    info["verdict"] = run_verdict(verdicts, log).to_dict()
     info["time_s"] = time.perf_counter() - t_start
     if max_motions is not None and len(motions) > max_motions:
         info.setdefault("reason", "max_motions reached")
@@ -783,6 +589,14 @@ def segment_points(
                               "of min_inlier_share of the points (the RANSAC bound); no further trial beat chance")
     report(1.0, f"found {len(out)} motions")
     return Segmentation(tuple(out), src_lab, tgt_lab, tokens, labels, info)
+
+
+def run_verdict(verdicts: list[Verdict], tried: list) -> Verdict:
+    """A segmentation's verdict: its weakest motion's (smallest margin), or, with none, the best
+    support its search saw against that level (:func:`gatv.stages.search_verdict` on ``tried``)."""
+    if verdicts:
+        return min(verdicts, key=lambda v: v.margin)
+    return stages.search_verdict(tried)
 
 
 def _empty(P: Problem, info) -> Segmentation:

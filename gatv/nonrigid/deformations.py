@@ -32,6 +32,7 @@ import numpy as np
 
 from .._validation import as_points, check_positive
 from .._validation import frozen_array as _frozen
+from ..datasets import outlier_count
 from ..errors import InputError
 
 __all__ = [
@@ -367,8 +368,6 @@ def nonrigid_trial(points, moved, outlier_fraction: float = 0.0, *, noise: float
     -------
     NonRigidTrial
     """
-    from ..datasets import outlier_count
-
     x = as_points(points, "points", min_points=3)
     y = as_points(moved, "moved", min_points=3)
     if x.shape != y.shape:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from ..candidates import one_to_one
 from .motion import ThinPlateWarp
@@ -256,8 +257,6 @@ def window_centres(P, k: int, n: int) -> np.ndarray:
 # ------------------------------------------------------------ anneal
 def farthest_points(P, k: int) -> np.ndarray:
     """``k`` indices of ``P`` by farthest-point sampling from its first point (fewer for duplicates)."""
-    from scipy.spatial.distance import cdist
-
     sel = [0]
     dmin = cdist(P, P[:1], "sqeuclidean")[:, 0]
     for _ in range(min(k, P.shape[0]) - 1):
@@ -294,8 +293,6 @@ def anneal(X, Y, spacing: float, seed: int):
     callable
         The warp, on (N, 3) points.
     """
-    from scipy.spatial.distance import cdist
-
     rng = np.random.default_rng(seed)
     Xs = X if X.shape[0] <= ANNEAL_MAX_POINTS else X[np.sort(rng.choice(X.shape[0], ANNEAL_MAX_POINTS, replace=False))]
     Ys = Y if Y.shape[0] <= ANNEAL_MAX_POINTS else Y[np.sort(rng.choice(Y.shape[0], ANNEAL_MAX_POINTS, replace=False))]

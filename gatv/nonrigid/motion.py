@@ -13,10 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
 
 from .._validation import as_points
 from .._validation import frozen_array as _frozen
-from ..ga import Rotor
+from ..ga import Rotor, rotation_angle_deg
+from .multiscale import LocalAffineWarp
 
 __all__ = ["Diagnostics", "NonRigidMotion", "ThinPlateWarp"]
 
@@ -38,8 +40,6 @@ class ThinPlateWarp:
     """
 
     def __init__(self, points: np.ndarray, displacements: np.ndarray, smoothing=0.0):
-        from scipy.interpolate import RBFInterpolator
-
         self.points = points
         self.displacements = displacements
         # a scalar, or one value per control point (a weighted fit: smoothing / weight)
@@ -179,8 +179,6 @@ class NonRigidMotion:
             object.__setattr__(self, name, _frozen(a))
         d = self.target_points - self.source_points
         if k > TPS_MAX_CONTROL:
-            from .multiscale import LocalAffineWarp
-
             warp = LocalAffineWarp(self.source_points, d)
         else:
             warp = ThinPlateWarp(self.source_points, d, self.smoothing)
@@ -209,8 +207,6 @@ class NonRigidMotion:
     @property
     def local_angles_deg(self) -> np.ndarray:
         """(K,) rotation angle of each local rigid motion, degrees."""
-        from ..motion import rotation_angle_deg
-
         return np.array([rotation_angle_deg(r) for r in self.rotations])
 
     # ---------------------------------------------------------- operations

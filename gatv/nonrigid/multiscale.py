@@ -33,10 +33,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..candidates import median_spacing, one_to_one
-from ..fitting import kabsch
+from ..candidates import BYTES_PER_CANDIDATE_PAIR, median_spacing, one_to_one
+from ..fitting import kabsch, umeyama
 
 __all__ = [
     "GROW_AMBIGUITY",
@@ -50,6 +52,7 @@ __all__ = [
     "local_eq41_pairs",
     "loo_affine_residuals",
     "memory_estimate",
+    "motion_parts",
     "refine",
 ]
 
@@ -263,8 +266,6 @@ def memory_estimate(n_source: int, n_target: int, coarse_points: int,
     >>> bool(b < 2 * a)
     True
     """
-    from ..candidates import BYTES_PER_CANDIDATE_PAIR
-
     n = int(n_source) + int(n_target)
     per_row = 8 * (3 + 3 + 3 + 3 + 2 + 9 + 3 + 4)  # points, tree, warped, displacement, pair, R, t, misc
     block = min(_BLOCK, max(n_source, n_target)) * 8 * (k * (3 + 3 + 4 + 1) + 16 + 12)
@@ -525,11 +526,38 @@ def moment_prealign(X, Y, *, iterations: int = 30, max_points: int = 3000, seed:
 
 def _trimmed_icp(xs, Y, tree, s, R, t, iterations: int, keep_share: float = 0.7):
     """Trimmed similarity ICP; returns (median distance of the kept share, s, R, t)."""
-    from ..fitting import umeyama
-
     for _ in range(iterations):
         d, j = tree.query(s * xs @ R.T + t, k=1)
         keep = d <= np.percentile(d, 100 * keep_share)
         s, R, t = umeyama(xs[keep], Y[j[keep]])
     d = tree.query(s * xs @ R.T + t, k=1)[0]
     return float(np.median(np.sort(d)[: max(1, int(keep_share * d.size))])), s, R, t
+
+
+def motion_parts(source_points, target_points, strain: float, gate: float) -> np.ndarray:
+    """Label the matches by connected part: near in the source and moving continuously.
+
+    Matches ``a`` and ``b`` are joined when ``|x_a − x_b|`` is at most three
+    median matched spacings and ``|d_a − d_b| <= strain |x_a − x_b| + gate``
+    (the length half of the local eq.-41 tolerance: a locally rigid motion
+    changes the displacement between neighbours by at most the local strain).
+
+    Returns
+    -------
+    (K,) ndarray of int
+        Part label of each match, 0 for the largest part.
+    """
+    xs = np.asarray(source_points, dtype=np.float64)
+    d = np.asarray(target_points, dtype=np.float64) - xs
+    k = xs.shape[0]
+    if k < 2:
+        return np.zeros(k, np.int64)
+    radius = 3.0 * median_spacing(xs)
+    a, b = cKDTree(xs).query_pairs(radius, output_type="ndarray").T
+    ok = np.linalg.norm(d[a] - d[b], axis=1) <= strain * np.linalg.norm(xs[a] - xs[b], axis=1) + gate
+    graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    rank = np.empty_like(sizes)
+    rank[np.argsort(-sizes, kind="stable")] = np.arange(sizes.size)
+    return rank[labels]

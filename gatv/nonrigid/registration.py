@@ -50,6 +50,8 @@ from __future__ import annotations
 
 import time
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -57,16 +59,25 @@ from .._validation import (
     as_points,
     check_fraction,
     check_int,
+    check_memory,
     check_positive,
     check_progress,
     seed_int,
 )
+from ..candidates import median_spacing
 from ..errors import InputError
+from ..models import get_model, model_names
 from ..models.rigid import check_spread
+from ..registration import register as rigid_register
+from . import multiscale as ms
+from .hypotheses import farthest_points
 from .motion import Diagnostics, NonRigidMotion
+from ..verdict import chance_verdict
 from .stages import (
     ANNEAL_PREFERENCE,
     AUTO_RIGID_TRIPLES,
+    CHANCE_SHARE,
+    MIN_SHARE,
     Problem,
     Settings,
     anneal_hypothesis,
@@ -86,6 +97,31 @@ from .stages import (
 )
 
 __all__ = ["register"]
+
+
+#: The verdict's ``method`` of the non-rigid pipelines: matches that pass the local-affine
+#: check against those expected to pass by chance (:func:`gatv.nonrigid.stages.verify_matches`).
+VERDICT_METHOD = "local consistency"
+
+
+def _hypothesis_verdict(problem: Problem, verdict, support: int | None = None) -> dict:
+    """``info["verdict"]`` of the direct mode: the chosen hypothesis (or, with none, the one
+    closest to counting) against the level :func:`~gatv.nonrigid.stages.choose_hypothesis` holds it
+    to: ``max(4, MIN_SHARE · smaller set, chance / CHANCE_SHARE)``, over the hypotheses scored.
+    ``support``: the reported matches (default the hypothesis's verified ones)."""
+    least = max(4.0, MIN_SHARE * problem.n_smaller)
+    scores = verdict.scores
+
+    def level(k):
+        return max(least, float(scores[k].chance) / CHANCE_SHARE)
+
+    if not scores:
+        return chance_verdict(0, least, 1.0, method=VERDICT_METHOD).to_dict()
+    key = verdict.best
+    if key is None:
+        key = max(scores, key=lambda k: scores[k].support / level(k))
+    n = scores[key].support if support is None else support
+    return chance_verdict(n, level(key), len(scores), method=VERDICT_METHOD).to_dict()
 
 
 def _check_points(points, name: str) -> np.ndarray:
@@ -243,8 +279,8 @@ def register(
     Y = _check_points(target, "target")
     if structure not in ("auto", "surface", "curve"):
         raise InputError(f"Expected `structure` to be 'auto', 'surface' or 'curve', got {structure!r}.")
-    if model not in ("rigid", "similarity"):
-        raise InputError(f"Expected `model` to be 'rigid' or 'similarity', got {model!r}.")
+    if not isinstance(model, str) or model.lower() not in model_names() or get_model(model).dim != 3:
+        raise InputError(f"Expected `model` to be 'rigid' or 'similarity' (a 3D model), got {model!r}.")
     if prealign not in (True, False, "auto"):
         raise InputError(f"Expected `prealign` to be True, False or 'auto', got {prealign!r}.")
     settings = Settings(
@@ -302,6 +338,7 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
     info.update(candidates=candidates.scheme, n_candidates=int(candidates.pairs.shape[0]))
     if candidates.pairs.shape[0] < 4:
         report(1.0, "done: fewer than 4 candidate pairs")
+        info["verdict"] = chance_verdict(int(candidates.pairs.shape[0]), 4.0, 1.0, method=VERDICT_METHOD).to_dict()
         return _failure("fewer than 4 candidate pairs", info)
     tokens = joint_tokens(problem, candidates)
 
@@ -364,6 +401,7 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
             info["hypotheses"] = verdict.summary()
     info["hypothesis"] = verdict.best
     if verdict.best is None:
+        info["verdict"] = _hypothesis_verdict(problem, verdict)
         info["time_s"] = time.perf_counter() - t_start
         report(1.0, "done: no hypothesis beats chance")
         return _failure("no hypothesis has more locally consistent matches than chance", info,
@@ -371,6 +409,7 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
 
     report(0.9, "fit")
     fit = fit_local_motions(problem, refine_winner(problem, hypotheses, verdict, settings), settings)
+    info["verdict"] = _hypothesis_verdict(problem, verdict, int(fit.pairs.shape[0]))
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
     return NonRigidMotion(fit.pairs, fit.source_points, fit.target_points, fit.rotations,
@@ -394,12 +433,6 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
        (half a target spacing plus the noise floor), each match checked by
        local eq. 41 (:func:`multiscale.local_eq41_pairs`).
     """
-    from dataclasses import replace
-
-    from .._validation import check_memory
-    from ..candidates import median_spacing
-    from . import multiscale as ms
-
     n1, n2 = X.shape[0], Y.shape[0]
     need = ms.memory_estimate(n1, n2, coarse_points)
     try:
@@ -423,15 +456,13 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     coarse_spacing = median_spacing(Y[ti])
     if settings.prealign is True:
         report(0.02, f"pre-alignment ({settings.model})")
-        from ..registration import register as rigid_register
-
         found = rigid_register(X[si], Y[ti], model=settings.model, seed=settings.seed,
                                noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5),
                                max_triples=AUTO_RIGID_TRIPLES)
         if found:
             prior = np.asarray(found.matrix, dtype=float)
             info["prealign"] = {"model": settings.model, "support": found.support}
-        elif settings.model == "similarity":
+        elif get_model(settings.model).search_policy().moment_prealign:
             prior = ms.moment_prealign(X[dx], Y[dy], seed=settings.seed)
             info["prealign"] = {"model": "principal axes + similarity ICP",
                                 "reason": found.info.get("reason")}
@@ -479,6 +510,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     info.update(coarse_points=(int(si.size), int(ti.size)), coarse_spacing=coarse_spacing,
                 windows=tried, placement=tried[-1]["placement"] if seeds is not None else None)
     if seeds is None:
+        info["verdict"] = _window_verdict(tried)
         info["time_s"] = time.perf_counter() - t_start
         report(1.0, "done: no window beats chance")
         return _failure("no full-resolution window has more locally consistent matches than chance",
@@ -488,9 +520,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # the source and moves continuously (segment.motion_parts); a few wrong seeds apart from it
     # would otherwise grow a locally consistent wrong region (a slide along the surface)
     if seeds.shape[0] >= 4:
-        from .segment import motion_parts
-
-        parts = motion_parts(X[seeds[:, 0]], Y[seeds[:, 1]], settings.strain, 0.5 * spacing + floor)
+        parts = ms.motion_parts(X[seeds[:, 0]], Y[seeds[:, 1]], settings.strain, 0.5 * spacing + floor)
         info["n_seeds_off_part"] = int(np.sum(parts != 0))
         seeds = seeds[parts == 0]
 
@@ -520,6 +550,9 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     pairs, R, t = pairs[passed], R[passed], t[passed]
     if prior is not None:  # local rigid motions of the original source points
         _, R, t = ms.local_eq41_pairs(X0, Y, pairs, settings.strain, gate)
+    info["verdict"] = dict(_window_verdict(tried), support=int(pairs.shape[0]))
+    info["verdict"].update(passed=info["verdict"]["support"] >= info["verdict"]["chance"],
+                           margin=info["verdict"]["support"] / max(info["verdict"]["chance"], 1e-300))
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
     return NonRigidMotion(pairs, X0[pairs[:, 0]], Y[pairs[:, 1]], R, t, 0.0,
@@ -561,8 +594,6 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
     Returns ``(seeds, local)``: seeds as (K, 2) rows of ``X``, ``Y`` and the window's
     :class:`NonRigidMotion`, or ``(None, None)``.  Appends one record per window to ``tried``.
     """
-    from dataclasses import replace
-
     k = min(rows_x.size, window_points)
     for c in centres:
         t0 = time.perf_counter()
@@ -580,6 +611,7 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
         local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
                                  lambda *a: None, time.perf_counter())
         record.update(support=local.support, hypothesis=local.info.get("hypothesis"),
+                      verdict=local.info.get("verdict"),
                       time_voting_s=local.info.get("time_voting_s"), time_anneal_s=local.info.get("time_anneal_s"),
                       hypotheses=local.info.get("hypotheses"), time_s=time.perf_counter() - t0)
         if local and local.support >= MIN_WINDOW_SHARE * min(src.size, tgt.size):
@@ -587,12 +619,21 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
     return None, None
 
 
+def _window_verdict(tried: list) -> dict:
+    """``info["verdict"]`` of the multi-resolution path: the seeding window's (the last tried), or,
+    with none seeding, the window closest to counting (by margin); over the windows tried."""
+    ran = [r["verdict"] for r in tried if r.get("verdict")]
+    if not ran:
+        return chance_verdict(0, 4.0, max(len(tried), 1), method=VERDICT_METHOD).to_dict()
+    best = ran[-1] if tried and tried[-1].get("verdict") and tried[-1]["verdict"]["passed"] else max(
+        ran, key=lambda v: v["margin"])
+    return dict(best, n_tested=float(max(len(tried), 1)))
+
+
 def _window_order(X, matched, si, n: int) -> np.ndarray:
     """``n`` window centres among the coarse subsample ``X[si]``: the one nearest the centroid of
     ``matched`` (the coarse matches; the whole subsample when None) first, then spread out (farthest
     points), so a failed window is followed by a distant one."""
-    from .hypotheses import farthest_points
-
     base = X[si] if matched is None or len(matched) < 4 else matched
     centre = base.mean(axis=0)
     first = int(np.argmin(np.sum((X[si] - centre) ** 2, axis=1)))

@@ -20,15 +20,15 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .._validation import as_points, check_fraction, check_int, check_progress, seed_int
 from .._validation import frozen_array as _frozen
 from ..candidates import median_spacing
+from ..verdict import chance_verdict
 from .motion import NonRigidMotion
-from .registration import register
+from .multiscale import motion_parts
+from .registration import VERDICT_METHOD, register
 
 __all__ = ["NonRigidSegmentation", "motion_parts", "segment"]
 
@@ -85,35 +85,6 @@ class NonRigidSegmentation:
 
     def __repr__(self) -> str:
         return f"NonRigidSegmentation({len(self.motions)} motions: {[m.support for m in self.motions]})"
-
-
-def motion_parts(source_points, target_points, strain: float, gate: float) -> np.ndarray:
-    """Label the matches by connected part: near in the source and moving continuously.
-
-    Matches ``a`` and ``b`` are joined when ``|x_a − x_b|`` is at most three
-    median matched spacings and ``|d_a − d_b| <= strain |x_a − x_b| + gate``
-    (the length half of the local eq.-41 tolerance: a locally rigid motion
-    changes the displacement between neighbours by at most the local strain).
-
-    Returns
-    -------
-    (K,) ndarray of int
-        Part label of each match, 0 for the largest part.
-    """
-    xs = np.asarray(source_points, dtype=np.float64)
-    d = np.asarray(target_points, dtype=np.float64) - xs
-    k = xs.shape[0]
-    if k < 2:
-        return np.zeros(k, np.int64)
-    radius = 3.0 * median_spacing(xs)
-    a, b = cKDTree(xs).query_pairs(radius, output_type="ndarray").T
-    ok = np.linalg.norm(d[a] - d[b], axis=1) <= strain * np.linalg.norm(xs[a] - xs[b], axis=1) + gate
-    graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(k, k))
-    _, labels = connected_components(graph, directed=False)
-    sizes = np.bincount(labels)
-    rank = np.empty_like(sizes)
-    rank[np.argsort(-sizes, kind="stable")] = np.arange(sizes.size)
-    return rank[labels]
 
 
 def segment(
@@ -199,7 +170,8 @@ def segment(
         record = {"support": m.support, "hypothesis": m.info.get("hypothesis"),
                   "hypotheses": m.info.get("hypotheses"), "prealign": m.info.get("prealign"),
                   "windows": m.info.get("windows"), "coarse": m.info.get("coarse_hypothesis"),
-                  "local_windows": m.info.get("local_windows"), "time_s": time.perf_counter() - t0}
+                  "local_windows": m.info.get("local_windows"), "time_s": time.perf_counter() - t0,
+                  "verdict": _round_verdict(m, m.support, least)}
         rounds.append(record)
         if m.support < least:
             reason = m.info.get("reason", "no motion beats chance among the remaining points")
@@ -215,6 +187,7 @@ def segment(
                 break
             sel = pairs[parts == p]
             motions.append(_sub_motion(m, parts == p, sel))
+            motions[-1].info["verdict"] = _round_verdict(m, int(sizes[p]), least)
             label = len(motions) - 1
             src_lab[sel[:, 0]] = label
             tgt_lab[sel[:, 1]] = label
@@ -230,12 +203,25 @@ def segment(
     remap = np.full(len(motions) + 1, -1, np.int64)
     remap[order] = np.arange(len(motions))
     info = {"rounds": rounds, "min_support": least}
+    if motions:  # the weakest motion's verdict; with none, the last round's
+        info["verdict"] = min((mo.info["verdict"] for mo in motions), key=lambda v: v["margin"])
+    else:
+        info["verdict"] = rounds[-1]["verdict"] if rounds else chance_verdict(
+            0, least, 1.0, method=VERDICT_METHOD).to_dict()
     if not motions:
         info["reason"] = reason
     else:
         info["stopped"] = reason
     report(1.0, f"done: {len(motions)} motions")
     return NonRigidSegmentation([motions[i] for i in order], remap[src_lab], remap[tgt_lab], info)
+
+
+def _round_verdict(m: NonRigidMotion, support: int, least: float) -> dict:
+    """A round's (or one part's) verdict: ``support`` against the level of the round's
+    registration (its ``info["verdict"]``), and at least ``least`` (the smallest motion counted)."""
+    v = m.info.get("verdict") or {}
+    return chance_verdict(support, max(float(v.get("chance", 0.0)), float(least)), v.get("n_tested", 1.0),
+                          method=VERDICT_METHOD).to_dict()
 
 
 def _sub_motion(m: NonRigidMotion, rows, pairs) -> NonRigidMotion:

@@ -31,6 +31,8 @@ from scipy.spatial import cKDTree
 from ..candidates import all_pairs, median_spacing, one_to_one
 from ..fitting import kabsch
 from ..ga import eq41_length_residual
+from ..registration import register as rigid_register
+from ..voting import default_sigma, extract_surfaces, vote
 from .hypotheses import (
     affine_residuals,
     anneal,
@@ -349,8 +351,6 @@ def extract_curves(tokens, sigma: float, n_passes: int, growth: float = 1.5, thr
     sigma : float
         The last pass's scale.
     """
-    from ..voting import vote
-
     idx = np.arange(tokens.shape[0])
     s = sigma
     votes = vote(tokens, s)
@@ -382,8 +382,6 @@ def tensor_votes(problem: Problem, candidates: Candidates, tokens, settings: Set
     by :func:`extract_curves`.  σ defaults to
     :func:`gatv.voting.default_sigma` with the call's seed.
     """
-    from ..voting import default_sigma, extract_surfaces
-
     sigma = settings.sigma if settings.sigma is not None else default_sigma(tokens, seed=settings.seed)
     structure = settings.structure
     surf = extract_surfaces(tokens, sigma, n_stick_passes=settings.n_stick_passes)
@@ -550,8 +548,6 @@ def rigid_hypothesis(problem: Problem, settings: Settings) -> RigidStart | None:
     ``AUTO_RIGID_TRIPLES`` source triples.  ``None`` when the rigid mode
     finds nothing.
     """
-    from ..registration import register as rigid_register
-
     bound = None if settings.prealign is True else AUTO_RIGID_TRIPLES
     rigid = rigid_register(problem.source, problem.target, model=settings.model, seed=settings.seed,
                            noise=settings.noise, max_triples=bound)
@@ -593,8 +589,6 @@ def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
     supported of ``LOCAL_WINDOWS`` windows is returned.  Wrong windows grow
     little: their matches have no consistent continuation.
     """
-    from ..registration import register as rigid_register
-
     X, Y, tree, gate = problem.source, problem.target, problem.tree, problem.verify_gate
     least = max(4, MIN_SHARE * problem.n_smaller)
     k = min(LOCAL_WINDOW_POINTS, X.shape[0])

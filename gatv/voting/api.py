@@ -51,9 +51,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import get_num_threads
+from scipy.spatial import cKDTree
 
 from gatv._validation import memory_budget_limit, as_points, as_vectors, check_memory, check_positive
 from gatv.voting import _fields
+from gatv.voting import _passes as K
+from gatv.voting._simd import SIMD
 from gatv.voting._grid import Grid, build_grid, grid_layout
 
 from ..errors import InputError
@@ -235,9 +238,6 @@ class Engine:
     """
 
     def __init__(self, points: np.ndarray, sigma: float, max_pairs: int = 0):
-        from gatv.voting import _passes as K
-        from gatv.voting._simd import SIMD
-
         self._K = K
         self.sigma = sigma
         self.radius = voting_radius(sigma)
@@ -413,8 +413,6 @@ def default_sigma(tokens, k: int = 40, *, sample: int = 2000, seed: int = 0) -> 
 
 
 def _default_sigma(pts: np.ndarray, k: int, sample: int = 2000, seed: int = 0) -> float:
-    from scipy.spatial import cKDTree
-
     n = pts.shape[0]
     k = min(k, n - 1)
     rng = np.random.default_rng(seed)

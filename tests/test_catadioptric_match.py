@@ -124,6 +124,7 @@ def test_translation_sweep(xi, rot, tpct):
     assert min(ps) >= 0.85 and np.mean(ps) >= 0.9 and np.mean(rs) >= 0.65
 
 
+@pytest.mark.slow  # fast suite: the same checks on the 50%-outlier rotation of the rival test below
 def test_output_is_one_to_one_and_in_input_rows():
     v = synthetic_views(120, rotation_deg=20.0, translation=(0, 0, 0), outlier_fraction=0.5, seed=4)
     m = match(v.pixels1, v.pixels2, v.camera1)
@@ -188,6 +189,11 @@ def test_scattered_corners_have_no_close_rival():
     v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.5, seed=6)
     m = match(v.pixels1, v.pixels2, v.camera1)
     assert m.strategy == "rigid" and m.info["rival_support"] < 0.4 * m.support
+    # the output is one-to-one, in the input's rows, and read-only
+    c = m.correspondences
+    assert len(np.unique(c[:, 0])) == len(c) == len(np.unique(c[:, 1]))
+    assert c[:, 0].max() < len(v.pixels1) and c[:, 1].max() < len(v.pixels2)
+    assert not c.flags.writeable and m.rays1.shape == (len(m.index1), 3)
 
 
 def test_invalid_pixels_are_dropped_and_rows_kept():

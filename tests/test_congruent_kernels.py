@@ -72,7 +72,7 @@ def test_grid_nearest_and_count_match_brute_force(seed, n, r):
     moved = queries @ R.T + t
     dm = np.linalg.norm(moved[:, None] - target[None], axis=2)
     count = k.count_inliers(R, t, queries, target, index.start, index.order, index.origin, index.cell,
-                            index.dims, index.radius, 0)
+                            index.dims, index.radius, 0, k._NO_VISIT, 0.0, 0.0)  # no omitted array: cached
     assert count == int(np.sum(dm.min(axis=1) <= r))
 
 

@@ -81,7 +81,8 @@ from .stats import samples_needed
 from .verdict import chance_verdict
 from .voting import default_sigma, extract_surfaces
 
-__all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "choose_pipeline", "register",
+__all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "checked_pipeline", "choose_pipeline",
+           "register",
            "reject_exact_options", "resolve_pipeline", "surface_likeness", "symmetry_rival"]
 
 # MAX_WORK (gatv.models.base): the default work bound of register's search.
@@ -237,6 +238,18 @@ def _check_exact_memory(target, memory_budget) -> None:
 def resolve_pipeline(source, target, model, pipeline: str = "auto", memory_budget=None) -> tuple[str, str]:
     """``(pipeline, reason)`` for ``register``'s (and ``segment``'s) ``pipeline=`` argument.
 
+    See :func:`checked_pipeline`, which also returns the points it checked.
+    """
+    return checked_pipeline(source, target, model, pipeline, memory_budget)[:2]
+
+
+def checked_pipeline(source, target, model, pipeline: str = "auto", memory_budget=None):
+    """The pipeline for ``register``'s (and ``segment``'s) ``pipeline=`` argument, and why.
+
+    Returns ``(pipeline, reason, points)``: ``points`` the model-checked
+    ``(source, target)`` arrays when the choice checked them (give them to
+    :func:`gatv.stages.prepare` with ``validated=True``), else ``None``.
+
     ``"exact"`` and ``"scans"`` are taken as given (the scans pipeline is for
     models whose :class:`~gatv.models.SearchPolicy` has ``scans``: rigid
     motions); ``"auto"`` is :func:`choose_pipeline` for those and
@@ -249,18 +262,18 @@ def resolve_pipeline(source, target, model, pipeline: str = "auto", memory_budge
     name = model.name
     scans = model.search_policy().scans
     if pipeline == "exact":
-        return "exact", "pipeline='exact' given"
+        return "exact", "pipeline='exact' given", None
     if pipeline == "scans":
         if not scans:
             raise InputError(f"The scans pipeline registers rigid motions; got model={name!r}.")
         model.check_points(source, "source")
         model.check_points(target, "target")
-        return "scans", "pipeline='scans' given"
+        return "scans", "pipeline='scans' given", None
     if not scans:
-        return "exact", f"the {name!r} model has the exact pipeline only"
+        return "exact", f"the {name!r} model has the exact pipeline only", None
     # The model's own checks first: their errors name the model's dimension.
-    return choose_pipeline(model.check_points(source, "source"), model.check_points(target, "target"),
-                           memory_budget=memory_budget)
+    X, Y = model.check_points(source, "source"), model.check_points(target, "target")
+    return (*choose_pipeline(X, Y, memory_budget=memory_budget), (X, Y))
 
 
 def register(
@@ -401,7 +414,7 @@ def register(
     (40, 150.0)
     """
     t_start = time.perf_counter()
-    chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
+    chosen, why, checked = checked_pipeline(source, target, model, pipeline, memory_budget)
     if chosen == "scans":
         reject_exact_options({"max_angle": max_angle, "max_translation": max_translation, "noise": noise,
                               "sigma": sigma,
@@ -413,7 +426,7 @@ def register(
         return out
     if scan_options:
         raise InputError("`scan_options` apply to the scans pipeline only; pass pipeline='scans'.")
-    P = stages.prepare(source, target, model)
+    P = stages.prepare(*(checked or (source, target)), model, validated=checked is not None)
     if max_angle is None:
         _check_exact_memory(P.target, memory_budget)
     policy = P.model.search_policy()

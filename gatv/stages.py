@@ -215,8 +215,12 @@ class Problem:
                                  self.landing_measure(radii, gate), gate, n_tests)
 
 
-def prepare(source, target, model="rigid") -> Problem:
+def prepare(source, target, model="rigid", *, validated: bool = False) -> Problem:
     """Validate the two point sets for ``model`` and measure their scale.
+
+    ``validated``: ``source`` and ``target`` are already the arrays
+    ``model.check_points`` returned (a caller that checked them to choose
+    its pipeline); they are not checked again.
 
     Raises
     ------
@@ -225,8 +229,11 @@ def prepare(source, target, model="rigid") -> Problem:
         identical or collinear points, NaN or inf.
     """
     model = get_model(model)
-    X = model.check_points(source, "source")
-    Y = model.check_points(target, "target")
+    if validated:
+        X, Y = source, target
+    else:
+        X = model.check_points(source, "source")
+        Y = model.check_points(target, "target")
     if getattr(model, "changes_scale", False):
         spacing = median_spacing(Y)  # residuals, gates and tolerances are in target units
     else:
@@ -928,7 +935,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
            max_work: float | None = None, trial_options: dict | None = None,
            deadline: float | None = None, confidence: float = 0.999,
            judged_wrong: float | None = JUDGED_WRONG, listing: float = LISTING,
-           polish_trial_motions: bool = False) -> Found | None:
+           polish_trial_motions: bool = False, index=None) -> Found | None:
     """Trial motions → judge → refine → grow, until a motion beats chance (Algorithm 1).
 
     Round robin over the tolerance ``levels`` with an equal share of work
@@ -990,6 +997,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     large that a noisy sample's pose leaves most of its motion's points
     outside the gate.
 
+    ``index``: the model's index of ``problem.target`` when the caller has
+    built it already (any radius: each level's copy gets its own).
+
     Returns ``None`` when the budget, the work or the time runs out.
     """
     model = problem.model
@@ -1000,7 +1010,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     # time is not the search's, and the deadline moves by it.
     compiling = numba_event.TimingListener()
     with numba_event.install_listener("numba:compile", compiling):
-        base = model.index(problem.target, gate(levels[0]), memory_budget=memory_budget)
+        base = model.index(problem.target, gate(levels[0]), memory_budget=memory_budget) if index is None else index
         indexes = []
         for tol in levels:
             idx = copy.copy(base)

@@ -147,3 +147,22 @@ def test_segment_on_points_prepares_once(prepare_calls, seed, grouping, model):
     segment(x, y, model=model, grouping=grouping if model == "rigid" else "auto", seed=seed, max_triples=300,
             max_motions=1, time_limit=None)
     assert len(prepare_calls) == 1
+
+
+@pytest.mark.parametrize("call", ["register", "segment"])
+@pytest.mark.parametrize("pipeline", ["auto", "exact"])
+def test_the_model_checks_each_set_once(monkeypatch, call, pipeline):
+    """The pipeline choice's checked points go to prepare (validated=True), not checked again."""
+    from gatv.models.rigid import Rigid
+
+    seen = []
+    real = Rigid.check_points
+
+    def counting(self, points, name):
+        seen.append(name)
+        return real(self, points, name)
+
+    monkeypatch.setattr(Rigid, "check_points", counting)
+    x, y = _exact_pair(0, 30)
+    (register if call == "register" else segment)(x, y, pipeline=pipeline, max_triples=300, time_limit=None)
+    assert sorted(seen) == ["source", "target"]

@@ -108,7 +108,8 @@ def _subproblem(P: Problem, src: np.ndarray, tgt: np.ndarray) -> Problem:
 
 
 def search_budget(problem: Problem, levels, smallest: float, confidence: float, cap: int,
-                  max_matches: int, *, memory_budget: float | None = None, listed: float = 1.0) -> tuple[int, float]:
+                  max_matches: int, *, memory_budget: float | None = None, listed: float = 1.0,
+                  index=None) -> tuple[int, float]:
     """Samples a round draws, for the smallest motion its search can find; and that motion's size.
 
     A motion of ``m`` of the ``n`` source points is hit by an all-inlier
@@ -125,12 +126,14 @@ def search_budget(problem: Problem, levels, smallest: float, confidence: float, 
     every motion the search could find with any budget up to ``cap``.
     ``listed`` is the share of all-inlier samples whose true match the
     search lists (:func:`listed_share`): a sample finds the motion with
-    probability ``(m / n)^k · listed``.
+    probability ``(m / n)^k · listed``.  ``index``: the model's index of
+    ``problem.target`` when already built (its radius is changed).
     """
     model = problem.model
     k_pts = int(getattr(model, "trial_sample_size", model.sample_size))
     n, n2 = problem.source.shape[0], problem.target.shape[0]
-    index = model.index(problem.target, stages.gate(min(levels)), memory_budget=memory_budget)
+    if index is None:
+        index = model.index(problem.target, stages.gate(min(levels)), memory_budget=memory_budget)
     volumes = []
     for tol in levels:
         index.set_radius(stages.gate(tol))
@@ -612,9 +615,11 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
     listed = listed_share(listing * round_levels[0] / max(state.measured_noise, 1e-300) if measured else listing,
                           config.sample_points)
     options = dict(config.search_options)
+    # One index of the round's targets, for the budget's levels and the search's.
+    index = model.index(S.target, stages.gate(min(round_levels)), memory_budget=config.memory_budget)
     budget, need_min = search_budget(S, round_levels, need_min, config.confidence, cap,
                                      options.get("max_matches", stages.MAX_MATCHES),
-                                     memory_budget=config.memory_budget, listed=listed)
+                                     memory_budget=config.memory_budget, listed=listed, index=index)
     report(float(state.used_s.mean()), f"motion {n_found + 1}: {n_src} source points left")
     tried: list = []
     if "trial_options" in options:
@@ -641,7 +646,8 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
                           # trials polished (LO-RANSAC), as a noisy triple's pose
                           # leaves most of a small motion outside the gate.
                           polish_trial_motions=config.noisy,
-                          memory_budget=config.memory_budget, tried=tried, deadline=config.deadline, **options)
+                          memory_budget=config.memory_budget, tried=tried, deadline=config.deadline, index=index,
+                          **options)
     record.update(levels=tried, budget=budget, smallest=need_min)
     return found
 

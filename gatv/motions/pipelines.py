@@ -17,7 +17,7 @@ import time
 from .. import stages
 from .._validation import check_positive
 from ..errors import InputError
-from ..registration import TIME_LIMIT, reject_exact_options, resolve_pipeline
+from ..registration import TIME_LIMIT, checked_pipeline, reject_exact_options
 from .peeling import peel
 from .result import Segmentation
 from .scans import segment_scans
@@ -120,7 +120,7 @@ def segment(
     """
     t_call = time.perf_counter()
     time_limit = check_positive(time_limit, "time_limit", allow_none=True)
-    chosen, why = resolve_pipeline(source, target, model, pipeline, memory_budget)
+    chosen, why, checked = checked_pipeline(source, target, model, pipeline, memory_budget)
     if grouping not in GROUPINGS + ("auto", "peel"):
         raise InputError(f"Expected `grouping` to be one of {('auto',) + GROUPINGS + ('peel',)}, "
                          f"got {grouping!r}.")
@@ -138,7 +138,7 @@ def segment(
               "refine": refine, "min_inlier_share": min_inlier_share, "confidence": confidence,
               "max_triples": max_triples, "max_judged": max_judged, "sigma": sigma,
               "max_candidates": max_candidates, "memory_budget": memory_budget, "progress": progress}
-    P = stages.prepare(source, target, model)
+    P = stages.prepare(*(checked or (source, target)), model, validated=checked is not None)
     policy = P.model.search_policy()
     if not policy.graph_grouping or grouping in GROUPINGS or (grouping == "auto" and noise is not None):
         out = segment_problem(P, noise=noise, grouping="graph" if grouping == "auto" else grouping, **common)

@@ -82,10 +82,9 @@ from .verdict import chance_verdict
 from .voting import default_sigma, extract_surfaces
 
 __all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "checked_pipeline", "choose_pipeline",
-           "register",
-           "reject_exact_options", "resolve_pipeline", "surface_likeness", "symmetry_rival"]
+           "register", "reject_exact_options", "resolve_pipeline", "surface_likeness", "symmetry_rival"]
 
-# MAX_WORK (gatv.models.base): the default work bound of register's search.
+# MAX_WORK, the default work bound of register's search, is gatv.models.base's (re-exported).
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
 #: machine the work bound alone can take minutes.
 TIME_LIMIT = 60.0

@@ -182,3 +182,13 @@ def test_catadioptric_match_given_image_paths_points_to_detect_corners():
     cam = UnifiedCamera(xi=1.0, fx=300.0, fy=300.0, cx=640.0, cy=512.0)
     with pytest.raises(InputError, match="detect_corners"):
         match("x.png", "y.png", cam)
+
+
+@pytest.mark.parametrize("model", ["rigid", "similarity"])
+def test_register_names_transposed_points_as_transposed(model):
+    """``register(A.T, A.T)`` with A of shape (50, 3) used to advise model='rigid' while the model was rigid."""
+    from gatv.errors import InputError
+
+    a = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(InputError, match=r"transposed: pass `source\.T`"):
+        register(a.T, a.T, model=model)

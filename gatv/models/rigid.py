@@ -68,6 +68,10 @@ def check_dimension(points, name: str, dim: int, model: str) -> None:
     """A clear error for points of the wrong dimension for ``model``."""
     shape = np.shape(coordinates(points))  # PyVista, Open3D, trimesh containers alike
     if len(shape) == 2 and shape[1] != dim:
+        if shape[0] == dim:  # (dim, N): the points are the columns
+            msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}, which "
+                   f"looks transposed: pass `{name}.T`.")
+            raise InputError(msg)
         other = "'affine2d'" if shape[1] == 2 else "'rigid' or 'similarity'"
         msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}; "
                f"for ({shape[0]}, {shape[1]}) points use model={other}.")

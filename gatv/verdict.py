@@ -3,7 +3,7 @@
 "No motion" is an answer.  A motion is reported only when its support (the
 points it brings within its gate of the other set) beats what wrong but
 plausible motions collect on the same data, at a family-wise level that
-accounts for how many motions the search tried.  Two null models give that
+accounts for how many motions the search tried.  Three null models give that
 level:
 
 * ``"poisson"`` — the exact pipeline's (:mod:`gatv.stats`): under a wrong
@@ -11,18 +11,22 @@ level:
   probability the target's density gives, so the count is Poisson; the
   level is its ``1 - alpha / n_tested`` quantile (Bonferroni over the
   motions tried), plus the sample's own points.
-* ``"wrong motions"`` — for surfaces (scans, the catadioptric sphere), where
+* ``"wrong motions"`` — for surfaces (scans), where
   points are not scattered uniformly: wrong motions that lay one surface
   tangentially onto the other and are polished as the search's are
   (:func:`gatv.scans.surface_verdict`) collect what crossing and sliding
   surfaces give; the level is the best of such draws times the gain a
   search's selection among far more motions buys (:data:`SEARCH_GAIN`).
+* ``"local consistency"`` — the non-rigid pipelines' (:mod:`gatv.nonrigid`):
+  the matches that pass the local eq. 41 against the level the hypothesis
+  choice applies to the hypotheses scored.
 
 Every result carries the figures as ``info["verdict"]``
 (:meth:`Verdict.to_dict`): ``support``, ``chance`` (the level), ``n_tested``
-(the motions tried), ``p_value`` (family-wise, an estimate for the
-``"wrong motions"`` null), ``margin`` (support over level), ``passed`` and
-``method``.
+(the motions tried), ``p_value`` (family-wise; an estimate for the
+``"wrong motions"`` null; NaN where the pipeline keeps only its level, as the
+exact search does), ``margin`` (support over level), ``passed`` and
+``method``.  The catadioptric matcher records its sphere's Poisson level.
 """
 
 from __future__ import annotations

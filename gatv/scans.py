@@ -72,6 +72,7 @@ __all__ = [
     "match_surfaces",
     "matching_voxel",
     "plane_noise",
+    "point_icp",
     "pooled_noise",
     "project_to_surface",
     "refine_point_to_plane",
@@ -715,8 +716,8 @@ VERDICT_GATES = 8
 VERDICT_FLOOR = 2.0
 
 
-def _screen_icp(X, Y, tree, R, t, gate, iterations=10):
-    """Point-to-point ICP inside ``gate``: the cheap screen of a wrong start."""
+def point_icp(X, Y, tree, R, t, gate, iterations=10):
+    """Point-to-point ICP inside ``gate``: what a polish does to a wrong start (the verdict's cheap screen)."""
     for _ in range(iterations):
         d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
         ok = np.isfinite(d)
@@ -781,7 +782,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
     ranks = []
     for R, t in starts:
-        R, t = _screen_icp(screen, Ys, tree, R, t, voxel)
+        R, t = point_icp(screen, Ys, tree, R, t, voxel)
         d, _ = tree.query(screen @ R.T + t, k=1, distance_upper_bound=voxel)
         ranks.append(np.count_nonzero(np.isfinite(d)))
     c = Xs.mean(axis=0)

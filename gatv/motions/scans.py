@@ -69,7 +69,17 @@ from ..errors import InputError
 from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
-from ..scans import PLANE_THICKNESS, local_scatter, match_surfaces, thickness, plane_noise, pooled_noise, surface_tokens, tangent_motions
+from ..scans import (
+    PLANE_THICKNESS,
+    local_scatter,
+    match_surfaces,
+    plane_noise,
+    point_icp,
+    pooled_noise,
+    surface_tokens,
+    tangent_motions,
+    thickness,
+)
 from ..verdict import chance_verdict
 from ..voting import vote
 from .segmentation import Segmentation
@@ -207,13 +217,13 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
         # Screen every draw on a smaller sample; only the best-ranked few are polished
         # and counted on the whole sample (the maximum is decided among them).
         screen = sub[rng.choice(sub.shape[0], CHANCE_SCREEN, replace=False)]
-        ranks = [np.count_nonzero(_support(screen, tree, *_icp(screen, Y, tree, R, t, gate, polish), gate))
+        ranks = [np.count_nonzero(_support(screen, tree, *point_icp(screen, Y, tree, R, t, gate, polish), gate))
                  for R, t in starts]
         starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:N_CHANCE_FINAL]]
     best = 0
     for R, t in starts:
         if polish:
-            R, t = _icp(sub, Y, tree, R, t, gate, polish)
+            R, t = point_icp(sub, Y, tree, R, t, gate, polish)
         best = max(best, int(np.count_nonzero(_support(sub, tree, R, t, gate))))
     return int(np.ceil(best * scale))
 
@@ -307,20 +317,6 @@ def displaced_level(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndar
     # at least the Poisson quantile of the same one-sided level, which small counts need
     floor = float(poisson.isf(norm.sf(float(z)), background))
     return DisplacedLevel(coherent(np.zeros(3)), int(np.ceil(max(background + float(z) * spread, floor))))
-
-
-def _icp(X, Y, tree, R, t, gate, iterations):
-    """Point-to-point ICP inside ``gate`` (what a search's polish does to a wrong start)."""
-    for _ in range(int(iterations)):
-        d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
-        ok = np.isfinite(d)
-        if np.count_nonzero(ok) < 3:
-            break
-        R_new, t_new = fit_rigid(X[ok], Y[j[ok]])
-        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
-            break
-        R, t = R_new, t_new
-    return R, t
 
 
 def local_noise(points: np.ndarray, at: np.ndarray, *, k: int = 10, tree: cKDTree | None = None) -> float:

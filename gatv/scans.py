@@ -618,15 +618,16 @@ def register_surfaces(
     if not match:
         return stages.failure(RIGID, info["reason"], info)
     noise = pooled_noise(tx.noise.sigma, ty.noise.sigma)
+    residual = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
     on = Xs[match.pairs[:, 0]]
     flat = thickness(on)
-    # noise-free data: flat to rounding, far below the exact pipeline's finest tolerance (1e-6 spacings)
-    if flat <= PLANE_THICKNESS * max(noise, 1e-6 * median_spacing(Ys)):
-        info.update(thickness=flat, noise=noise)
+    # As thin as the pairs' own residuals (on noise-free data: flat to rounding, far below the
+    # exact pipeline's finest tolerance of 1e-6 spacings): a plane, along which any slide fits.
+    if flat <= PLANE_THICKNESS * max(residual, 1e-6 * median_spacing(Ys)):
+        info.update(thickness=flat, residual_noise=residual)
         return stages.failure(RIGID, (f"degenerate: the {on.shape[0]} supporting points lie on one plane "
-                                      f"(thickness {flat:.3g}, noise {noise:.3g}), along which any slide fits "
-                                      "as well"), info)
-    residual = plane_noise(Xs @ match.rotation.T + match.translation, Ys, nys, match.pairs)
+                                      f"(thickness {flat:.3g}, residual {residual:.3g}), along which any slide "
+                                      "fits as well"), info)
     # Correspondences index the input points.
     kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
     info.update(noise=noise, thickness=flat,
@@ -707,13 +708,9 @@ VERDICT_STREAM = 0x7E4D1C7
 VERDICT_ITERATIONS = 10
 #: Source points each draw is screened on.
 VERDICT_SCREEN = 1000
-#: Most gates the verdict counts supports at: the final gate and its halves
-#: down to its motion's own residual deviation (a true motion's pairs sit at
-#: the noise, a wrong one's fill the gate).
-VERDICT_GATES = 8
-#: The finest gate of the verdict, in robust deviations of the motion's
-#: point-to-plane residuals: about 95% of a true motion's pairs lie within it.
-VERDICT_FLOOR = 2.0
+#: Gates the verdict counts supports at: the final gate and its halves (a true
+#: motion's pairs sit at the noise, a wrong one's fill the gate).
+VERDICT_GATES = 5
 
 
 def point_icp(X, Y, tree, R, t, gate, iterations=10):
@@ -756,10 +753,9 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     coarse-to-fine point-to-plane ICP, ``polish(R, t) -> (R, t, gate, _)``);
     those that end on the motion itself (within 2° and 3 gates at the
     source's centroid) are not wrong ones.  Supports are the source points
-    within ``gate`` of a target point and, at ``gate``'s halves down to
-    :data:`VERDICT_FLOOR` robust deviations of the motion's own
-    point-to-plane residuals (at most :data:`VERDICT_GATES` gates), within
-    that of its tangent plane (``target_normals``): two surfaces
+    within ``gate`` of a target point and, at ``gate``'s halves (
+    :data:`VERDICT_GATES` gates in all), within that of its tangent plane
+    (``target_normals``): two surfaces
     that a wrong motion lays onto each other touch and cross, so its points
     fill the gate, while a right motion's sit at the noise and stay within
     the finer gates.  At each gate the level is the best wrong motion's
@@ -771,12 +767,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     tree = cKDTree(Ys) if tree is None else tree
-    moved = Xs @ R0.T + t0
-    d, j = tree.query(moved, k=1, distance_upper_bound=gate)
-    ok = np.flatnonzero(np.isfinite(d))
-    r = np.einsum("ij,ij->i", moved[ok] - Ys[j[ok]], target_normals[j[ok]])
-    floor = VERDICT_FLOOR * 1.4826 * float(np.median(np.abs(r - np.median(r)))) if ok.size else gate
-    gates = [gate / 2.0**k for k in range(VERDICT_GATES) if k == 0 or gate / 2.0**k >= floor]
+    gates = [gate / 2.0**k for k in range(VERDICT_GATES)]
     found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates)
     starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]

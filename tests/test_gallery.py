@@ -63,8 +63,14 @@ def test_script_shape(script):
     assert module.__doc__.strip().splitlines()[0].strip()
 
 
+#: Figures whose render runs a long pipeline (15-35 s each); their numbers are checked by the fast
+#: tests below (fig08's story, fig15 without the real pair), the renders by ``make test-slow``.
+SLOW_RENDERS = ("fig08_joint_space", "fig12_three_motions", "fig15_catadioptric")
+
+
 @needs_rendering
-@pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])
+@pytest.mark.parametrize("script", [pytest.param(p, marks=pytest.mark.slow) if p.stem in SLOW_RENDERS else p
+                                    for p in SCRIPTS], ids=[p.stem for p in SCRIPTS])
 def test_figure_renders(tmp_path, script, capsys):
     size = (360, 200)
     result = _load(script).main(tmp_path, size=size)

@@ -554,7 +554,9 @@ def test_cli_labelled_ply(tmp_path):
     raw = lab.read_bytes()
     head, body = raw.split(b"end_header\n", 1)
     assert b"property int motion" in head
-    rows = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("motion", "<i4")])
+    assert b"property uchar red" in head  # each motion's colour, which PyVista shows (it drops `motion`)
+    rows = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("motion", "<i4"),
+                                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     assert np.allclose(np.column_stack([rows["x"], rows["y"], rows["z"]]), scene.source, atol=1e-5)
     import json
 

@@ -752,13 +752,13 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     gate; the ``n_polished`` best go through ``polish`` (the search's own
     coarse-to-fine point-to-plane ICP, ``polish(R, t) -> (R, t, gate, _)``);
     those that end on the motion itself (within 2° and 3 gates at the
-    source's centroid) are not wrong ones.  Supports are the source points
-    within ``gate`` of a target point and, at ``gate``'s halves (
-    :data:`VERDICT_GATES` gates in all), within that of its tangent plane
-    (``target_normals``): two surfaces
-    that a wrong motion lays onto each other touch and cross, so its points
-    fill the gate, while a right motion's sit at the noise and stay within
-    the finer gates.  At each gate the level is the best wrong motion's
+    source's centroid) are not wrong ones (when none is left, nothing
+    rivals the motion and it passes).  Supports are the source points
+    within ``gate`` of a target point and, at ``gate``'s halves
+    (:data:`VERDICT_GATES` gates in all), within that of its tangent plane
+    (``target_normals``): two surfaces that a wrong motion lays onto each
+    other touch and cross, so its points fill the gate, while a right
+    motion's sit at the noise and stay within the finer gates.  At each gate the level is the best wrong motion's
     support (plus three of its Poisson deviations, for small counts) times
     the search's gain (:func:`gatv.verdict.wrong_motion_verdict`); the gate
     where the motion stands out most decides.  ``n_tested``: the motions
@@ -781,8 +781,8 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     def judged(wrong):
         wrong = np.array(wrong, dtype=np.float64).reshape(-1, len(gates))
         wrong = wrong + 3.0 * np.sqrt(wrong)  # small counts: three Poisson deviations above each
-        return wrong, [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
-                                             n_looks=len(gates)), g) for i, g in enumerate(gates)]
+        return [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
+                                      n_looks=len(gates)), g) for i, g in enumerate(gates)]
 
     wrong = []
     for k in np.argsort(ranks, kind="stable")[::-1][:n_polished]:
@@ -791,15 +791,16 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         if not same:
             wrong.append(_on_surface(Xs, Ys, target_normals, tree, R, t, gates))
             # More draws only raise the levels: once every gate's is reached, the motion has failed.
-            if not any(v for v, _ in judged(wrong)[1]):
+            if not any(v for v, _ in judged(wrong)):
                 break
-    wrong, per_gate = judged(wrong)
+    per_gate = judged(wrong)
+    wrong = np.array(wrong, dtype=np.int64).reshape(-1, len(gates))
     # The gate where the motion stands out most over its level decides.
     best, g = max(per_gate, key=lambda vg: vg[0].margin)
     figures = {"gates": [float(x) for x in gates], "support": [int(x) for x in found],
                "chance": [float(v.chance) for v, _ in per_gate], "p_value": [float(v.p_value) for v, _ in per_gate],
                "gate": float(g), "wrong_motions": int(wrong.shape[0]), "drawn": int(n_draws),
-               "wrong_support": wrong.astype(int).tolist()}
+               "wrong_support": wrong.tolist()}
     return best, figures
 
 

@@ -82,7 +82,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import os
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -107,7 +106,7 @@ from catadioptric.rotation import (
     voted_seeds,
 )
 from catadioptric.voting import voting_stage
-from gatv._validation import as_rng, check_progress, seed_int
+from gatv._validation import as_rng, check_progress, file_hint, seed_int
 from gatv._validation import frozen_array as _frozen
 from gatv.errors import InputError
 from gatv.motion import rotation_angle_deg
@@ -249,10 +248,9 @@ def _check_pixels(pixels, name: str) -> NDArray[np.float64]:
     if pixels is None:
         msg = f"Expected `{name}` to be an (N, 2) array of pixels, got None."
         raise InputError(msg)
-    if isinstance(pixels, (str, os.PathLike)):
-        msg = (f"Expected `{name}` to be an (N, 2) array of pixels, got the path {str(pixels)!r}; find the "
-               "image's corners first with catadioptric.corners.detect_corners(catadioptric.read_image(path)).")
-        raise InputError(msg)
+    hint = file_hint(pixels, 2)
+    if hint is not None:
+        raise InputError(f"Expected `{name}` to be an (N, 2) array of pixels, got the path {str(pixels)!r}; {hint}.")
     try:
         arr = np.asarray(pixels, dtype=np.float64)
     except (TypeError, ValueError) as exc:

@@ -7,6 +7,7 @@ which argument is wrong and how to fix it, before any numba code runs.
 from __future__ import annotations
 
 import numbers
+import os
 
 import numpy as np
 
@@ -111,10 +112,8 @@ def coordinates(obj):
     return obj
 
 
-def _file_hint(obj, dim: int) -> str | None:
-    """The advice for a file path given where points were expected, else None."""
-    import os
-
+def file_hint(obj, dim: int) -> str | None:
+    """The advice for a file path given where ``dim``-dimensional points were expected, else None."""
     if not isinstance(obj, (str, bytes, os.PathLike)):
         return None
     if dim == 2:
@@ -123,7 +122,7 @@ def _file_hint(obj, dim: int) -> str | None:
     return "read the file first with `gatv.io.read_points(path)`"
 
 
-def _shape_hint(shape: tuple, dim: int) -> str:
+def shape_hint(shape: tuple, dim: int) -> str:
     """Advice for an array of the wrong shape: transpose it when it looks transposed."""
     if len(shape) == 2 and shape[0] == dim and shape[1] != dim:
         return f"; it looks transposed: pass its transpose `.T`, of shape ({shape[1]}, {dim})"
@@ -149,7 +148,7 @@ def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarra
     if obj is None:
         msg = f"Expected `{name}` to be an (N, {dim}) array of points, got None."
         raise InputError(msg)
-    hint = _file_hint(obj, dim)
+    hint = file_hint(obj, dim)
     if hint is not None:
         msg = f"Expected `{name}` to be an (N, {dim}) array of points, got the path {str(obj)!r}; {hint}."
         raise InputError(msg)
@@ -167,7 +166,7 @@ def as_points(obj, name: str, *, min_points: int = 1, dim: int = 3) -> np.ndarra
         msg = f"Expected `{name}` to be an (N, {dim}) array of numbers: {exc}."
         raise InputError(msg) from exc
     if arr.ndim != 2 or arr.shape[1] != dim:
-        msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}{_shape_hint(arr.shape, dim)}."
+        msg = f"Expected `{name}` to have shape (N, {dim}), got {arr.shape}{shape_hint(arr.shape, dim)}."
         raise InputError(msg)
     if arr.shape[0] < min_points:
         msg = (

@@ -192,5 +192,6 @@ def test_register_names_transposed_points_as_transposed(model):
     from gatv.errors import InputError
 
     a = np.random.default_rng(0).normal(size=(50, 3))
-    with pytest.raises(InputError, match=r"transposed: pass `source\.T`"):
+    with pytest.raises(InputError,
+                       match=r"got \(3, 50\); it looks transposed: pass its transpose `\.T`, of shape \(50, 3\)"):
         register(a.T, a.T, model=model)

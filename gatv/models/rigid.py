@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import as_points, coordinates
+from .._validation import as_points, coordinates, shape_hint
 from ..congruent import TargetIndex, trial_motions
 from ..errors import InputError
 from ..fitting import kabsch
@@ -68,10 +68,9 @@ def check_dimension(points, name: str, dim: int, model: str) -> None:
     """A clear error for points of the wrong dimension for ``model``."""
     shape = np.shape(coordinates(points))  # PyVista, Open3D, trimesh containers alike
     if len(shape) == 2 and shape[1] != dim:
-        if shape[0] == dim:  # (dim, N): the points are the columns
-            msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}, which "
-                   f"looks transposed: pass `{name}.T`.")
-            raise InputError(msg)
+        hint = shape_hint(shape, dim)
+        if hint:  # (dim, N): the points are the columns
+            raise InputError(f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}{hint}.")
         other = "'affine2d'" if shape[1] == 2 else "'rigid' or 'similarity'"
         msg = (f"Expected `{name}` to have shape (N, {dim}) for the {model!r} model, got {shape}; "
                f"for ({shape[0]}, {shape[1]}) points use model={other}.")

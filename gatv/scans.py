@@ -640,8 +640,10 @@ def register_surfaces(
 
 #: A motion's supporting points lie on one plane (and the motion can slide
 #: along it) when their spread along their least axis, ``sqrt(λ3)``, is within
-#: this many times the scans' noise: a floor or a wall is as thick as its
-#: noise, any solid object seen from one side far more.
+#: this many times their noise (the final pairs' residual deviation in
+#: :func:`register_surfaces`, the scans' local noise in motion segmentation):
+#: a floor or a wall is as thick as its noise, any solid object seen from one
+#: side far more.
 PLANE_THICKNESS = 3.0
 
 

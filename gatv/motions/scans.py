@@ -66,7 +66,6 @@ from .._validation import (
 )
 from ..candidates import median_spacing
 from ..errors import InputError
-from ..fitting import fit_rigid
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
 from ..scans import (

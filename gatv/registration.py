@@ -13,7 +13,7 @@ similarity model replaces side lengths by their ratios.
 How it works
 ------------
 1. **Trial rotations** (replacing Algorithm 1's exhaustive grid, see
-   :mod:`gatv.congruent`): source triples are matched to congruent target
+   :mod:`gatv.models.rigid.congruent`): source triples are matched to congruent target
    triples; each match gives a trial motion, scored by a cheap density
    test.  A trial built from true matches leaves a residual rotation near
    zero.
@@ -70,7 +70,7 @@ from ._validation import (
     memory_budget_limit,
 )
 from .candidates import bounded_pairs
-from .congruent import TargetIndex, trial_motions
+from .models.rigid.congruent import TargetIndex, trial_motions
 from .errors import InputError
 from .ga import rotation_angle_deg
 from .models import Motion, apply_matrix, get_model

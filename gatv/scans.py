@@ -13,7 +13,7 @@ dense scans) makes the problem fit the method again:
 2. **Downsampling** both scans on one voxel grid, so that corresponding
    points are at most about a voxel apart: the joint-space plane becomes a
    "fuzzy" plane of that thickness.
-3. **Trial motions** from congruent triples (:mod:`gatv.congruent`) with a
+3. **Trial motions** from congruent triples (:mod:`gatv.models.rigid.congruent`) with a
    side-length tolerance of one voxel, pruned by the normals: matched sides
    must agree in the rigid invariants ``|n_i·u|, |n_j·u|, |n_i·n_j|``
    (candidate pairs "that shared a relatively similar orientation only",
@@ -52,7 +52,7 @@ from ._validation import (
     seed_int,
 )
 from .candidates import median_spacing
-from .congruent import TargetIndex, n_triples_needed, trial_motions
+from .models.rigid.congruent import TargetIndex, n_triples_needed, trial_motions
 from .errors import InputError
 from .fitting import fit_rigid
 from .ga import Rotor, rotation_angle_deg

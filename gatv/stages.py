@@ -849,7 +849,7 @@ SEARCH_SHARE = 20000.0
 #: Work units per sample drawn: its draw, reordering and share of the batch.
 SAMPLE_COST = 2.5
 #: Work units per candidate triple of a wide draw (its side windows and
-#: height, :func:`gatv.congruent.trial_motions`' ``wide``).
+#: height, :func:`gatv.models.rigid.congruent.trial_motions`' ``wide``).
 CANDIDATE_COST = 0.5
 #: Work units per congruent match listed but not necessarily scored.
 LIST_COST = 0.2

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gatv import _affine_kernels as K
+from gatv.models.affine2d import kernels as K
 from gatv import stages
-from gatv.congruent import TrialMotions
+from gatv.models.rigid.congruent import TrialMotions
 from gatv.errors import InputError
 from gatv.models import MotionModel, get_model
 from gatv.models.affine2d import MODEL, Affine2DMotion, fit_affine

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gatv import _congruent_kernels as k
-from gatv.congruent import (
+from gatv.models.rigid import congruent_kernels as k
+from gatv.models.rigid.congruent import (
     TargetIndex,
     rarest_side_first,
     sample_triples,
@@ -108,7 +108,7 @@ def test_triple_hypotheses_find_the_best_congruent_triple(seed):
     scores, _, _, _, _, _, _ = k.triple_hypotheses(
         x, y, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx, eps, index.start, index.order,
         index.origin, index.cell, index.dims, radius, 1000, np.zeros((0, 3)), np.zeros((0, 3)), 0.15,
-        # every argument given, as gatv.congruent.trial_motions gives them: omitted array defaults make
+        # every argument given, as gatv.models.rigid.congruent.trial_motions gives them: omitted array defaults make
         # a specialisation numba cannot cache (13 s of compilation in every run)
         0, k._NO_VISIT, 0.0, 0.0, k._NO_OCC, k._ORIGIN, 1.0, k._DIMS, k._HALF_BOX)
     for q in range(tri.shape[0]):
@@ -353,7 +353,7 @@ def test_rarest_side_first_keeps_the_triangles(seed, eps):
 def test_predicted_matches_follow_the_count(seed, eps):
     """``predicted_matches`` (independent sides, 8 w1 w2 w3 / n^3) against the listed count on uniform
     points: the totals over many triples agree within a factor of 2."""
-    from gatv.congruent import predicted_matches
+    from gatv.models.rigid.congruent import predicted_matches
 
     rng = np.random.default_rng(seed)
     x = rng.uniform(-3, 3, (40, 3))
@@ -372,7 +372,7 @@ def test_predicted_matches_follow_the_count(seed, eps):
 def test_first_boxes_hold_the_scored_matches(predicted, max_matches):
     """The first box: none below HALF_BOX_FROM x the scored matches, else at most half the listing's,
     sized to hold FIRST_BOX_MATCHES x them where smaller, and never larger for a triple with more."""
-    from gatv.congruent import FIRST_BOX_MATCHES, HALF_BOX_FROM, first_boxes
+    from gatv.models.rigid.congruent import FIRST_BOX_MATCHES, HALF_BOX_FROM, first_boxes
 
     p = np.asarray(predicted)
     box = first_boxes(p, max_matches)

@@ -23,7 +23,7 @@ CLEAN = (
     "gatv.registration",
     "gatv.stages",
     "gatv.stats",
-    "gatv.congruent",
+    "gatv.models.rigid.congruent",
     "gatv.candidates",
     "gatv.fitting",
     "gatv.motion",

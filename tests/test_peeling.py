@@ -491,7 +491,7 @@ def test_polished_trial_motions_bring_in_their_motion_and_wrong_ones_stay_under_
     """LO-RANSAC's polish (stages.polish_trials) at 4% noise: a trial a few degrees off, as a noisy
     triple's pose is, gets back most of its motion's points within a gate of the noise's size; random
     motions polished the same way stay under the chance level; the trials come back ranked."""
-    from gatv.congruent import TrialMotions
+    from gatv.models.rigid.congruent import TrialMotions
 
     rng = np.random.default_rng(seed)
     rots = Rotation.random(3, random_state=seed).as_matrix()

@@ -18,7 +18,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import gatv
-from gatv.congruent import TrialMotions
+from gatv.models.rigid.congruent import TrialMotions
 from gatv.errors import InputError
 from gatv.models import MotionModel, SearchPolicy, get_model, model_names, register_model
 from gatv.models.base import homogeneous, matrix_residuals

@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import register, stages
-from gatv._congruent_kernels import similar_triple_hypotheses
+from gatv.models.rigid.congruent_kernels import similar_triple_hypotheses
 from gatv._fit_kernels import umeyama3
-from gatv.congruent import TargetIndex
+from gatv.models.rigid.congruent import TargetIndex
 from gatv.datasets import random_rotation, synthetic_trial
 from gatv.errors import InputError
 from gatv.fitting import umeyama

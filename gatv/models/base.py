@@ -51,7 +51,7 @@ from ..errors import InputError
 from ..ga import Rotor, rotation_angle_deg
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..congruent import TrialMotions
+    from .rigid.congruent import TrialMotions
     from ..stages import Tokens
 
 __all__ = ["MAX_MATCHES", "MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "MotionModel", "Motion",

@@ -7,7 +7,7 @@ once the trial motion's linear part ``s R0`` has been applied to the source:
 * **Trial motions** come from *similar* point triples: a similarity keeps
   a triangle's shape, so target triple ``(k, l, m)`` matches source triple
   ``(a, b, c)`` when ``|kl|/|ab| = |km|/|ac| = |lm|/|bc| = s``
-  (:func:`gatv._congruent_kernels.similar_triple_hypotheses`, driven by
+  (:func:`gatv.models.rigid.congruent_kernels.similar_triple_hypotheses`, driven by
   :func:`similar_trial_motions`), with ``s`` in a scale range.
 * **Tokens** are ``d = x' - s R0 x``: for true pairs the residual motion
   after the trial's scale and rotation is near rigid, and they form the
@@ -19,7 +19,7 @@ once the trial motion's linear part ``s R0`` has been applied to the source:
   ``|Δx'|² - k² |Δx|² = 0`` (:func:`residual_scale`), see
   :meth:`Similarity.consistent`.
 * **Scoring** of trials counts distinct target points hit
-  (:func:`gatv._congruent_kernels.count_distinct_inliers`): unlike a
+  (:func:`gatv.models.rigid.congruent_kernels.count_distinct_inliers`): unlike a
   rigid motion, a similarity can shrink the source onto a few target
   points, which a plain inlier count rewards on dense data.
 * The least-squares fit is Umeyama's (:func:`gatv.fitting.umeyama`).
@@ -34,9 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _congruent_kernels as _k
+from .rigid import congruent_kernels as _k
 from .._validation import as_points, check_int
-from ..congruent import TargetIndex, TrialPool, accept_level, sample_triples
+from .rigid.congruent import TargetIndex, TrialPool, accept_level, sample_triples
 from ..errors import InputError
 from ..fitting import umeyama
 from ..stats import chance_support
@@ -221,7 +221,7 @@ def similar_trial_motions(
 ):
     """Draw source triples, match them to similar target triples, score the motions.
 
-    The similarity counterpart of :func:`gatv.congruent.trial_motions`:
+    The similarity counterpart of :func:`gatv.models.rigid.congruent.trial_motions`:
     stops early once a trial's support reaches ``accept`` (default: the
     chance level), after finishing its batch of ``batch`` triples (small,
     as each triple scans all target pairs, ``O(M²)``).
@@ -229,7 +229,7 @@ def similar_trial_motions(
     Parameters
     ----------
     source : (N, 3) ndarray
-    index : gatv.congruent.TargetIndex
+    index : gatv.models.rigid.congruent.TargetIndex
         Its sorted neighbour lists and scoring grid are used.
     eps : float
         Side-length tolerance, **target** units.
@@ -247,7 +247,7 @@ def similar_trial_motions(
 
     Returns
     -------
-    gatv.congruent.TrialMotions
+    gatv.models.rigid.congruent.TrialMotions
         Its ``rotations`` field holds the trial's **linear part** ``s R``
         (not a rotation), so that ``.matrices`` are the trial similarities.
     """
@@ -362,7 +362,7 @@ class Similarity:
 
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
-        """The target's sorted neighbour lists and scoring grid (:class:`gatv.congruent.TargetIndex`)."""
+        """The target's sorted neighbour lists and scoring grid (:class:`gatv.models.rigid.congruent.TargetIndex`)."""
         return TargetIndex(target, radius, memory_budget=memory_budget)
 
     def trial_motions(self, source: np.ndarray, index, **options):

@@ -6,7 +6,7 @@ them, however many there are, and gives each point to at most one.
 
 How it works
 ------------
-1. **One trial search** (:mod:`gatv.congruent`): source triples matched to
+1. **One trial search** (:mod:`gatv.models.rigid.congruent`): source triples matched to
    congruent target triples; *every* trial motion whose support beats
    chance and brings points no earlier trial explains is kept, not only
    the best one.  Triples are drawn from the unexplained source points
@@ -43,7 +43,7 @@ hypothesis's own correspondences (the alternative measured in
 ``benchmarks/motions.py``).
 
 The support threshold comes from the data: the count a wrong motion
-reaches by chance (:func:`gatv.congruent.chance_support`), at the
+reaches by chance (:func:`gatv.models.rigid.congruent.chance_support`), at the
 family-wise level over all hypotheses judged.
 """
 
@@ -63,7 +63,7 @@ from .._validation import (
     check_progress,
 )
 from ..candidates import one_to_one
-from ..congruent import n_triples_needed
+from ..models.rigid.congruent import n_triples_needed
 from ..errors import InputError
 from ..fitting import fit_rigid
 from ..ga import (
@@ -415,7 +415,7 @@ def segment_points(
     min_support : int, optional
         Smallest number of correspondences a motion needs.  Default from
         the data: the support a random motion reaches by chance
-        (:func:`gatv.congruent.chance_support`), at least 3.
+        (:func:`gatv.models.rigid.congruent.chance_support`), at least 3.
     seed : int or numpy.random.Generator, default: 0
         Seed of the random triple sampling; same seed, same result.
     noise : float, optional

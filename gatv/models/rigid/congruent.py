@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _congruent_kernels as _k
-from ._validation import check_memory
-from .models.base import homogeneous
-from .stats import ball_measure, chance_support, samples_needed
+from . import congruent_kernels as _k
+from ..._validation import check_memory
+from ..base import homogeneous
+from ...stats import ball_measure, chance_support, samples_needed
 
 __all__ = [
     "FIRST_BOX_MATCHES",
@@ -242,7 +242,7 @@ def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
     triple predicted to have ``P`` matches lists the box holding
     :data:`FIRST_BOX_MATCHES` × ``max_matches`` (``f = (that / P)^(1/3)``,
     at most 1/2), at about ``f²`` of the listing's work, and doubles it
-    until it answers (:func:`gatv._congruent_kernels.scored_matches`).
+    until it answers (:func:`gatv.models.rigid.congruent_kernels.scored_matches`).
     Below :data:`HALF_BOX_FROM` × ``max_matches`` no smaller box answers
     and the full one is listed at once.
     """

@@ -1,7 +1,7 @@
 """The rigid motion model: ``x' = R x R̃ + t`` (paper, sections 2–4).
 
 Trial motions come from congruent point triples (side lengths survive any
-rigid motion, :mod:`gatv.congruent`); tokens are the differences
+rigid motion, :mod:`gatv.models.rigid.congruent`); tokens are the differences
 ``d = x' - R0 x`` in the ``{dx, dy, dz}`` joint space of eq. 30, where the
 true pairs form the dense pure-translation cluster of section 3.4 (a plane
 normal to the rotation axis when a residual rotation is left); eq. 41,
@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import as_points, coordinates, shape_hint
-from ..congruent import TargetIndex, trial_motions
-from ..errors import InputError
-from ..fitting import kabsch
-from ..ga import eq41_length_residual, eq41_residual
-from ..motion import RigidMotion
-from ..stats import chance_support
-from .base import MAX_WORK, NOISY_SCHEDULE, Motion, SearchPolicy, homogeneous, matrix_residuals
+from ..._validation import as_points, coordinates, shape_hint
+from .congruent import TargetIndex, trial_motions
+from ...errors import InputError
+from ...fitting import kabsch
+from ...ga import eq41_length_residual, eq41_residual
+from ...motion import RigidMotion
+from ...stats import chance_support
+from ..base import MAX_WORK, NOISY_SCHEDULE, Motion, SearchPolicy, homogeneous, matrix_residuals
 
 __all__ = ["MAX_ENUMERATED", "MODEL", "NOISY_MAX_MATCHES", "RIGID_TRIALS", "WIDE", "Rigid", "check_spread",
            "plane_normal"]
@@ -32,13 +32,13 @@ NOISY_MAX_MATCHES = 512
 #: Congruent matches listed per source triple, of which the
 #: ``NOISY_MAX_MATCHES`` tightest are scored.
 MAX_ENUMERATED = 32768
-#: Candidate triples drawn for each one matched (:func:`gatv.congruent.trial_motions`'s
+#: Candidate triples drawn for each one matched (:func:`gatv.models.rigid.congruent.trial_motions`'s
 #: ``wide``): the one with the fewest expected matches is kept.  Fewer chance
 #: matches make both the listing cheaper and the true match rank among the
 #: scored tightest more often; the candidates cost a few searches each.
 WIDE = 128
 #: Options of the rigid model's trial motions in a search (see
-#: :func:`gatv.congruent.trial_motions`); the callers add ``min_share``.
+#: :func:`gatv.models.rigid.congruent.trial_motions`); the callers add ``min_share``.
 RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": True}
 
 #: The rigid model's search: the tolerances continued to real sensors'
@@ -141,11 +141,11 @@ class Rigid:
 
     # ----------------------------------------------------------- trials
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
-        """The target's pair-length table and scoring grid (:class:`gatv.congruent.TargetIndex`)."""
+        """The target's pair-length table and scoring grid (:class:`gatv.models.rigid.congruent.TargetIndex`)."""
         return TargetIndex(target, radius, memory_budget=memory_budget)
 
     def trial_motions(self, source: np.ndarray, index, **options):
-        """Trial motions from congruent triples (:func:`gatv.congruent.trial_motions`)."""
+        """Trial motions from congruent triples (:func:`gatv.models.rigid.congruent.trial_motions`)."""
         return trial_motions(source, index, **options)
 
     # ----------------------------------------------------------- tokens

@@ -17,7 +17,7 @@ How the pieces fit the stages of :mod:`gatv.stages`
   ``sample_knn`` nearest neighbours; in each of its 6 orders it looks up
   target quadruples of the same signature, the base triangles' affine map
   must bring the fourth point onto the target's, and a density test scores
-  the map (:mod:`gatv._affine_kernels`, numba, with a numpy reference).
+  the map (:mod:`gatv.models.affine2d.kernels`, numba, with a numpy reference).
 * **Tokens** are Kang's first joint space ``(x, y, x')`` with ``x`` the
   source moved by the trial's linear part (the stages' convention);
   :meth:`Affine2D.joint_spaces` gives both spaces, and
@@ -41,13 +41,13 @@ from math import comb
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .. import _affine_kernels as _k
-from .._validation import as_points, check_memory
-from ..congruent import TrialPool, accept_level
-from ..errors import InputError
-from ..stats import chance_support
-from .base import DEFAULT_POLICY, Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
-from .rigid import check_dimension, check_spread
+from . import kernels as _k
+from ..._validation import as_points, check_memory
+from ..rigid.congruent import TrialPool, accept_level
+from ...errors import InputError
+from ...stats import chance_support
+from ..base import DEFAULT_POLICY, Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
+from ..rigid import check_dimension, check_spread
 
 __all__ = ["Affine2D", "Affine2DMotion", "AffineIndex", "MODEL", "fit_affine", "Affine2DTrials"]
 
@@ -270,7 +270,7 @@ class Affine2D:
         barycentric signature (``eps``: point tolerance), verifies the 4th
         point and scores the map.  Stops early once a trial reaches
         ``accept`` (default the chance level; ``<= 0`` never stops early).
-        Returns :class:`gatv.congruent.TrialMotions` with ``rotations`` the
+        Returns :class:`gatv.models.rigid.congruent.TrialMotions` with ``rotations`` the
         (K, 2, 2) linear parts and ``translations`` the (K, 2) vectors.
         """
         n = source.shape[0]

@@ -5,7 +5,7 @@ matches ``(a, b, c) <-> (k, l, m)`` are found by looking up target pairs
 of the same length (:func:`triple_hypotheses`); side-length *ratios*
 survive any similarity, so :func:`similar_triple_hypotheses` looks up
 target triangles of the same shape at any scale in a range.  The kernels here are pure: arrays and scalars in,
-arrays out.  :mod:`gatv.congruent` validates input and drives them.
+arrays out.  :mod:`gatv.models.rigid.congruent` validates input and drives them.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ._fit_kernels import triangle_pose, umeyama3
+from ..._fit_kernels import triangle_pose, umeyama3
 
 # Defaults of the optional array arguments (no visiting order, no occupancy grid).
 _NO_VISIT = np.zeros(0, np.int64)
@@ -305,7 +305,7 @@ def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius
     permutation; empty: index order), and the count stops early, returned
     so far, once fewer than ``slope * v + offset`` of the first ``v``
     visited points matched: the rejection boundary of a sequential test of
-    a wrong motion (:func:`gatv.congruent.sequential_boundary`).
+    a wrong motion (:func:`gatv.models.rigid.congruent.sequential_boundary`).
     ``slope = offset = 0`` never stops.
     """
     n, _ = count_inliers_visited(R, t, source, target, start, order, origin, cell, dims, radius, need,

@@ -49,6 +49,9 @@ CLEAN = (
     "gatv.nonrigid.segment",
     "gatv.nonrigid.stages",
     "gatv.voting.api",
+    "gatv.peel_loop",
+    "gatv.motions.scans",
+    "catadioptric.peeling",
 )
 
 #: Edges of a cycle known to be under repair elsewhere, each with why (none now).

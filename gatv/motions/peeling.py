@@ -34,7 +34,9 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
    back to the search for one more pass (``info["returned"]``).
 
 It stops when no trial beats chance, ``max_motions`` motions were found,
-or too few points are left (``info["reason"]`` says which).
+or too few points are left (``info["reason"]`` says which).  Steps 1-3 are
+the search, accept and remove steps of the one peel loop,
+:func:`gatv.peel_loop.peel_loop`, that every several-motion pipeline runs.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from math import gamma
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -60,6 +63,7 @@ from .._validation import (
 )
 from ..errors import InputError
 from ..models.base import split_matrix
+from ..peel_loop import Candidate, Judgement, PeelOutcome, Stop, peel_loop
 from ..stages import Fit, Problem, listed_share
 from ..verdict import chance_verdict
 from .result import Segmentation
@@ -468,7 +472,8 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
     merged: list = []
     dropped: list = []
     while True:
-        reason, exhausted = _peel_rounds(P, config, state, rng, max_motions, report)
+        outcome = _peel_rounds(P, config, state, rng, max_motions, report)
+        reason, exhausted = outcome.reason, outcome.exhausted
         pooled = None
         if noisy and noise is None and len(state.fits) > 1:
             merged.extend(_merge_found(P, state))
@@ -538,19 +543,41 @@ class _PeelState:
         return cls(np.zeros(n1, bool), np.zeros(n2, bool), np.zeros(n1, bool), np.zeros(n2, bool), list(levels))
 
 
-def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motions, report) -> tuple[str, bool]:
+@dataclass(frozen=True, eq=False)
+class _Searched:
+    """A round's search on the points still unexplained (a :class:`gatv.peel_loop.Candidate`'s detail)."""
+
+    found: Any  # stages.search's result
+    S: Problem  # the subproblem searched
+    src: np.ndarray  # its rows in the full problem
+    tgt: np.ndarray
+    record: dict  # the round's log entry so far
+    t_round: float  # when the round started
+
+
+@dataclass(frozen=True, eq=False)
+class _Settled:
+    """A round's motion once judged (a :class:`gatv.peel_loop.Judgement`'s detail)."""
+
+    fit: Fit  # settled at its noise (noisy peel), in the subproblem's rows
+    tolerance: float
+    rejection: dict | None = None  # the rejection's record
+
+
+def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motions, report) -> PeelOutcome:
     """Rounds of search → settle → check → keep on the points still unexplained, until one finds nothing.
 
-    Returns why the rounds stopped and whether for want of a motion to find
-    (not a time or work limit, ``max_motions`` or the rejection limit).
+    :func:`gatv.peel_loop.peel_loop` with this peel's steps.  Its outcome's
+    ``reason`` says why the rounds stopped and ``exhausted`` whether for
+    want of a motion to find (not a time or work limit, ``max_motions`` or
+    the rejection limit).
     """
-    while True:
-        if max_motions is not None and len(state.fits) >= max_motions:
-            return "max_motions reached", False
+
+    def search():
         src, tgt = np.flatnonzero(~state.used_s), np.flatnonzero(~state.used_t)
         need_pts = max(config.sample_points + 1, config.min_support or 0)
         if src.size < need_pts or tgt.size < need_pts:
-            return "too few points left", True
+            return Stop("too few points left", exhausted=True)
         S = _subproblem(P, src, tgt)
         record = {"points": (int(src.size), int(tgt.size))}
         t_round = time.perf_counter()
@@ -558,33 +585,53 @@ def _peel_rounds(P: Problem, config: _Rounds, state: _PeelState, rng, max_motion
         if found is None:
             state.log.append({**record, "time_s": time.perf_counter() - t_round})
             # not the time limit or the work bound: the samples ran out
-            return stages.search_failure(record["levels"], config.time_limit), \
-                not any("stopped" in rec for rec in record["levels"])
-        fit, tol = found.fit, found.tolerance
+            return Stop(stages.search_failure(record["levels"], config.time_limit),
+                        exhausted=not any("stopped" in rec for rec in record["levels"]))
+        return Candidate(found.fit, found.fit.support, _Searched(found, S, src, tgt, record, t_round))
+
+    def accept(candidate: Candidate) -> Judgement:
+        d = candidate.detail
+        fit, tol = d.found.fit, d.found.tolerance
+        if not config.noisy:  # the search's judge kept it against chance already
+            return Judgement(True, "kept", detail=_Settled(fit, tol))
+        fit, tol, rejection = _settle_and_check(P, d.S, config, state, fit, tol, d.src, d.tgt)
+        if rejection is not None:
+            return Judgement(False, "did not beat chance at its noise", detail=_Settled(fit, tol, rejection))
+        return Judgement(True, "kept", detail=_Settled(fit, tol))
+
+    def reject(candidate: Candidate, judgement: Judgement) -> Stop | None:
+        d, settled = candidate.detail, judgement.detail
+        state.log.append({**d.record, "time_s": time.perf_counter() - d.t_round, "rejected": settled.rejection})
+        state.rejected += 1
+        if state.rejected > N_JUDGED or settled.fit.support == 0:
+            return Stop(f"{state.rejected} motions found did not beat the chance level once their noise "
+                        "was measured")
+        return None
+
+    def remove(candidate: Candidate, judgement: Judgement) -> tuple[Fit]:
+        d, settled = candidate.detail, judgement.detail
+        found, fit, tol = d.found, settled.fit, settled.tolerance
         if config.noisy:
-            fit, tol, rejection = _settle_and_check(P, S, config, state, fit, tol, src, tgt)
-            if rejection is not None:
-                state.log.append({**record, "time_s": time.perf_counter() - t_round, "rejected": rejection})
-                state.rejected += 1
-                if state.rejected > N_JUDGED or fit.support == 0:
-                    return (f"{state.rejected} motions found did not beat the chance level once their noise "
-                            "was measured"), False
-                continue
             # One sensor: the next rounds search at the noise measured so far
             # (pooled over the motions found, weighted by support as in
             # pool_noise), not the whole schedule.
             state.measured_noise = _support_weighted_noise([*state.fits, fit], [*state.tolerances, tol])
             state.round_levels = [max(state.measured_noise, config.levels[0])]
-        state.log.append({**record, "time_s": time.perf_counter() - t_round, "support": fit.support, "threshold": found.threshold,
-                          "n_tested": found.n_tested,
+        state.log.append({**d.record, "time_s": time.perf_counter() - d.t_round, "support": fit.support,
+                          "threshold": found.threshold, "n_tested": found.n_tested,
                           "trial_support": found.trial_support, "n_tokens": found.judged.n_tokens,
                           "sigma": found.judged.sigma})
-        kept = np.column_stack([src[fit.correspondences[:, 0]], tgt[fit.correspondences[:, 1]]])
+        kept = np.column_stack([d.src[fit.correspondences[:, 0]], d.tgt[fit.correspondences[:, 1]]])
         state.fits.append(Fit(fit.matrix, kept))
         state.fit_rounds.append(len(state.log) - 1)
         state.tolerances.append(float(tol))
         state.used_s[kept[:, 0]] = True
         state.used_t[kept[:, 1]] = True
+        return (state.fits[-1],)
+
+    # The motions of earlier passes count toward max_motions.
+    left = None if max_motions is None else max_motions - len(state.fits)
+    return peel_loop(search, accept, remove, reject=reject, max_motions=left, full="max_motions reached")
 
 
 def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: dict, report, n_found: int):

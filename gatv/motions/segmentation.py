@@ -74,6 +74,7 @@ from ..ga import (
     joint_space_planes,
 )
 from ..models.base import homogeneous
+from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..stages import Fit, Problem
 from ..verdict import Verdict, chance_verdict
 from .peeling import peel
@@ -299,31 +300,55 @@ def _eq41_graph(P: Problem, pairs, axis, tau):
 
 
 def _dense_components(P: Problem, G, pairs, threshold, gate) -> list[Fit]:
-    """Motions as dense components: peel the k-core from its densest node."""
+    """Motions as dense components: peel the k-core from its densest node.
+
+    The one peel loop (:func:`gatv.peel_loop.peel_loop`) on the eq.-41
+    graph: the search proposes the densest node's neighbourhood in the
+    k-core, the accept step fits it (:func:`gatv.stages.fit_and_gate`) and
+    keeps it when its support reaches ``threshold``; a kept motion's pairs
+    and those sharing a point with them leave the graph, a rejected
+    neighbourhood's nodes leave it too, and the peeling goes on until the
+    core is smaller than ``threshold``.
+    """
     import networkx as nx
 
-    found: list[Fit] = []
     G = G.copy()
     k = max(int(threshold) - 1, 1)
-    while G.number_of_nodes() >= threshold:
+
+    def search():
+        if G.number_of_nodes() < threshold:
+            return Stop("fewer graph nodes than a motion needs", exhausted=True)
         core = nx.k_core(G, k)
         if core.number_of_nodes() < threshold:
-            break
+            return Stop("the k-core is smaller than a motion", exhausted=True)
         v = max(core.degree, key=lambda nd: (nd[1], -nd[0]))[0]
         C = list(core[v]) + [v]
         sub = core.subgraph(C)
         need = 0.5 * (len(C) - 1)
         C = np.asarray(sorted(u for u in C if sub.degree(u) >= need), np.int64)
+        return Candidate(C, int(C.size))
+
+    def accept(candidate: Candidate) -> Judgement:
+        C = candidate.motion
         fit = stages.fit_and_gate(P, pairs, pairs[C], gate) if C.size >= 3 else None
         if fit is None or fit.support < threshold:
-            G.remove_nodes_from(C.tolist())
-            continue
-        found.append(fit)
+            return Judgement(False, "below the threshold")
+        return Judgement(True, "kept", detail=fit)
+
+    def set_aside(candidate: Candidate, judgement: Judgement) -> None:
+        G.remove_nodes_from(candidate.motion.tolist())
+        return None
+
+    def remove(candidate: Candidate, judgement: Judgement) -> tuple[Fit]:
+        fit = judgement.detail
         kept = fit.correspondences
         used_s, used_t = set(kept[:, 0].tolist()), set(kept[:, 1].tolist())
         G.remove_nodes_from([u for u in list(G.nodes) if int(pairs[u, 0]) in used_s
                              or int(pairs[u, 1]) in used_t])
-    return found
+        return (fit,)
+
+    # a round that sets a neighbourhood aside takes its densest node at least out of the graph
+    return list(peel_loop(search, accept, remove, reject=set_aside, max_rounds=G.number_of_nodes() + 1).found)
 
 
 def _resolve(P: Problem, motions: list[Fit], tokens, threshold, gate, rounds=3):

@@ -44,6 +44,9 @@ found"):
    A plane that the identity explains (a floor, a wall) is kept as the
    static part and also listed as degenerate: a slide along it would fit
    as well.
+
+Steps 2 to 4 are the search, accept, reject and remove steps of the one
+peel loop, :func:`gatv.peel_loop.peel_loop`.
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ from ..candidates import median_spacing
 from ..errors import InputError
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
+from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..scans import (
     PLANE_THICKNESS,
     local_scatter,
@@ -469,6 +473,16 @@ def register_part(X: np.ndarray, Y: np.ndarray, src: np.ndarray, tgt: np.ndarray
     return ((match.rotation, match.translation) if match else None), info
 
 
+@dataclass(frozen=True, eq=False)
+class _PartSearch:
+    """One round's part and its search (a :class:`gatv.peel_loop.Candidate`'s detail)."""
+
+    part: np.ndarray  # its source rows
+    smallest: int  # the least support a part needs (the chance level among the unexplained points)
+    feature_tol: float  # the tolerance on its triples' normal invariants
+    found_info: dict  # register_part's diagnostics
+
+
 def segment_scans(source, target, *, max_motions: int | None = None, seed=0, confidence: float = 0.999,
                   max_triples: int | None = None, n_judged: int = 4, refine: bool = True,
                   memory_budget: float | None = None, scan_options: dict | None = None,
@@ -628,11 +642,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
     judge(np.eye(3), np.zeros(3), "identity", np.arange(n1), {})
     tried = np.zeros(n1, bool)  # source points of parts whose best motion was rejected
     widened = np.zeros(n1, bool)  # ... once, and searched again with wider normal invariants
-    reason = ""
-    while True:
-        if max_motions is not None and len(kept) >= max_motions:
-            reason = "max_motions reached"
-            break
+
+    def search_part():
+        """The largest unexplained part not set aside, registered (:func:`register_part`); or why none is left."""
         open_s = np.flatnonzero(free_s & ~tried)
         tgt = np.flatnonzero(free_t)
         # a part whose unexplained points are fewer than the chance level among them cannot beat it
@@ -645,9 +657,8 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         regs = [open_s[r] for r in regions(X[open_s], gate, min_points=smallest)] if open_s.size else []
         parts = sorted((p for p in (r[~static_s[r]] for r in regs) if p.size >= smallest), key=len, reverse=True)
         if not parts or tgt.size < 10:
-            reason = ("no unexplained part of the scene is left that a motion could explain beyond the "
-                      "chance level" if tgt.size >= 10 else "too few target points left")
-            break
+            return Stop("no unexplained part of the scene is left that a motion could explain beyond the "
+                        "chance level" if tgt.size >= 10 else "too few target points left", exhausted=True)
         part = parts[0]
         report(float(1.0 - open_s.size / n1), f"round {len(rounds)}: part of {part.size} points, "
                                               f"{open_s.size} source points left")
@@ -658,26 +669,48 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
                                           **dict(options, feature_tol=feature_tol))
         # The part's newest search decides: an ambiguity reported on an earlier search of it goes.
         ambiguous[:] = [(a, p) for a, p in ambiguous if np.isin(p, part).mean() <= 0.5]
-        if found is None:
-            rounds.append({"kind": "search", "part": int(part.size), "feature_tol": feature_tol, "verdict": "none",
-                           "reason": found_info.get("reason", "")})
-            verdict = "none"
-        else:
-            extra = {"part": int(part.size), "feature_tol": feature_tol, "ambiguous": found_info.get("ambiguous"),
-                     "voxel": found_info.get("voxel")}
-            if found_info.get("rival"):
-                extra["rival_angle_deg"] = float(found_info["rival"]["angle_deg"])
-            verdict = judge(*found, "search", part, extra, least=smallest)
-        if verdict in ("none", "chance", "noise", "ambiguous"):
-            # Searched again once with wider normal invariants (WIDER_NORMALS), then set aside.
+        # found None: the part's search found nothing; the round is judged "none" (set aside below)
+        return Candidate(found, 0, _PartSearch(part, smallest, feature_tol, found_info))
+
+    def judge_part(candidate: Candidate) -> Judgement:
+        """:func:`judge`'s verdict on the part's motion (``"none"`` when its search found nothing)."""
+        d = candidate.detail
+        if candidate.motion is None:
+            rounds.append({"kind": "search", "part": int(d.part.size), "feature_tol": d.feature_tol,
+                           "verdict": "none", "reason": d.found_info.get("reason", "")})
+            return Judgement(False, "none")
+        extra = {"part": int(d.part.size), "feature_tol": d.feature_tol, "ambiguous": d.found_info.get("ambiguous"),
+                 "voxel": d.found_info.get("voxel")}
+        if d.found_info.get("rival"):
+            extra["rival_angle_deg"] = float(d.found_info["rival"]["angle_deg"])
+        verdict = judge(*candidate.motion, "search", d.part, extra, least=d.smallest)
+        return Judgement(verdict == "kept", verdict)
+
+    def set_aside(candidate: Candidate, judgement: Judgement) -> None:
+        """A rejected part is searched again once with wider normal invariants (:data:`WIDER_NORMALS`), then
+        set aside; a degenerate one has left the pool already (:func:`judge`)."""
+        if judgement.reason in ("none", "chance", "noise", "ambiguous"):
+            part = candidate.detail.part
             if widened[part].all():
                 tried[part] = True
             widened[part] = True
-        elif verdict == "kept":
-            # The parts searched in vain so far are searched again: the kept motion's target
-            # points have left the pool, and with them the surfaces that a part's wrong motion
-            # laid it onto (an object searched before a larger one whose surfaces it also fits).
-            tried[:] = False
+        return None
+
+    def search_again(candidate: Candidate, judgement: Judgement) -> tuple:
+        """The kept motion (:func:`judge`, shared with the identity's round, took its points out of the pool).
+
+        The parts searched in vain so far are searched again: the kept motion's target
+        points have left the pool, and with them the surfaces that a part's wrong motion
+        laid it onto (an object searched before a larger one whose surfaces it also fits).
+        """
+        tried[:] = False
+        return (kept[-1],)
+
+    # the identity, when kept, counts toward max_motions
+    outcome = peel_loop(search_part, judge_part, search_again, reject=set_aside,
+                        max_motions=None if max_motions is None else max_motions - len(kept),
+                        full="max_motions reached")
+    reason = outcome.reason
 
     # Labels: each point to the kept motion that brings it closest to the other scan.
     src_lab = np.full(n1, -1, np.int64)

@@ -11,7 +11,8 @@ independently become two motions even when one smooth warp was fitted
 through both; each part with enough support is a motion; its matched points
 and the unmatched points lying among them (within one spacing) leave the
 pool, and the search repeats until nothing beats chance.  The number of
-motions is not given.
+motions is not given.  The rounds are the one peel loop,
+:func:`gatv.peel_loop.peel_loop`, with the registration as its search step.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from scipy.spatial import cKDTree
 from .._validation import as_points, check_fraction, check_int, check_progress, seed_int
 from .._validation import frozen_array as _frozen
 from ..candidates import median_spacing
+from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..verdict import chance_verdict
 from .motion import NonRigidMotion
 from .multiscale import motion_parts
@@ -152,20 +154,19 @@ def segment(
     tgt_lab = np.full(Y.shape[0], -1, np.int64)
     motions: list[NonRigidMotion] = []
     rounds: list[dict] = []
-    reason = f"reached max_motions={max_motions}"
-    while len(motions) < max_motions:
+
+    def search():
+        """:func:`register` on the rows no motion explains yet; or why there is nothing to register."""
         rs, rt = np.flatnonzero(src_lab < 0), np.flatnonzero(tgt_lab < 0)
         if min(rs.size, rt.size) < least:
-            reason = "fewer unexplained points than a motion needs"
-            break
+            return Stop("fewer unexplained points than a motion needs", exhausted=True)
         report(len(motions) / max_motions, f"round {len(rounds) + 1}: {rs.size} x {rt.size} points")
         t0 = time.perf_counter()
         try:
             m = register(X[rs], Y[rt], seed=base_seed + len(rounds), strain=strain, **options)
         except ValueError as exc:  # e.g. the remaining points are collinear
             if "collinear" in str(exc) or "identical" in str(exc):
-                reason = f"the remaining points have no structure ({exc})"
-                break
+                return Stop(f"the remaining points have no structure ({exc})", exhausted=True)
             raise
         record = {"support": m.support, "hypothesis": m.info.get("hypothesis"),
                   "hypotheses": m.info.get("hypotheses"), "prealign": m.info.get("prealign"),
@@ -173,28 +174,41 @@ def segment(
                   "local_windows": m.info.get("local_windows"), "time_s": time.perf_counter() - t0,
                   "verdict": _round_verdict(m, m.support, least)}
         rounds.append(record)
+        return Candidate(m, m.support, _Registered(rs, rt, record))
+
+    def accept(candidate: Candidate) -> Judgement:
+        """Kept when the registration reaches ``least`` and splits into at least one part that does."""
+        m, d = candidate.motion, candidate.detail
         if m.support < least:
-            reason = m.info.get("reason", "no motion beats chance among the remaining points")
-            break
-        pairs = np.column_stack([rs[m.correspondences[:, 0]], rt[m.correspondences[:, 1]]])
-        gate = float(m.info.get("gate", 0.5 * median_spacing(Y[rt])))
+            return Judgement(False, m.info.get("reason", "no motion beats chance among the remaining points"))
+        pairs = np.column_stack([d.rs[m.correspondences[:, 0]], d.rt[m.correspondences[:, 1]]])
+        gate = float(m.info.get("gate", 0.5 * median_spacing(Y[d.rt])))
         parts = motion_parts(X[pairs[:, 0]], Y[pairs[:, 1]], strain, gate)
         sizes = np.bincount(parts)
-        record["parts"] = sizes.tolist()
-        added = 0
-        for p in np.flatnonzero(sizes >= least):
+        d.record["parts"] = sizes.tolist()
+        if not np.any(sizes >= least):
+            return Judgement(False, "the registration's matches split into parts too small to count")
+        return Judgement(True, "kept", detail=_Parts(pairs, parts, sizes))
+
+    def remove(candidate: Candidate, judgement: Judgement) -> list[NonRigidMotion]:
+        """Each part with enough support a motion, up to ``max_motions``; its rows leave the pool."""
+        m, d = candidate.motion, judgement.detail
+        added = []
+        for p in np.flatnonzero(d.sizes >= least):
             if len(motions) >= max_motions:
                 break
-            sel = pairs[parts == p]
-            motions.append(_sub_motion(m, parts == p, sel))
-            motions[-1].info["verdict"] = _round_verdict(m, int(sizes[p]), least)
+            sel = d.pairs[d.parts == p]
+            motions.append(_sub_motion(m, d.parts == p, sel))
+            motions[-1].info["verdict"] = _round_verdict(m, int(d.sizes[p]), least)
             label = len(motions) - 1
             src_lab[sel[:, 0]] = label
             tgt_lab[sel[:, 1]] = label
-            added += 1
-        if added == 0:
-            reason = "the registration's matches split into parts too small to count"
-            break
+            added.append(motions[-1])
+        return added
+
+    reason = peel_loop(search, accept, remove, max_motions=max_motions,
+                       full=f"reached max_motions={max_motions}").reason
+
     # unmatched rows among a motion's matched points carry its label
     for k, mo in enumerate(motions):
         _absorb(X, src_lab, mo.correspondences[:, 0], k)
@@ -214,6 +228,24 @@ def segment(
         info["stopped"] = reason
     report(1.0, f"done: {len(motions)} motions")
     return NonRigidSegmentation([motions[i] for i in order], remap[src_lab], remap[tgt_lab], info)
+
+
+@dataclass(frozen=True, eq=False)
+class _Registered:
+    """A round's registration on the unexplained rows (a :class:`gatv.peel_loop.Candidate`'s detail)."""
+
+    rs: np.ndarray  # the source rows registered
+    rt: np.ndarray  # the target rows
+    record: dict  # the round's entry of info["rounds"]
+
+
+@dataclass(frozen=True, eq=False)
+class _Parts:
+    """The matches of an accepted registration split into continuously moving parts."""
+
+    pairs: np.ndarray  # the matches, in input rows
+    parts: np.ndarray  # each match's part
+    sizes: np.ndarray  # matches per part
 
 
 def _round_verdict(m: NonRigidMotion, support: int, least: float) -> dict:

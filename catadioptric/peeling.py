@@ -8,6 +8,7 @@ rigidly maps the rays by a homography of the sphere
 keeps it when it beats the chance level of those rays and is not more of
 an earlier motion, and repeats (the peeling of section 5 of Reyes, Medioni
 & Bayro, IJCV 2007, on the sphere). Each motion is a :class:`SphereMotion`.
+The rounds are the one peel loop of gatv, :func:`gatv.peel_loop.peel_loop`.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from catadioptric.rotation import gated_pairs
 from gatv._validation import frozen_array as _frozen
 from gatv.fitting import kabsch
 from gatv.motion import rotation_angle_deg
+from gatv.peel_loop import Candidate, Judgement, Stop, peel_loop
 from gatv.stats import chance_support
 
 if TYPE_CHECKING:
@@ -236,6 +238,14 @@ def make_plane_motion(H, pairs, r1, r2, index1, index2, info) -> SphereMotion:
     return SphereMotion(out, "plane", R, t, H, info)
 
 
+@dataclass(frozen=True, eq=False)
+class _Plane:
+    """A plane the search found (a :class:`gatv.peel_loop.Candidate`'s detail)."""
+
+    pairs: NDArray[np.int64]  # its pairs in ray rows
+    info: dict  # the plane stage's diagnostics, the motion's info
+
+
 def peel(motions, r1, r2, s1, s2, index1, index2, noise, rng, *, max_motions, progress, info):
     """Further motions on the rays the ``motions`` so far leave unexplained.
 
@@ -246,7 +256,9 @@ def peel(motions, r1, r2, s1, s2, index1, index2, noise, rng, *, max_motions, pr
     the peeling stopped.
     """
     gate = GATE_SIGMAS * math.sqrt(2.0) * noise
-    while len(motions) < max_motions:
+
+    def search():
+        """The plane stage on the rays no motion explains yet (:func:`plane_motion`); or why none beats chance."""
         used1 = np.zeros(r1.shape[0], bool)
         used2 = np.zeros(r2.shape[0], bool)
         for _, p in motions:
@@ -258,19 +270,34 @@ def peel(motions, r1, r2, s1, s2, index1, index2, noise, rng, *, max_motions, pr
         found = plane_motion(r1, r2, s1, s2, rows1, rows2, gate, rng, pinfo)
         info.setdefault("peel", []).append({k: v for k, v in pinfo.items() if k != "plane_tie"})
         if found is None:
-            info["peel_reason"] = pinfo.get("plane_reason", "no further motion")
-            return motions
+            return Stop(pinfo.get("plane_reason", "no further motion"), exhausted=True)
         H, pairs = found
+        return Candidate(H, int(pairs.shape[0]), _Plane(pairs, pinfo))
+
+    def accept(candidate: Candidate) -> Judgement:
+        """Rejected when the plane's pairs are mostly more of an earlier motion (``PEEL_OVERLAP``)."""
+        pairs, pinfo = candidate.detail.pairs, candidate.detail.info
         if motions:
             old = np.vstack([p for _, p in motions])
             share = float(np.mean(fits_motion(pairs, old, r1, r2, s1, s2)))
             pinfo["earlier_share"] = share
             if share > PEEL_OVERLAP:
-                info["peel_reason"] = (f"the next plane's {pairs.shape[0]} pairs are {share:.0%} an "
-                                       f"earlier motion's")
-                return motions
+                return Judgement(False, f"the next plane's {pairs.shape[0]} pairs are {share:.0%} an "
+                                        f"earlier motion's")
+        return Judgement(True, "kept")
+
+    def remove(candidate: Candidate, judgement: Judgement) -> tuple:
+        """The plane's rays out of the pool, with those earlier motions took from it (:func:`reclaim`)."""
+        H, pairs, pinfo = candidate.motion, candidate.detail.pairs, candidate.detail.info
+        if motions:
             updated, pairs = reclaim(motions, H, pairs, r1, r2, s1, s2, index1, index2, pinfo)
             motions[:] = updated
         motions.append((make_plane_motion(H, pairs, r1, r2, index1, index2, pinfo), pairs))
-    info["peel_reason"] = f"max_motions = {max_motions} reached"
+        return (motions[-1],)
+
+    # the motions given (the dominant one) count toward max_motions; reclaim may change them, so
+    # ``motions``, not the loop's outcome, holds the result
+    outcome = peel_loop(search, accept, remove, max_motions=max_motions - len(motions),
+                        full=f"max_motions = {max_motions} reached")
+    info["peel_reason"] = outcome.reason
     return motions

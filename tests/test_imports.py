@@ -51,6 +51,8 @@ CLEAN = (
     "gatv.voting.api",
     "gatv.peel_loop",
     "gatv.motions.scans",
+    "gatv.motions.instance_search",
+    "gatv.motions.tracking",
     "catadioptric.peeling",
 )
 

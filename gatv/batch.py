@@ -2,8 +2,8 @@
 
 A registration study is thousands of independent pairs.  :func:`run` takes a
 table of pairs (a CSV file with the columns ``source`` and ``target``, or a
-list of mappings), runs one command (``register``, ``segment`` or
-``nonrigid``) on each row and writes one JSON per row, with the schema of
+list of mappings), runs one command (``register``, ``segment``,
+``instances`` or ``nonrigid``) on each row and writes one JSON per row, with the schema of
 ``gatv register --out`` (the same record: ``source``, ``target``, sizes,
 ``seed``, ``options``, ``success``, ``time_s``, the result's ``to_dict()``
 including its 4×4 ``matrix``, ``info``), plus a ``batch`` block naming the
@@ -96,7 +96,8 @@ __all__ = [
 ]
 
 #: Commands a batch can run.
-COMMANDS = ("register", "segment", "nonrigid")
+#: ``instances`` reads ``source`` as the model and ``target`` as the scene.
+COMMANDS = ("register", "segment", "instances", "nonrigid")
 
 #: Values of the ``model`` column: the registry's models (a model of 2D points
 #: fails its rows with the model's own message).
@@ -154,6 +155,8 @@ ROW_OPTIONS: dict[str, dict[str, Callable]] = {
                  "max_translation": _float, "noise": _float, "scans": _bool},
     "segment": {"seed": _int, "model": _choice(_MODELS), "max_motions": _int, "min_support": _int,
                 "noise": _float},
+    "instances": {"seed": _int, "max_instances": _int, "pipeline": _choice(("auto", "exact", "scans")),
+                  "time_limit": _float},
     "nonrigid": {"seed": _int, "max_displacement": _float, "noise": _float,
                  "prealign": _choice(tuple(_PREALIGN))},
 }
@@ -226,7 +229,7 @@ def read_pairs(pairs, *, command: str = "register", seed: int = 0, defaults: Map
         (the stem of the row's JSON; default ``row-00012``) and the
         command's options of :data:`ROW_OPTIONS` (``seed``, ``model``,
         ``noise``...; dashes and underscores alike).
-    command : {"register", "segment", "nonrigid"}, default: "register"
+    command : {"register", "segment", "instances", "nonrigid"}, default: "register"
     seed : int, default: 0
         Seed of the rows without a ``seed`` cell.
     defaults : mapping, optional
@@ -360,6 +363,8 @@ def _call(task: Task):
         from .registration import register as fn
     elif task.command == "segment":
         from .motions import segment as fn
+    elif task.command == "instances":
+        from .motions import instances as fn
     else:
         from .nonrigid import register as fn
 
@@ -838,7 +843,7 @@ def run(pairs, out, *, command: str = "register", scheduler="auto", workers: int
         ``row-0000k``); a motion found with a 4×4 matrix also to
         ``out/<name>.txt`` (:func:`gatv.io.write_matrix`, the text Open3D's
         examples load with ``numpy.loadtxt``).
-    command : {"register", "segment", "nonrigid"}, default: "register"
+    command : {"register", "segment", "instances", "nonrigid"}, default: "register"
     scheduler : "auto", "local", "serial", str or Client, default: "auto"
         Where the rows run (see the module docstring and :func:`connect`).
         ``"auto"``: here, one after the other, until the rows' measured

@@ -10,6 +10,7 @@ closest pose through a short sequence.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -278,3 +279,68 @@ def test_copies_of_a_real_mesh_cut_by_planes():
     for m, j in zip(found, _match(found, poses, model)):
         angle, shift = _errors(m, poses[j])
         assert angle < 0.1 and shift < 1e-3 * size
+
+
+# ------------------------------------------------------------------ command line
+@pytest.fixture(scope="module")
+def point_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("instances")
+    model = _model(0, 50)
+    np.savetxt(folder / "model.xyz", model)
+    frames = []
+    for f in range(2):
+        path = folder / f"frame{f}.xyz"
+        np.savetxt(path, _scene(model, _poses(2, seed=f), 30, f)[0])
+        frames.append(path)
+    return folder, folder / "model.xyz", frames
+
+
+def test_cli_instances_writes_every_output(point_files, capsys):
+    from gatv import cli
+
+    folder, model, frames = point_files
+    out, labelled = folder / "found.json", folder / "labels.ply"
+    assert cli.main(["instances", str(model), str(frames[0]), "--out", str(out), "--labelled", str(labelled),
+                     "-q"]) == 0
+    record = json.loads(out.read_text())
+    assert record["success"] and record["n_instances"] == 2 and len(record["motions"]) == 2
+    labels = read_points(labelled, scalars=True)[1]["motion"]
+    assert sorted(set(labels.tolist())) == [-1, 0, 1]
+
+
+def test_cli_track_writes_identities(point_files):
+    from gatv import cli
+
+    folder, model, frames = point_files
+    out = folder / "track.json"
+    assert cli.main(["track", str(model), *map(str, frames), "--out", str(out), "-q"]) == 0
+    record = json.loads(out.read_text())
+    assert record["n_frames"] == 2 and record["n_identities"] == 2
+    assert [sorted(f["identities"]) for f in record["frames"]] == [[0, 1], [0, 1]]
+
+
+def test_cli_bad_input_exits_2_with_nothing_written(point_files, capsys):
+    from gatv import cli
+
+    folder, model, frames = point_files
+    tiny = folder / "tiny.xyz"
+    np.savetxt(tiny, _model(0, 3))
+    out = folder / "never.json"
+    assert cli.main(["instances", str(tiny), str(frames[0]), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "`model`" in err[0]
+    assert cli.main(["instances", str(model), str(frames[0]), "--labelled", str(folder / "l.txt")]) == 2
+    assert cli.main(["instances", str(model), str(frames[0]), "--max-instances", "0"]) == 2
+    assert cli.main(["track", str(model), str(folder / "missing.xyz"), "--out", str(out)]) == 2
+    assert not out.exists() and not (folder / "l.txt").exists()
+
+
+def test_batch_runs_instances(point_files):
+    from gatv.batch import run
+
+    folder, model, frames = point_files
+    rows = [{"source": str(model), "target": str(f), "name": f"scene{k}"} for k, f in enumerate(frames)]
+    result = run(rows, folder / "batch", command="instances", scheduler="serial")
+    assert result and result.counts()["found"] == 2
+    record = json.loads((folder / "batch" / "scene0.json").read_text())
+    assert record["n_instances"] == 2

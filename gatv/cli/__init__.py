@@ -1,4 +1,5 @@
-"""Command-line interface: ``gatv register``, ``segment``, ``nonrigid``, ``catadioptric``, ``batch``, ``demo`` and ``warmup``.
+"""Command-line interface: ``gatv register``, ``segment``, ``instances``, ``track``, ``nonrigid``,
+``catadioptric``, ``batch``, ``demo`` and ``warmup``.
 
 Installed as the ``gatv`` console script and runnable as ``python -m gatv``.
 
@@ -33,6 +34,8 @@ __all__ = ["COMMANDS", "build_parser", "command", "main"]
 COMMANDS = {
     "register": "register",
     "segment": "segment",
+    "instances": "instances",
+    "track": "track",
     "nonrigid": "nonrigid",
     "catadioptric": "catadioptric",
     "batch": "batch",

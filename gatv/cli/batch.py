@@ -41,7 +41,7 @@ def add_parser(subparsers):
     columns = "; ".join(f"{c}: {', '.join(o)}" for c, o in ROW_OPTIONS.items())
     p = subparsers.add_parser(
         NAME,
-        help="run register, segment or nonrigid on every row of a CSV of pairs (Dask)",
+        help="run register, segment, instances or nonrigid on every row of a CSV of pairs (Dask)",
         description=(
             "Run a command on every row of PAIRS (a CSV with the columns source and target; "
             "relative paths are relative to the CSV's folder; optional columns: name, and the "

@@ -169,9 +169,16 @@ def test_two_motions_static_scene_and_moved_board(two_motions):
     p, r = correspondence_stats(first.correspondences, static)
     assert p >= 0.95 and r >= 0.8
     assert second.strategy == "plane" and second.homography is not None
-    assert rotation_error_deg(second.rotation, Rotation.from_rotvec(np.radians(25.0) * np.array([0.3, 0.9, 0.3])
-                              / np.linalg.norm([0.3, 0.9, 0.3])).as_matrix()) < 3.0 or len(
-        second.info["plane_solutions"]) > 1
+    # the board's motion, whatever the number of plane solutions: the one reported is the truth
+    # (measured 2.4 deg, its translation direction 3.4 deg and its plane's normal 2.8 deg off)
+    turn = Rotation.from_rotvec(np.radians(25.0) * np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3]))
+    Rb, tb = _pose([0.8, 0.3, 0.5], 1.0, 20.0, 0)
+    t_true = tb - turn.as_matrix() @ tb + np.array([0.05, -0.08, 0.04])
+    assert rotation_error_deg(second.rotation, turn.as_matrix()) < 3.0
+    cos_t = second.translation @ t_true / (np.linalg.norm(second.translation) * np.linalg.norm(t_true))
+    assert np.degrees(np.arccos(min(1.0, cos_t))) < 6.0
+    normals = [np.asarray(sol["normal"]) for sol in second.info["plane_solutions"]]
+    assert min(np.degrees(np.arccos(min(1.0, abs(n @ Rb[:, 2]) / np.linalg.norm(n)))) for n in normals) < 5.0
     p, r = correspondence_stats(second.correspondences, board)
     assert p >= 0.95 and r >= 0.8
     # the top level holds every motion's matches, one-to-one
@@ -220,18 +227,49 @@ def test_unknown_strategy_lists_voting():
 
 
 # ------------------------------------------------------------ the paper's method
-def test_voting_strategy_returns_one_to_one_pairs_or_a_reason():
+def test_voting_strategy_reports_what_its_stages_did():
+    """strategy="voting" on an outlier-free pure rotation (seed 5): the paper's surface keeps few
+    true pairs here (design notes, section 10), and the result says why it returns nothing, with
+    numbers that hold: each stage keeps at most what the one before it had, and the rival that
+    makes the match ambiguous does beat both the chance level and RIVAL_RATIO of its pairs."""
+    from catadioptric.constants import RIVAL_RATIO
+
     v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.0, seed=5)
     m = match(v.pixels1, v.pixels2, v.camera1, strategy="voting", max_motions=1)
-    if m:
-        assert m.strategy == "voting"
-        c = m.correspondences
-        assert len(np.unique(c[:, 0])) == len(np.unique(c[:, 1])) == len(c)
-        assert {"voting_candidates", "voting_tokens_kept", "voting_eq41_passed"} <= set(m.info)
-    else:
-        # below the chance level, or its matches have a rival (repeated structure)
-        assert m.strategy == "none" and not m.motions
-        assert m.info.get("voting_reason") or m.info["reason"].startswith("ambiguous")
+    i = m.info
+    assert i["voting_candidates"] >= i["voting_tokens_kept"] >= i["voting_eq41_passed"] >= i["voting_support"] > 0
+    assert not m and m.strategy == "none" and not m.motions and m.support == 0
+    assert i["reason"] == (f"ambiguous (repeated structure): the voting match of {i['voting_support']} pairs "
+                           f"has a rival with other partners for {i['rival_support']} rays")
+    assert i["ambiguous_strategy"] == "voting" and i["ambiguous_support"] == i["voting_support"]
+    assert i["rival_support"] >= max(i["chance_support"], RIVAL_RATIO * i["voting_support"])
+
+
+def test_voting_strategy_match_beats_chance_one_to_one():
+    """Seed 1 of the same scene: a voting match is returned, one-to-one, above the chance level."""
+    from catadioptric.constants import RIVAL_RATIO
+
+    v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.0, seed=1)
+    m = match(v.pixels1, v.pixels2, v.camera1, strategy="voting", max_motions=1)
+    assert m and m.strategy == "voting"
+    c = m.correspondences
+    assert len(np.unique(c[:, 0])) == len(np.unique(c[:, 1])) == len(c) == m.info["voting_support"]
+    assert len(c) >= m.info["chance_support"]
+    assert m.info["rival_support"] < max(m.info["chance_support"], RIVAL_RATIO * len(c))
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "strategy='voting' does not recover an outlier-free pure camera rotation of 150 corners: over "
+    "seeds 0-7 it returns nothing (below chance, or 'ambiguous' against a rival that is the true "
+    "matching, 119-125 rays) or 18-31 pairs at 52-61% precision (seeds 1, 2); the tensor voting "
+    "keeps 68-159 of ~1,100 candidates (design notes: the surface's saliency AUC is 0.55-0.71)"))
+def test_voting_strategy_recovers_a_pure_rotation():
+    for seed in (1, 5):
+        v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.0, seed=seed)
+        m = match(v.pixels1, v.pixels2, v.camera1, strategy="voting", max_motions=1)
+        assert m and m.strategy == "voting", m.info.get("reason")
+        precision, recall = correspondence_stats(m.correspondences, v.pairs)
+        assert precision >= 0.9 and recall >= 0.5, (seed, precision, recall)
 
 
 def test_voting_chart_is_equidistant():

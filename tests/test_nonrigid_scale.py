@@ -415,19 +415,29 @@ def test_segment_bad_options_name_the_argument(kwargs, match):
 
 
 def test_motion_parts_splits_disconnected_and_discontinuous_matches():
+    from gatv.nonrigid.segment import motion_parts
+
+    # segment's motion_parts is multiscale's (one function, re-exported)
+    assert motion_parts is ms.motion_parts
     a = deform.sample_plane(100, 10.0, seed=0)
-    b = a + [0.0, 0.0, 0.0]
-    xs = np.vstack([a, b + [20.0, 0, 0]])  # two bodies far apart
-    ys = np.vstack([a + 0.1, b + [20.0, 0, 0] + 0.1])
-    labels = ms_parts = __import__("gatv.nonrigid.segment", fromlist=["motion_parts"]).motion_parts(
-        xs, ys, 0.35, 0.05)
-    assert len(np.unique(labels)) == 2 and ms_parts is labels
-    # one body, but its right half jumps by 3 units: two parts
-    ys = np.vstack([a + 0.1, b + [20.0, 0, 0] + 0.1])
-    ys[:100][a[:, 0] > 0] += [0, 0, 3.0]
-    parts = __import__("gatv.nonrigid.segment", fromlist=["motion_parts"]).motion_parts(
-        xs[:100], ys[:100], 0.35, 0.05)
-    assert len(np.unique(parts)) == 2
+    xs = np.vstack([a, a + [20.0, 0, 0]])  # two bodies far apart, the same translation
+    ys = xs + 0.1
+    labels = motion_parts(xs, ys, 0.35, 0.05)
+    # each body one part, label 0 the first (equal sizes: the stable rank keeps the order)
+    assert labels.tolist() == [0] * 100 + [1] * 100
+    # one body moving as one: a single part however it is placed
+    assert motion_parts(xs[:100], ys[:100], 0.35, 0.05).tolist() == [0] * 100
+    # one body, but its right strip (30 of the 100 points) jumps by 3 units: two parts, the larger 0
+    jumped = ys[:100].copy()
+    right = a[:, 0] > 2.0
+    assert right.sum() == 30
+    jumped[right] += [0, 0, 3.0]
+    parts = motion_parts(xs[:100], jumped, 0.35, 0.05)
+    assert np.all(parts[~right] == 0) and np.all(parts[right] == 1)
+    # a jump within the strain allowance (|Δd| <= strain |Δx| + gate between neighbours) splits nothing
+    small = ys[:100].copy()
+    small[a[:, 0] > 0] += [0, 0, 0.04]
+    assert np.all(motion_parts(xs[:100], small, 0.35, 0.05) == 0)
 
 
 # ------------------------------------------------------------------ command line

@@ -165,16 +165,21 @@ def test_settle_noise_does_not_collapse_onto_a_motions_tightest_pairs():
 
 @pytest.mark.parametrize("noise", [0.01, 0.03])
 def test_noisy_sets_recovered_without_noise_given(noise):
-    """The Table-2 protocol with Gaussian noise on every inlier: motion, pairs and the noise itself."""
+    """The Table-2 protocol with Gaussian noise on every inlier: motion, pairs and the noise itself.
+
+    Rotation error bound 50 × noise degrees (0.5° and 1.5°; the benchmark's success bar is 2°):
+    over seeds 0-7, measured 0.10-0.35° at 1% and 0.49-1.40° at 3% (this seed, 3: 0.14° and
+    0.52°); the noise estimate was 0.80-1.05 of the truth (this seed: 0.88, 0.875).
+    """
     trial = table2_trial(0.5, noise=noise, seed=3)
     m = register(trial.source, trial.target)
     assert m and m.info["pipeline"] == "exact"
-    assert rotation_error_deg(m.rotation, trial.rotation) < 2.0
+    assert rotation_error_deg(m.rotation, trial.rotation) < 50.0 * noise
     assert paper_success(m.correspondences, trial.true_pairs)
     precision, _ = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.9
     sigma = noise * 5.0
-    assert 0.5 * sigma < m.info["noise"] < 1.5 * sigma
+    assert 0.7 * sigma < m.info["noise"] < 1.2 * sigma
 
 
 def test_exact_sets_keep_an_exact_noise_estimate():

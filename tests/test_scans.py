@@ -107,8 +107,9 @@ def test_bunny_scans_bun000_from_bun045():
     moved = source @ Q.T + q  # re-posed by a rotation of any size
     R_true, t_true = R @ Q.T, t - R @ Q.T @ q
     m = register_scans(moved, target)
-    assert rotation_error_deg(m.rotation, R_true) < 2.0
-    assert np.linalg.norm(m.translation - t_true) < 2e-3
+    # measured 0.089 deg and 0.17-0.37 mm for the re-posings of seeds 0-3 (the benchmark's bar: 1 deg, 2 mm)
+    assert rotation_error_deg(m.rotation, R_true) < 0.25
+    assert np.linalg.norm(m.translation - t_true) < 1e-3
 
 
 # ------------------------------------------------- noise wider than the sampling

@@ -24,13 +24,24 @@ Each row also reports the child's CPU time (``time.process_time``) and the
 1-minute load average when it ended: the machine is shared, and wall time
 alone drifts with the load.
 
-Methods: ``gatv`` (``gatv.nonrigid.register`` defaults; ``segment`` on the
-two-motion rows), ``cpd`` (pycpd ``DeformableRegistration``, w = the outlier
-share, 150 iterations), ``bcpd`` (probreg ``registration_bcpd``, 50
-iterations), ``filterreg`` (probreg ``registration_filterreg``, rigid, for
-reference).  Each method runs in its own child process: its **peak RSS** is
-that process's ``ru_maxrss`` (interpreter and imports included, about
-0.2 GB), and a run past ``--timeout`` seconds is reported as such.  A peer
+Methods: ``gatv`` (``gatv.nonrigid.register`` defaults on every row; ``segment``
+on the two-motion rows), ``gatv+sim`` (bunny rows only: gatv told the
+bunny's per-dataset options, ``prealign=True, model="similarity"``, a row of
+its own), ``cpd`` (pycpd ``DeformableRegistration``, 150 iterations),
+``bcpd`` (probreg ``registration_bcpd``, 50 iterations), ``filterreg``
+(probreg ``registration_filterreg``, rigid, for reference).  Same
+information: gatv is told neither the outlier share nor the inliers, so by
+default (``--peer-info blind``) the peers get ``w = PEER_W`` (0.1, CPD's
+reference default) on every row and their pairing gate from the target as
+given; ``--peer-info oracle`` gives them the true share and the true
+inliers' spacing, rows labelled "told f".  Same warm-up: each child makes one
+untimed call of its method on a small twisted plane first (imports,
+compilation, set-up; ``warm_s`` in the notes), then the timed call.
+
+Each method runs in its own child process: its **peak RSS** is that
+process's ``ru_maxrss`` (interpreter, imports and the warm-up included,
+about 0.2 GB), and a run past ``--timeout`` seconds (warm-up included) is
+reported as such.  A peer
 whose dense M×N / M×M matrices would exceed ``--peer-memory-gb`` is not run
 and is reported "would need X GB"; a peer that is not installed is reported
 "not installed" — no row is skipped silently.
@@ -48,8 +59,9 @@ Scores (every method, every row):
 * **warp err / sp**: mean distance from the moved source inliers to their
   true positions, in target spacings.
 * Peers report no correspondences of their own; theirs are the nearest
-  target of each moved source point within the sampling gate (half a
-  spacing), one-to-one — the rule gatv applies to its own final matches.
+  target of each moved source point within the sampling gate (half the
+  target's median spacing, measured on the target as given), one-to-one —
+  the rule gatv applies to its own final matches.
 
 Usage::
 
@@ -90,7 +102,16 @@ from _common import (
 )
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-METHODS = ("gatv", "cpd", "bcpd", "filterreg")
+METHODS = ("gatv", "gatv+sim", "cpd", "bcpd", "filterreg")
+#: Methods told something about the data that the others are not, and the rows they run on:
+#: ``gatv+sim`` is gatv with the bunny's per-dataset options (``prealign=True,
+#: model="similarity"``: the shape is known to be rotated and scaled); ``gatv`` runs the
+#: defaults everywhere.
+TOLD = {"gatv+sim": ("bunny",)}
+#: Outlier share the peers are given (``w``) when they are not told the truth
+#: (``--peer-info blind``, the default): CPD's own default in Myronenko's reference
+#: code (``opt.outliers = 0.1``), the same for every row, as gatv is told nothing.
+PEER_W = 0.1
 GROUPS = ("face", "twist", "elastic", "bunny", "two-motion", "small")
 DEFAULT_GROUPS = ("face", "twist", "elastic", "bunny", "two-motion")
 DEFAULT_SIZES = (2000, 10000, 25000)
@@ -223,6 +244,16 @@ def nearest_pairs(moved, target, gate):
     return cand[one_to_one(cand, d[ok])] if ok.size else cand
 
 
+def run_gatv_sim(src, tgt, f, spacing, kind):
+    """gatv with the bunny's per-dataset options (a labelled method of its own)."""
+    from gatv.nonrigid import register
+
+    m = register(src, tgt, prealign=True, model="similarity")
+    info = {k: m.info.get(k) for k in ("hypothesis", "placement", "coarse_hypothesis", "n_eq41_rejected", "reason")
+            if k in m.info}
+    return m.correspondences, m.warp(src), info
+
+
 def run_gatv(src, tgt, f, spacing, kind):
     if kind == "two":
         from gatv.nonrigid import segment
@@ -237,8 +268,7 @@ def run_gatv(src, tgt, f, spacing, kind):
             "motions": [p.tolist() for p in pairs]}
     from gatv.nonrigid import register
 
-    options = {"prealign": True, "model": "similarity"} if kind == "bunny" else {}
-    m = register(src, tgt, **options)
+    m = register(src, tgt)  # the defaults on every row (gatv+sim: the bunny's options)
     info = {k: m.info.get(k) for k in ("hypothesis", "placement", "coarse_hypothesis", "n_eq41_rejected", "reason")
             if k in m.info}
     return m.correspondences, m.warp(src), info
@@ -268,7 +298,26 @@ def run_filterreg(src, tgt, f, spacing, kind):
     return nearest_pairs(moved, tgt, 0.5 * spacing), moved, {}
 
 
-RUNNERS = {"gatv": run_gatv, "cpd": run_cpd, "bcpd": run_bcpd, "filterreg": run_filterreg}
+RUNNERS = {"gatv": run_gatv, "gatv+sim": run_gatv_sim, "cpd": run_cpd, "bcpd": run_bcpd,
+           "filterreg": run_filterreg}
+
+
+def warm_up(method, kind, w):
+    """One untimed call of ``method`` on a small twisted plane (400 points a set, or two bodies for
+    ``kind="two"``): imports, numba's compilation or cache loading, first-call set-up, for every
+    method alike, so that the timed call holds none of them.  Returns its seconds."""
+    from gatv.nonrigid import deformations as D
+
+    t0 = time.perf_counter()
+    a = D.sample_plane(400 if kind != "two" else 200, 10.0, seed=0)
+    src, tgt = a, D.twist(a, 30.0)
+    if kind == "two":
+        src, tgt = np.vstack([a, a + [14.0, 0, 0]]), np.vstack([D.twist(a, 30.0), D.bend(a, 30.0) + [14.0, 0, 3.0]])
+    try:
+        RUNNERS[method](src, tgt, w, 10.0 / 20.0, kind)
+    except Exception:  # noqa: BLE001 - the timed call reports its own errors
+        pass
+    return time.perf_counter() - t0
 
 
 def peer_bytes(method, n_source, n_target) -> float:
@@ -292,9 +341,10 @@ def child_main(path_in: str, path_out: str) -> int:
     data = np.load(path_in, allow_pickle=False)
     meta = json.loads(str(data["meta"]))
     out = {"error": "", "info": {}}
+    out["warm_s"] = warm_up(meta["method"], meta["kind"], meta["w"])
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        pairs, moved, info = RUNNERS[meta["method"]](data["source"], data["target"], meta["f"],
+        pairs, moved, info = RUNNERS[meta["method"]](data["source"], data["target"], meta["w"],
                                                       meta["spacing"], meta["kind"])
         out["info"] = info
     except Exception as exc:  # noqa: BLE001 - scored as a failure, reported in the table
@@ -308,11 +358,21 @@ def child_main(path_in: str, path_out: str) -> int:
     return 0
 
 
-def run_isolated(method, trial: Trial, f, kind, timeout):
-    """Run ``method`` in a child process; returns (pairs, moved, time, CPU time, peak RSS GB, error, info)."""
+def run_isolated(method, trial: Trial, f, kind, timeout, peer_info="blind"):
+    """Run ``method`` in a child process; returns (pairs, moved, time, CPU time, peak RSS GB, error, info).
+
+    What a peer is told: ``peer_info="blind"`` (default), the outlier share :data:`PEER_W` and the
+    pairing gate from the median spacing of the target as given (outliers included), as gatv,
+    which is told neither, measures it; ``"oracle"``, the true share ``f`` and the spacing of the
+    target's true inliers (the old protocol, reported as such)."""
+    from gatv.candidates import median_spacing
+
+    oracle = peer_info == "oracle"
+    w = f if oracle else PEER_W
+    spacing = trial.spacing if oracle else float(median_spacing(trial.target))
     with tempfile.TemporaryDirectory() as tmp:
         pin, pout = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
-        meta = json.dumps({"method": method, "f": f, "spacing": trial.spacing, "kind": kind})
+        meta = json.dumps({"method": method, "w": w, "spacing": spacing, "kind": kind})
         np.savez(pin, source=trial.source, target=trial.target, meta=meta)
         t0 = time.perf_counter()
         try:
@@ -328,8 +388,8 @@ def run_isolated(method, trial: Trial, f, kind, timeout):
             return None, None, time.perf_counter() - t0, float("nan"), float("nan"), why[:200], {}
         res = np.load(pout, allow_pickle=False)
         meta = json.loads(str(res["meta"]))
-        return (res["pairs"], res["moved"], meta["time_s"], meta["cpu_s"], meta["peak_rss_gb"], meta["error"],
-                meta["info"])
+        info = dict(meta["info"], warm_s=round(meta["warm_s"], 2))
+        return res["pairs"], res["moved"], meta["time_s"], meta["cpu_s"], meta["peak_rss_gb"], meta["error"], info
 
 
 # ------------------------------------------------------------------ scores
@@ -383,12 +443,15 @@ def two_motion_scores(trial: Trial, info):
 # ------------------------------------------------------------------ one task
 def run_task(task) -> list:
     """One (case, f, trial) through every method: CSV rows. Module-level and picklable for map_trials."""
-    case, f, k, seed, methods, timeout, peer_gb = task
+    case, f, k, seed, methods, timeout, peer_gb, peer_info = task
     rng = np.random.default_rng(trial_seed(seed, f, k))
     trial = make_trial(case, f, rng)
     rows = []
     for method in methods:
-        base = [case.name, f, method, k, trial.source.shape[0], trial.target.shape[0]]
+        if method in TOLD and case.kind not in TOLD[method]:
+            continue
+        label = f"{method} (told f)" if peer_info == "oracle" and method in PEER_MODULE else method
+        base = [case.name, f, label, k, trial.source.shape[0], trial.target.shape[0]]
         if method in PEER_MODULE:
             try:
                 __import__(PEER_MODULE[method])
@@ -399,7 +462,7 @@ def run_task(task) -> list:
             if need > peer_gb * 1024 ** 3:
                 rows.append(base + [np.nan] * 9 + [f"would need {need / 1024 ** 3:.1f} GB (over {peer_gb:g} GB)", ""])
                 continue
-        pairs, moved, seconds, cpu, rss, error, info = run_isolated(method, trial, f, case.kind, timeout)
+        pairs, moved, seconds, cpu, rss, error, info = run_isolated(method, trial, f, case.kind, timeout, peer_info)
         p, r, w, rw, we = score(trial, pairs, moved)
         note = two_motion_scores(trial, info) if case.kind == "two" and method == "gatv" else ""
         if info:
@@ -485,6 +548,10 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per method and trial (default: 600)")
     parser.add_argument("--peer-memory-gb", type=float, default=4.0,
                         help="do not run a peer whose dense matrices would need more (default: 4)")
+    parser.add_argument("--peer-info", choices=("blind", "oracle"), default="blind",
+                        help="blind (default): peers get w = PEER_W and the spacing of the target as given, "
+                             "as gatv gets nothing; oracle: the true outlier share and the true inliers' spacing "
+                             "(rows labelled 'told f')")
     args = parser.parse_args(argv_list)
     fractions = args.fractions if args.fractions is not None else [0.0, 0.5]
     methods = args.methods if args.methods is not None else list(METHODS)
@@ -508,7 +575,8 @@ def main(argv=None) -> int:
             if f > 0 and not c.outliers_ok:
                 continue
             for k in range(args.trials):
-                tasks.append((c, f, k, args.seed, tuple(methods), args.timeout, args.peer_memory_gb))
+                tasks.append((c, f, k, args.seed, tuple(methods), args.timeout, args.peer_memory_gb,
+                              args.peer_info))
     csv_rows = []
     if args.scheduler is None:  # serial: print and save after every task
         for task in tasks:

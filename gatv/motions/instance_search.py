@@ -45,8 +45,8 @@ from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..registration import TIME_LIMIT, checked_pipeline, register
 from ..stages import FINAL_GATE
 
-__all__ = ["MIN_MODEL_POINTS", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances", "model_size",
-           "pooled_noise", "pose_distance", "validate_model"]
+__all__ = ["LATER_SHARE", "MIN_MODEL_POINTS", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances", "model_size",
+           "expected_share", "pose_distance", "smallest_copy", "validate_model"]
 
 #: Fewest model points: a rigid motion needs three, and a fourth is the
 #: least support that says more than the sample that made the motion.
@@ -78,7 +78,10 @@ class Instances:
         ``reason`` (why the search stopped), ``exhausted`` (stopped for want
         of an instance, not at a limit), ``pipeline`` and
         ``pipeline_reason``, ``rounds`` (one record per search), ``time_s``,
-        ``n_model``, ``n_scene``, ``model_size``.  Not compared.
+        ``n_model``, ``n_scene``, ``model_size``.  Not compared.  A motion that
+        passes its verdict with fewer points than :func:`smallest_copy`
+        expects of a further copy is no instance: its round records it
+        (``set_aside``) and its scene points stay unlabelled.
     """
 
     instances: tuple
@@ -167,18 +170,46 @@ def final_gate(result) -> float:
     return FINAL_GATE * float(tol) if tol is not None and np.isscalar(tol) else 0.0
 
 
-def pooled_noise(found) -> float | None:
-    """One sensor's noise from the instances found so far (root mean square of their measured noise).
+#: The later rounds of the exact pipeline expect a copy at least this share
+#: as well supported as the weakest copy found so far (:func:`expected_share`).
+LATER_SHARE = 0.5
 
-    The copies of a scene are seen by one sensor, so the later rounds of
-    the exact pipeline search at the noise the first ones measured (as the
-    point-set peel does, :func:`gatv.motions.peel`) instead of trying every
-    tolerance again: on the clutter left at the end, trying them all runs to
-    the time limit.  ``None`` before the first instance.
+
+def expected_share(found, n_model: int) -> float | None:
+    """The share of model points the later rounds expect a copy to match (``min_inlier_share``).
+
+    :func:`gatv.register` draws model triples until one of a copy matching
+    4% of the model would have been drawn (``min_inlier_share``): on the
+    clutter left once every copy is found, that many draws at every
+    tolerance of its schedule run to the time limit.  The copies of one
+    scene are copies of one model seen by one sensor, so once copies are
+    found the later rounds expect one at least :data:`LATER_SHARE` as well
+    supported as the weakest found (as a share of the model's points):
+    a 30%-cut copy among clutter is found at the same cost, and the last,
+    fruitless round on the clutter takes about a second instead of a
+    minute.  (Searching at the measured noise alone, as the point-set peel
+    does, does not do: at the finest tolerances of the schedule the density
+    screen passes a copy's trial motion that the tensor-voting judge then
+    rejects.)  ``None`` before the first instance (register's default).
     """
-    tols = [float(m.info["tolerance"]) for m in found if np.isscalar(m.info.get("tolerance"))]
-    tols = [t for t in tols if t > 0]
-    return float(np.sqrt(np.mean(np.square(tols)))) if tols else None
+    if not found:
+        return None
+    weakest = min(int(m.support) for m in found)
+    return min(1.0, max(LATER_SHARE * weakest / max(int(n_model), 1), 0.04))
+
+
+def smallest_copy(found) -> int:
+    """The least support of a further copy: :data:`LATER_SHARE` of the weakest copy found (0 before one).
+
+    The verdict passes a motion that beats the wrong motions, and on exact
+    data a handful of points does (three points of a sample and one more,
+    at a tolerance of 1e-6 of the spacing).  Among copies of one model such
+    a motion is not a copy: the round sets its points aside (out of the
+    later searches, unlabelled) and the search goes on, as a copy is
+    expected at the support the later rounds search for
+    (:func:`expected_share`).
+    """
+    return int(np.ceil(LATER_SHARE * min(int(m.support) for m in found))) if found else 0
 
 
 def _stopped_at_limit(result) -> bool:
@@ -266,11 +297,12 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
     """The peel loop of :func:`instances` on validated points (also each frame of :func:`gatv.motions.track`)."""
     m = Y.shape[0]
     labels = np.full(m, -1, np.int64)
+    aside = np.zeros(m, bool)  # the points of motions too small for a copy: out of the later searches
     found: list = []
     rounds: list[dict] = []
 
     def remaining() -> np.ndarray:
-        return np.flatnonzero(labels < 0)
+        return np.flatnonzero((labels < 0) & ~aside)
 
     def search():
         rows = remaining()
@@ -281,9 +313,9 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         left = None if deadline is None else max(deadline - time.perf_counter(), 1e-3)
         t0 = time.perf_counter()
         options = {}
-        noise = pooled_noise(found) if chosen == "exact" else None
-        if noise is not None:
-            options["noise"] = noise
+        share = expected_share(found, X.shape[0]) if chosen == "exact" else None
+        if share is not None:
+            options["min_inlier_share"] = share
         try:
             result = register(X, Y[rows], pipeline=chosen, seed=round_seed, memory_budget=memory_budget,
                               time_limit=TIME_LIMIT if left is None else min(TIME_LIMIT, left), **options)
@@ -291,7 +323,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
             if found:  # what the earlier rounds left is no point set a motion can be registered on
                 return Stop(f"the {rows.size} scene points left cannot be registered on: {exc}", exhausted=True)
             raise
-        record = {"round": len(rounds), "scene_points": int(rows.size), "noise": noise,
+        record = {"round": len(rounds), "scene_points": int(rows.size), "min_inlier_share": share,
                   "support": int(result.support),
                   "time_s": time.perf_counter() - t0, "verdict": result.info.get("verdict")}
         rounds.append(record)
@@ -303,10 +335,22 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
 
     def accept(candidate: Candidate) -> Judgement:
         verdict = candidate.motion.info.get("verdict") or {}
-        passed = bool(verdict.get("passed", False))
-        reason = "kept" if passed else (f"the best instance on what remains ({candidate.support} points) does "
-                                        "not pass its verdict")
-        return Judgement(passed, reason, verdict)
+        if not verdict.get("passed", False):
+            return Judgement(False, f"the best instance on what remains ({candidate.support} points) does not "
+                                    "pass its verdict", verdict)
+        least = smallest_copy(found)
+        if candidate.support < least:
+            return Judgement(False, f"a motion of {candidate.support} points, fewer than the {least} expected of "
+                                    "a copy", verdict, detail="small")
+        return Judgement(True, "kept", verdict)
+
+    def reject(candidate: Candidate, judgement):
+        if judgement.detail != "small":
+            return Stop(judgement.reason, exhausted=True)
+        rows = candidate.detail
+        aside[rows[np.asarray(candidate.motion.correspondences, dtype=np.int64)[:, 1]]] = True
+        rounds[-1].update(kept=False, set_aside=int(candidate.support), reason=judgement.reason)
+        return None
 
     def remove(candidate: Candidate, judgement) -> tuple:
         result, rows = candidate.motion, candidate.detail
@@ -328,7 +372,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         report(float(np.mean(labels >= 0)), f"instance {k}: {motion.support} correspondences")
         return (motion,)
 
-    outcome = peel_loop(search, accept, remove, max_motions=max_instances, deadline=deadline,
+    outcome = peel_loop(search, accept, remove, reject=reject, max_motions=max_instances, deadline=deadline,
                         max_rounds=m + 1, full="max_instances reached",
                         late="the time limit ran out before the next search")
     report(1.0, f"{len(found)} instances")

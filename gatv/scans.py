@@ -607,7 +607,7 @@ def register_surfaces(
     match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
                            confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                            n_judged=n_judged, refine=refine, memory_budget=memory_budget,
-                           verdict=True,
+                           verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
                            progress=lambda f, m: report(0.05 + 0.95 * f, m))
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
@@ -713,6 +713,9 @@ VERDICT_SCREEN = 1000
 #: Gates the verdict counts supports at: the final gate and its halves (a true
 #: motion's pairs sit at the noise, a wrong one's fill the gate).
 VERDICT_GATES = 5
+#: Deviations of the scans' noise a point on the surface may lie off its
+#: nearest target sample, beyond the gate, for the verdict's finer gates.
+NOISE_REACH = 3.0
 
 
 def point_icp(X, Y, tree, R, t, gate, iterations=10):
@@ -729,23 +732,26 @@ def point_icp(X, Y, tree, R, t, gate, iterations=10):
     return R, t
 
 
-def _on_surface(X, Y, normals, tree, R, t, gates) -> np.ndarray:
+def _on_surface(X, Y, normals, tree, R, t, gates, reach) -> np.ndarray:
     """Source points on the target's surface under ``(R, t)``, at each of ``gates`` (descending).
 
-    Within ``gates[0]`` of a target point, and within each gate of its
-    tangent plane: the distance to the surface, not to its sample points,
-    so that a coarse sampling (a mesh's vertices) counts as a dense one.
+    Within ``gates[0]`` of a target point; then, for each finer gate,
+    within ``reach`` (at least ``gates[0]``) of a target point and within
+    the gate of its tangent plane: the distance to the surface, not to its
+    sample points, so that a coarse sampling (a mesh's vertices) or a noisy
+    one, whose samples lie off the surface, counts as a dense exact one.
     """
     moved = X @ R.T + t
-    d, j = tree.query(moved, k=1, distance_upper_bound=gates[0])
+    d, j = tree.query(moved, k=1, distance_upper_bound=max(reach, gates[0]))
     ok = np.flatnonzero(np.isfinite(d))
     r = np.abs(np.einsum("ij,ij->i", moved[ok] - Y[j[ok]], normals[j[ok]]))
-    return np.array([ok.size] + [np.count_nonzero(r <= g) for g in gates[1:]])
+    return np.array([np.count_nonzero(d[ok] <= gates[0])] + [np.count_nonzero(r <= g) for g in gates[1:]])
 
 
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
                     n_tested: float, rng: np.random.Generator, tree: cKDTree | None = None,
-                    n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED) -> tuple[Verdict, dict]:
+                    noise: float = 0.0, n_draws: int = VERDICT_DRAWS,
+                    n_polished: int = VERDICT_POLISHED) -> tuple[Verdict, dict]:
     """Whether the motion ``(rotation, translation)`` beats wrong motions polished as it was.
 
     The verdict stage of the scans pipeline (:mod:`gatv.verdict`, null
@@ -764,13 +770,20 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     support (plus three of its Poisson deviations, for small counts) times
     the search's gain (:func:`gatv.verdict.wrong_motion_verdict`); the gate
     where the motion stands out most decides.  ``n_tested``: the motions
-    the search tried, recorded.  Returns the verdict and its per-gate
-    figures (``info["verdict_gates"]``).
+    the search tried, recorded.  ``noise``: the two scans' noise along
+    the normal, combined (``hypot`` of each one's :func:`scan_noise`): a
+    point on the surface lies that far off its nearest target sample, so
+    the finer gates count points within ``gate + NOISE_REACH * noise`` of
+    a sample (:data:`NOISE_REACH`) and within the gate of its tangent
+    plane; on scans far less noisy than their sampling, about the gate.  Returns the
+    verdict and its per-gate figures (``info["verdict_gates"]``).
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     tree = cKDTree(Ys) if tree is None else tree
     gates = [gate / 2.0**k for k in range(VERDICT_GATES)]
-    found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates)
+    # A point on the surface is off its nearest sample by the two scans' noise along the normal too.
+    reach = gate + NOISE_REACH * float(noise)
+    found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates, reach)
     starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
     ranks = []
@@ -791,7 +804,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         R, t, g, _ = polish(*starts[k])
         same = rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
         if not same:
-            wrong.append(_on_surface(Xs, Ys, target_normals, tree, R, t, gates))
+            wrong.append(_on_surface(Xs, Ys, target_normals, tree, R, t, gates, reach))
             # More draws only raise the levels: once every gate's is reached, the motion has failed.
             if not any(v for v, _ in judged(wrong)):
                 break
@@ -801,7 +814,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     best, g = max(per_gate, key=lambda vg: vg[0].margin)
     figures = {"gates": [float(x) for x in gates], "support": [int(x) for x in found],
                "chance": [float(v.chance) for v, _ in per_gate], "p_value": [float(v.p_value) for v, _ in per_gate],
-               "gate": float(g), "wrong_motions": int(wrong.shape[0]), "drawn": int(n_draws),
+               "gate": float(g), "reach": float(reach), "wrong_motions": int(wrong.shape[0]), "drawn": int(n_draws),
                "wrong_support": wrong.tolist()}
     return best, figures
 
@@ -855,7 +868,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                    min_overlap: float = MIN_OVERLAP, confidence: float = 0.999, max_triples: int | None = None,
                    feature_tol: float = 0.15, n_judged: int = 4, refine: bool = True,
                    memory_budget: float | None = None, coarse_points: int = FINE_SAMPLE,
-                   verdict: bool = False, progress=None) -> SurfaceMatch:
+                   verdict: bool = False, noise: float = 0.0, progress=None) -> SurfaceMatch:
     """Stages 2–5 of :func:`register_surfaces` on points already kept as surface.
 
     ``Xs``, ``Ys`` are the two scans' surface points (for example rows of
@@ -877,7 +890,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     (:func:`surface_verdict`: wrong motions polished as it was), recorded
     in ``info["verdict"]``; a motion that fails it gives a falsy match
     whose reason says so.  False leaves the verdict to the caller (motion
-    segmentation has its own levels).
+    segmentation has its own levels).  ``noise``: the two scans' noise
+    combined, for the verdict's reach (:func:`surface_verdict`).
     """
     t0 = time.perf_counter()
     report = progress if progress is not None else (lambda fraction, message="": None)
@@ -970,7 +984,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # (a wrong start wanders where a right one settles at once): a tenth of the cost, nearly their level.
         judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
                                            polish=lambda R_, t_: polish(R_, t_, coarse, VERDICT_ITERATIONS),
-                                           n_tested=max(trials.n_congruent, 1), tree=tree,
+                                           n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
                                            rng=np.random.default_rng([seed, VERDICT_STREAM]))
         info.update(verdict=judged.to_dict(), verdict_gates=figures, t_verdict=time.perf_counter() - t0)
         if not judged:

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from gatv import register
 from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair, rotation_error_deg
+from gatv.scans import NOISE_REACH, surface_verdict
 from gatv.stats import chance_support
 from gatv.verdict import SEARCH_GAIN, Verdict, chance_verdict, poisson_verdict, wrong_motion_verdict
 
@@ -116,6 +117,46 @@ def test_a_true_scans_motion_passes_its_verdict():
     gates = m.info["verdict_gates"]
     assert gates["gates"] == sorted(gates["gates"], reverse=True)
     assert all(s >= 0 for s in gates["support"])
+
+
+@given(noise=st.floats(0.0, 0.5))
+@settings(max_examples=5, deadline=None)
+def test_the_verdicts_reach_is_the_gate_plus_the_scans_noise(noise):
+    """The finer gates count points within ``gate + NOISE_REACH * noise`` of a target sample: the gate
+    itself on noise-free scans; the motion's own support is counted the same way at any reach."""
+    rng = np.random.default_rng(0)
+    src = _blob(rng, 1500)
+    normals = src / np.linalg.norm(src, axis=1, keepdims=True)  # any unit field: the counts only need one
+    gate = 0.05
+
+    def stay(R, t):
+        return R, t, gate, 0
+
+    v, figures = surface_verdict(src, src, normals, np.eye(3), np.zeros(3), polish=stay, voxel=0.2, gate=gate,
+                                 n_tested=100, rng=np.random.default_rng(1), noise=noise, n_draws=8, n_polished=2)
+    assert figures["reach"] == pytest.approx(gate + NOISE_REACH * noise)
+    # The identity lays every point on itself: all of them are supported at every gate.
+    assert figures["support"] == [src.shape[0]] * len(figures["gates"])
+
+
+@pytest.mark.slow
+def test_a_noisy_partial_scan_pair_passes_its_verdict():
+    """bun000 and bun090 (56% overlap), each with Gaussian noise of 2% of the source's RMS radius: a
+    point on the surface lies off its nearest noisy sample by the noise, so counting only points within
+    the gate of a sample (the reach without the noise) made the right motion fail its verdict (slow,
+    real data)."""
+    try:
+        target, source, R, t = load_bunny_pair("bun000", "bun090")
+    except DataNotFoundError:
+        pytest.skip("shared real scans absent")
+    rng = np.random.default_rng(0)
+    Q = Rotation.from_rotvec([0.9, -1.7, 0.4]).as_matrix()
+    sigma = 0.02 * _rms(source)
+    moved = source @ Q.T + rng.normal(0.0, sigma, source.shape)
+    m = register(moved, target + rng.normal(0.0, sigma, target.shape), seed=0)
+    assert m, m.info.get("reason")
+    assert rotation_error_deg(m.rotation, R @ Q.T) < 0.5
+    assert m.info["verdict_gates"]["reach"] > 2 * max(m.info["verdict_gates"]["gates"])
 
 
 def _rms(p):

@@ -78,10 +78,12 @@ class Instances:
         ``reason`` (why the search stopped), ``exhausted`` (stopped for want
         of an instance, not at a limit), ``pipeline`` and
         ``pipeline_reason``, ``rounds`` (one record per search), ``time_s``,
-        ``n_model``, ``n_scene``, ``model_size``.  Not compared.  A motion that
-        passes its verdict with fewer points than :func:`smallest_copy`
-        expects of a further copy is no instance: its round records it
-        (``set_aside``) and its scene points stay unlabelled.
+        ``n_model``, ``n_scene``, ``model_size``, ``smallest_copy``,
+        ``dropped``.  Not compared.  A motion that passes its verdict with
+        fewer points than :func:`smallest_copy` asks of a copy is no
+        instance: its round records it (``set_aside``), or ``dropped`` when
+        a better copy found later raised the bar, and its scene points stay
+        unlabelled.
     """
 
     instances: tuple
@@ -170,8 +172,9 @@ def final_gate(result) -> float:
     return FINAL_GATE * float(tol) if tol is not None and np.isscalar(tol) else 0.0
 
 
-#: The later rounds of the exact pipeline expect a copy at least this share
-#: as well supported as the weakest copy found so far (:func:`expected_share`).
+#: A copy is at least this share as well supported as the best copy found
+#: (:func:`smallest_copy`; the later rounds search for such a copy,
+#: :func:`expected_share`).
 LATER_SHARE = 0.5
 
 
@@ -184,7 +187,8 @@ def expected_share(found, n_model: int) -> float | None:
     tolerance of its schedule run to the time limit.  The copies of one
     scene are copies of one model seen by one sensor, so once copies are
     found the later rounds expect one at least :data:`LATER_SHARE` as well
-    supported as the weakest found (as a share of the model's points):
+    supported as the best found (as a share of the model's points; the
+    support :func:`smallest_copy` asks of a copy):
     a 30%-cut copy among clutter is found at the same cost, and the last,
     fruitless round on the clutter takes about a second instead of a
     minute.  (Searching at the measured noise alone, as the point-set peel
@@ -194,22 +198,24 @@ def expected_share(found, n_model: int) -> float | None:
     """
     if not found:
         return None
-    weakest = min(int(m.support) for m in found)
-    return min(1.0, max(LATER_SHARE * weakest / max(int(n_model), 1), 0.04))
+    return min(1.0, max(smallest_copy(found) / max(int(n_model), 1), 0.04))
 
 
 def smallest_copy(found) -> int:
-    """The least support of a further copy: :data:`LATER_SHARE` of the weakest copy found (0 before one).
+    """The least support of a copy: :data:`LATER_SHARE` of the best copy found, and more than a sample.
 
     The verdict passes a motion that beats the wrong motions, and on exact
-    data a handful of points does (three points of a sample and one more,
-    at a tolerance of 1e-6 of the spacing).  Among copies of one model such
-    a motion is not a copy: the round sets its points aside (out of the
-    later searches, unlabelled) and the search goes on, as a copy is
-    expected at the support the later rounds search for
-    (:func:`expected_share`).
+    data a handful of points does (a sample's three points, at a tolerance
+    of 1e-6 of the spacing, against a chance level of three).  Among copies
+    of one model such a motion is not a copy: a round whose motion falls
+    short sets its scene points aside (out of the later searches,
+    unlabelled) and the search goes on, and at the end the motions kept
+    before a better copy raised the bar are dropped.  At least
+    :data:`MIN_MODEL_POINTS` (one point more than the sample that made the
+    motion) before any copy is found.
     """
-    return int(np.ceil(LATER_SHARE * min(int(m.support) for m in found))) if found else 0
+    best = max((int(m.support) for m in found), default=0)
+    return max(MIN_MODEL_POINTS, int(np.ceil(LATER_SHARE * best)))
 
 
 def _stopped_at_limit(result) -> bool:
@@ -375,8 +381,18 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
     outcome = peel_loop(search, accept, remove, reject=reject, max_motions=max_instances, deadline=deadline,
                         max_rounds=m + 1, full="max_instances reached",
                         late="the time limit ran out before the next search")
-    report(1.0, f"{len(found)} instances")
+    least = smallest_copy(found)
+    kept = [m for m in found if m.support >= least]
+    dropped = [{"support": int(m.support), "angle_deg": float(m.angle_deg)} for m in found if m.support < least]
+    if dropped:  # found before a better copy raised the bar: renumber the rest
+        relabel = np.full(len(found) + 1, -1, np.int64)
+        for new, m in enumerate(kept):
+            relabel[m.info["instance"]] = new
+        labels[:] = relabel[labels]
+        kept = [dataclasses.replace(m, info=dict(m.info, instance=k)) for k, m in enumerate(kept)]
+    report(1.0, f"{len(kept)} instances")
     info = {"reason": outcome.reason, "exhausted": outcome.exhausted, "pipeline": chosen,
             "pipeline_reason": why, "rounds": rounds, "n_model": int(X.shape[0]), "n_scene": int(m),
-            "model_size": model_size(X), "time_s": time.perf_counter() - t_start}
-    return Instances(tuple(outcome.found), labels, info)
+            "model_size": model_size(X), "smallest_copy": least, "dropped": dropped,
+            "time_s": time.perf_counter() - t_start}
+    return Instances(tuple(kept), labels, info)

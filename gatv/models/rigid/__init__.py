@@ -77,15 +77,50 @@ def check_dimension(points, name: str, dim: int, model: str) -> None:
         raise InputError(msg)
 
 
+#: Planes through three of the points tried by :func:`plane_normal` when the
+#: least-squares plane leaves some of them off it.
+PLANE_TRIALS = 32
+
+
+def _least_squares_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid and unit normal of the least-squares plane through ``points``."""
+    c = points.mean(axis=0)
+    return c, np.linalg.svd(points - c, full_matrices=False)[2][-1]
+
+
 def plane_normal(points: np.ndarray, tau: float) -> np.ndarray:
-    """Unit normal of the least-squares plane through ``points``, trimmed once at ``tau``."""
-    c = points - points.mean(axis=0)
-    n = np.linalg.svd(c, full_matrices=False)[2][-1]
-    near = np.abs(c @ n) <= tau
+    """Unit normal of the plane most of ``points`` lie on, within ``tau`` (the eq.-30 plane of true tokens).
+
+    The least-squares plane, trimmed once at ``tau``, is the answer when
+    every point lies on it.  Otherwise a point far off the plane may have
+    tilted it (a chance pair that keeps its length, eq. 41's first half,
+    but not the rotation), so planes through three of the points
+    (:data:`PLANE_TRIALS`, drawn with a seed fixed by the input's size)
+    compete with it, and the one with the most points within ``tau`` is
+    refitted by least squares on those points, as the paper detects the
+    plane by its tokens rather than fitting all of them.
+    """
+    c, n = _least_squares_plane(points)
+    near = np.abs((points - c) @ n) <= tau
     if 3 <= near.sum() < len(points):
-        c = points[near] - points[near].mean(axis=0)
-        n = np.linalg.svd(c, full_matrices=False)[2][-1]
-    return n
+        c, n = _least_squares_plane(points[near])
+        near = np.abs((points - c) @ n) <= tau
+    if near.all() or len(points) < 4:
+        return n
+    rng = np.random.default_rng(len(points))
+    triples = np.array([rng.choice(len(points), 3, replace=False) for _ in range(PLANE_TRIALS)])
+    a, b, e = points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
+    normals = np.cross(b - a, e - a)
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 0
+    if not good.any():
+        return n
+    normals, a = normals[good] / length[good, None], a[good]
+    on = np.abs(points @ normals.T - np.einsum("ij,ij->i", a, normals)) <= tau
+    best = int(np.argmax(on.sum(axis=0)))
+    if on[:, best].sum() <= near.sum() or on[:, best].sum() < 3:
+        return n
+    return _least_squares_plane(points[on[:, best]])[1]
 
 
 def eq41_consistent(d: np.ndarray, s: np.ndarray, pairs: np.ndarray, ref: int,

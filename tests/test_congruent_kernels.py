@@ -362,8 +362,8 @@ def test_predicted_matches_follow_the_count(seed, eps):
     tri = sample_triples(40, 60, rng)
     none = np.zeros((0, 3))
     counted = sum(k._congruent_matches(x, y, a, b, c, 0, index.plen, index.pi, index.pj, index.ndist,
-                                       index.nidx, eps, 10**6, none, none, 0.15, False)[0].shape[0]
-                  for a, b, c in tri)
+                                       index.nidx, eps, 10**6, none, none, 0.15, False, -1)[0].shape[0]
+                  for a, b, c in tri)  # by_point given, as scored_matches gives it: one specialisation
     predicted = predicted_matches(x, tri, index, eps).sum()
     assert 0.5 < counted / predicted < 2.0
 

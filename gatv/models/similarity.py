@@ -36,7 +36,7 @@ import numpy as np
 
 from .rigid import congruent_kernels as _k
 from .._validation import as_points, check_int
-from .rigid.congruent import TargetIndex, TrialPool, accept_level, sample_triples
+from .rigid.congruent import TargetIndex, TrialPool, accept_level, kernel_array, sample_triples
 from ..errors import InputError
 from ..fitting import umeyama
 from ..stats import chance_support
@@ -251,8 +251,9 @@ def similar_trial_motions(
         Its ``rotations`` field holds the trial's **linear part** ``s R``
         (not a rotation), so that ``.matrices`` are the trial similarities.
     """
-    s_min, s_max = _check_scale_range(scale_range)
+    s_min, s_max = (float(s) for s in _check_scale_range(scale_range))
     max_triples = check_int(max_triples, "max_triples", 1)
+    source = kernel_array(source)
     n = source.shape[0]
     n2 = index.target.shape[0]
     threshold = chance_support(n, n2, index.volume, index.radius, n_tests=max_triples * max_matches)
@@ -266,8 +267,8 @@ def similar_trial_motions(
         starts = rng.integers(0, n2, tri.shape[0])
         drawn += tri.shape[0]
         scores, A, t, nm = _k.similar_triple_hypotheses(
-            source, index.target, tri, starts, index.ndist, index.nidx, float(eps), s_min, s_max,
-            index.start, index.order, index.origin, index.cell, index.dims, index.radius,
+            source, index.target, kernel_array(tri, np.int64), starts, index.ndist, index.nidx, float(eps),
+            s_min, s_max, index.start, index.order, index.origin, index.cell, index.dims, index.radius,
             int(max_matches),
         )
         n_similar += int(nm.sum())

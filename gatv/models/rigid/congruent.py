@@ -43,6 +43,7 @@ __all__ = [
     "chance_support",
     "expected_matches",
     "first_boxes",
+    "kernel_array",
     "n_triples_needed",
     "predicted_matches",
     "rarest_side_first",
@@ -50,6 +51,18 @@ __all__ = [
     "sequential_boundary",
     "trial_motions",
 ]
+
+
+def kernel_array(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as the kernels take every array: C-contiguous, ``dtype``, writable.
+
+    numba compiles a kernel once per argument types, and a read-only array
+    (a frozen :class:`gatv.stages.Problem`'s, a result's) is another type
+    than a writable one, int32 another than int64: every caller normalising
+    here compiles each kernel once (a read-only array is copied; the
+    kernels' inputs are small next to their work).
+    """
+    return np.require(a, dtype, ["C", "W"])
 
 
 def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
@@ -68,9 +81,9 @@ class TargetIndex:
         n = target.shape[0]
         # pair table (n²/2 × 16 bytes) + neighbour lists (n² × 12 bytes)
         check_memory(20.0 * n * n, f"the congruent-triple index of {n} target points", memory_budget)
-        self.target = target
+        self.target = target = kernel_array(target)
         self.plen, self.pi, self.pj = _k.pair_table(target)
-        self.plen_bounds, self.plen_step = _k.length_lookup(self.plen)
+        self.plen_bounds, self.plen_step = _k.length_lookup(self.plen, 16)
         self.ndist, self.nidx = _k.sorted_neighbours(target)
         self.set_radius(radius)
 
@@ -103,6 +116,7 @@ class TargetIndex:
     def nearest(self, points: np.ndarray, radius: float | None = None) -> np.ndarray:
         """Index of the nearest target within ``radius`` of each point, or -1."""
         r = self.radius if radius is None else float(radius)
+        points = kernel_array(points)
         out = np.empty(points.shape[0], np.int64)
         for i in range(points.shape[0]):
             out[i] = _k.nearest_in_grid(points[i], self.target, self.start, self.order,
@@ -253,7 +267,7 @@ def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
 
 def _side_widths(points: np.ndarray, triples: np.ndarray, index: TargetIndex, eps: float) -> np.ndarray:
     """(M, 3) target pairs of ``index`` within ``eps`` of the length of each side ``(0, 1), (0, 2), (1, 2)``."""
-    return _k.side_widths(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triples, np.int64),
+    return _k.side_widths(kernel_array(points), kernel_array(triples, np.int64),
                           index.plen, index.plen_bounds, index.plen_step, float(eps))
 
 
@@ -349,13 +363,14 @@ def trial_motions(
         drawn to find (its RANSAC bound): the sequential test's alternative
         is a motion of the larger of this share and ``accept``.
     """
+    source = kernel_array(source)
     n = source.shape[0]
     threshold = chance_support(n, index.target.shape[0], index.volume, index.radius,
                                n_tests=max_triples * max_matches)
     accept = accept_level(accept, threshold)
     no_normals = np.zeros((0, 3))
-    sn = no_normals if source_normals is None else np.ascontiguousarray(source_normals, np.float64)
-    tn = no_normals if target_normals is None else np.ascontiguousarray(target_normals, np.float64)
+    sn = no_normals if source_normals is None else kernel_array(source_normals)
+    tn = no_normals if target_normals is None else kernel_array(target_normals)
     pool = TrialPool(keep, 3)
     min_height = _min_height(source) if wide > 1 else 0.0
     drawn = 0
@@ -394,10 +409,11 @@ def trial_motions(
         # true motion are then independent between batches.
         visit = rng.permutation(n).astype(np.int64) if slope > 0 else np.zeros(0, np.int64)
         scores, R, t, nm, nl, nv, npr = _k.triple_hypotheses(
-            source, index.target, tri, offsets, index.plen, index.pi, index.pj, index.ndist, index.nidx,
-            float(eps), index.start, index.order, index.origin, index.cell, index.dims,
+            source, index.target, kernel_array(tri, np.int64), offsets, index.plen, index.pi, index.pj,
+            index.ndist, index.nidx, float(eps), index.start, index.order, index.origin, index.cell, index.dims,
             index.radius, int(max_matches), sn, tn, float(feature_tol), int(max_enumerated),
-            visit, slope, offset, index.occupancy, index.occ_origin, index.occ_cell, index.occ_dims, first_box,
+            visit, float(slope), float(offset), index.occupancy, index.occ_origin, index.occ_cell,
+            index.occ_dims, kernel_array(first_box),
         )
         n_congruent += int(nm.sum())
         n_listed += int(nl.sum())
@@ -442,7 +458,7 @@ def rarest_side_first(points: np.ndarray, triples: np.ndarray, index: TargetInde
 
 def triangle_heights(points: np.ndarray, triples: np.ndarray) -> np.ndarray:
     """Smallest height of each triangle ``points[triples]``: twice its area over its longest side."""
-    return _k.triangle_heights(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triples, np.int64))
+    return _k.triangle_heights(kernel_array(points), kernel_array(triples, np.int64))
 
 
 def _min_height(source: np.ndarray) -> float:

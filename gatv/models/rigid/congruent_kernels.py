@@ -92,7 +92,7 @@ def _lower_bound_in(a, x, lo, hi):
 @njit(cache=True)
 def _lower_bound(a, x):
     """First index of the ascending ``a`` with ``a[i] >= x`` (``np.searchsorted``, side ``left``)."""
-    return _lower_bound_in(a, x, 0, a.shape[0])
+    return _lower_bound_in(a, x, np.int64(0), a.shape[0])
 
 
 @njit(cache=True)
@@ -308,8 +308,11 @@ def count_inliers(R, t, source, target, start, order, origin, cell, dims, radius
     a wrong motion (:func:`gatv.models.rigid.congruent.sequential_boundary`).
     ``slope = offset = 0`` never stops.
     """
+    # Fresh empty arrays, not the module's: a global array is a read-only constant to numba, a
+    # second specialisation of count_inliers_visited.
     n, _ = count_inliers_visited(R, t, source, target, start, order, origin, cell, dims, radius, need,
-                                 visit, slope, offset, _NO_OCC, origin, cell, dims, _NO_VISIT)
+                                 visit, slope, offset, np.zeros(0, np.uint8), origin, cell, dims,
+                                 np.zeros(0, np.int64))
     return n
 
 
@@ -429,7 +432,7 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
         return _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, ndist, nidx, eps,
                                            max_enumerated, src_normals, tgt_normals, feature_tol, use_normals)
     ks, ls, ms, disc = _match_lists(max_enumerated)
-    found = 0
+    found = np.int64(0)  # not the literal 0: one specialisation of _third_points
     probes = 2
     width = hi - lo
     for w in range(width):
@@ -437,10 +440,11 @@ def _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nid
             break
         s = lo + (offset + w) % width
         for orient in range(2):
+            # int64 indices everywhere (the tables hold int32): one specialisation of each callee
             if orient == 0:
-                k, l = pi[s], pj[s]
+                k, l = np.int64(pi[s]), np.int64(pj[s])
             else:
-                k, l = pj[s], pi[s]
+                k, l = np.int64(pj[s]), np.int64(pi[s])
             if use_normals and not _features_agree(source, a, b, src_normals, target, k, l,
                                                    tgt_normals, feature_tol):
                 continue
@@ -466,7 +470,7 @@ def _third_points(source, target, a, b, c, k, l, e1, row, near, m0, m1, dac, dbc
     by doubling up to ``max_enumerated``.  Returns them and the new count.
     """
     for u in range(m0, m1):
-        m = near[u]
+        m = np.int64(near[u])
         if m == l:
             continue
         e3 = _dist(target, l, target, m) - dbc
@@ -507,7 +511,7 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
     """:func:`_congruent_matches` listed point by point (see there)."""
     n2 = target.shape[0]
     ks, ls, ms, disc = _match_lists(max_enumerated)
-    found = 0
+    found = np.int64(0)
     probes = 0
     # Points in a stride order coprime to n2 from the offset: a capped scan
     # then takes points spread over the target, not a run of consecutive
@@ -531,7 +535,7 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
         for ul in range(l0, l1):
             if found >= max_enumerated:
                 break
-            l = nidx[k, ul]
+            l = np.int64(nidx[k, ul])
             if use_normals and not _features_agree(source, a, b, src_normals, target, k, l, tgt_normals,
                                                    feature_tol):
                 continue
@@ -562,11 +566,12 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
     listed = 0
     probes = 0
     frac = first_box
+    auto = np.int64(-1)  # by_point given, not omitted nor a literal: the callers' one specialisation
     while max_enumerated > max_matches and 0.0 < frac < 1.0:
         e = frac * eps
         ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx,
                                                   e, max_enumerated, src_normals, tgt_normals, feature_tol,
-                                                  use_normals)
+                                                  use_normals, auto)
         listed += ks.shape[0]
         probes += pr
         if ks.shape[0] > max_matches:
@@ -576,7 +581,7 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
         frac *= 2.0
     ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
                                               max(max_enumerated, max_matches), src_normals, tgt_normals,
-                                              feature_tol, use_normals)
+                                              feature_tol, use_normals, auto)
     listed += ks.shape[0]
     probes += pr
     if ks.shape[0] > max_matches:
@@ -811,11 +816,11 @@ def similar_triple_hypotheses(
                     m_hi += 1
                 if m_lo >= m_hi:
                     continue
-                l = nidx[k, u]
+                l = np.int64(nidx[k, u])
                 s = dkl / dab
                 want2 = s * dbc
                 for v in range(m_lo, m_hi):
-                    m = nidx[k, v]
+                    m = np.int64(nidx[k, v])
                     if m == l:
                         continue
                     if abs(_dist(target, l, target, m) - want2) > tol2:

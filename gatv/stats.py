@@ -47,20 +47,23 @@ def chance_count(n_source: float, n_target: float, measure: float, radius: float
 def chance_support(n_source: int, n_target: int, measure: float, radius: float,
                    n_tests: float = 1.0, alpha: float = ALPHA, *, dim: int = 3,
                    sample_size: int = 3) -> int:
-    """Support a wrong motion reaches by chance, with family-wise level ``alpha``.
+    """Support a wrong motion reaches by chance only with probability ``alpha`` (family-wise).
 
-    :func:`chance_count` plus the ``sample_size`` points that generated the
-    trial motion, which always match.
+    One more than :func:`chance_count` (the count a wrong motion exceeds
+    with probability below ``alpha / n_tests``, so reaching it is not
+    enough), plus the ``sample_size`` points that generated the trial
+    motion, which always match: a motion supported by its own sample alone
+    never reaches it.
 
     Examples
     --------
     >>> chance_support(100, 100, 1000.0, 1e-3)
-    3
+    4
     >>> chance_support(100, 100, 1000.0, 1.0) > chance_support(100, 100, 1000.0, 0.5)
     True
     """
     return chance_count(n_source, n_target, measure, radius, dim=dim, alpha=alpha,
-                        n_tests=n_tests) + int(sample_size)
+                        n_tests=n_tests) + 1 + int(sample_size)
 
 
 def samples_needed(inlier_share: float, confidence: float = 0.999, sample_points: int = 3) -> int:

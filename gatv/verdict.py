@@ -109,12 +109,13 @@ def poisson_verdict(support: int, expected: float, n_tested: float, *, sample_si
                     alpha: float = ALPHA) -> Verdict:
     """The exact pipeline's null: Poisson(``expected``) chance pairs plus the sample's own points.
 
-    The level is the ``1 - alpha / n_tested`` quantile (as
-    :func:`gatv.stats.chance_support`); the p-value is Bonferroni,
+    The level is one above the ``1 - alpha / n_tested`` quantile, plus the
+    sample (as :func:`gatv.stats.chance_support`): reached by chance with
+    probability at most ``alpha / n_tested``; the p-value is Bonferroni,
     ``n_tested · P(count ≥ support − sample_size)``, capped at 1.
     """
     n = max(1.0, float(n_tested))
-    level = float(poisson.isf(alpha / n, expected)) + sample_size
+    level = float(poisson.isf(alpha / n, expected)) + 1 + sample_size
     k = int(support) - int(sample_size)
     p = 1.0 if k <= 0 else min(1.0, n * float(poisson.sf(k - 1, expected)))
     return Verdict(int(support), level, n, p, "poisson", alpha)

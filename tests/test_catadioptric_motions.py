@@ -230,19 +230,15 @@ def test_unknown_strategy_lists_voting():
 def test_voting_strategy_reports_what_its_stages_did():
     """strategy="voting" on an outlier-free pure rotation (seed 5): the paper's surface keeps few
     true pairs here (design notes, section 10), and the result says why it returns nothing, with
-    numbers that hold: each stage keeps at most what the one before it had, and the rival that
-    makes the match ambiguous does beat both the chance level and RIVAL_RATIO of its pairs."""
-    from catadioptric.constants import RIVAL_RATIO
-
+    numbers that hold: each stage keeps at most what the one before it had, and the match falls
+    short of the chance level (one pair above the count wrong rotations exceed only rarely)."""
     v = synthetic_views(150, rotation_deg=30.0, translation=(0, 0, 0), outlier_fraction=0.0, seed=5)
     m = match(v.pixels1, v.pixels2, v.camera1, strategy="voting", max_motions=1)
     i = m.info
     assert i["voting_candidates"] >= i["voting_tokens_kept"] >= i["voting_eq41_passed"] >= i["voting_support"] > 0
     assert not m and m.strategy == "none" and not m.motions and m.support == 0
-    assert i["reason"] == (f"ambiguous (repeated structure): the voting match of {i['voting_support']} pairs "
-                           f"has a rival with other partners for {i['rival_support']} rays")
-    assert i["ambiguous_strategy"] == "voting" and i["ambiguous_support"] == i["voting_support"]
-    assert i["rival_support"] >= max(i["chance_support"], RIVAL_RATIO * i["voting_support"])
+    assert 0 < i["voting_support"] < i["chance_support"]
+    assert i["reason"] == f"{i['voting_support']} pairs, below the chance level {i['chance_support']}"
 
 
 def test_voting_strategy_match_beats_chance_one_to_one():

@@ -205,6 +205,11 @@ def test_noisy_peel_rejects_a_wrong_motion_at_its_own_noise_and_searches_the_fin
     assert sorted(m.info["round"] for m in seg) == [1, 2]
 
 
+#: Outlier pairs planted as a wrong motion: one more than the sample and the one point a chance level
+#: of 0 asks beyond it, so that it passes at its own tight noise.
+PLANTED = 6
+
+
 def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled_noise(monkeypatch):
     """A wrong first-round motion whose few residuals are tight passes the round's check at its own (small) noise;
     at the noise pooled over all motions it does not beat chance, and is dropped."""
@@ -212,18 +217,18 @@ def test_noisy_peel_drops_a_wrong_motion_that_does_not_beat_chance_at_the_pooled
     src, tgt = scene.source.copy(), scene.target.copy()
     true_s = set(np.concatenate([p[:, 0] for p in scene.true_pairs]).tolist())
     true_t = set(np.concatenate([p[:, 1] for p in scene.true_pairs]).tolist())
-    free_s = [i for i in range(len(src)) if i not in true_s][:5]
-    free_t = [j for j in range(len(tgt)) if j not in true_t][:5]
+    free_s = [i for i in range(len(src)) if i not in true_s][:PLANTED]
+    free_t = [j for j in range(len(tgt)) if j not in true_t][:PLANTED]
     M = np.eye(4)
     M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix()
-    # five outlier pairs moved by M, at a quarter of the scene's noise
-    tgt[free_t] = src[free_s] @ M[:3, :3].T + np.random.default_rng(5).normal(0.0, 0.025, (5, 3))
+    # a few outlier pairs moved by M, at a quarter of the scene's noise
+    tgt[free_t] = src[free_s] @ M[:3, :3].T + np.random.default_rng(5).normal(0.0, 0.025, (PLANTED, 3))
     planted = np.column_stack([free_s, free_t]).astype(np.int64)
     P = stages.prepare(src, tgt)
 
     def planted_motion(problem, levels):
         fit = stages.Fit(M, planted)
-        return stages.Found(fit, levels[0], stages.Judged(fit, 5, 1.0), 5, 3)
+        return stages.Found(fit, levels[0], stages.Judged(fit, PLANTED, 1.0), PLANTED, 3)
 
     _first_search_returns(monkeypatch, planted_motion)
     seg = peel(P, seed=0, noisy=True, schedule=_noisy_schedule())

@@ -417,19 +417,16 @@ class Similarity:
 
     def chance(self, n_source: int, n_target: int, measure: float, gate: float,
                n_tests: float = 1.0) -> int:
-        """Support a random similarity reaches: :func:`gatv.stats.chance_support` plus one.
+        """Support a random similarity reaches: :func:`gatv.stats.chance_support`.
 
-        ``chance_support`` is the chance count ``k`` (a random motion brings
-        more than ``k`` other points in with probability below ``alpha``)
-        plus the 3 sample points, and the pipeline accepts a support equal
-        to it.  At small gates ``k = 0``, so a motion supported by its own
-        sample alone would pass; random *similar* triangles are common
-        enough (one free scale: about one per 600 source triples among 500
-        uniform points at the exact tolerance) that it does, on unrelated
-        point sets.  One point beyond ``k`` plus the sample is required.
+        At small gates the chance count is 0, and random *similar* triangles
+        are common (one free scale: about one per 600 source triples among
+        500 uniform points at the exact tolerance), so a motion supported by
+        its own sample alone must not pass: ``chance_support`` asks one point
+        beyond the count a wrong motion exceeds only rarely, plus the sample.
         """
         return chance_support(n_source, n_target, measure, gate, n_tests=n_tests, dim=3,
-                              sample_size=self.sample_size) + 1
+                              sample_size=self.sample_size)
 
     # ----------------------------------------------------------- result
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,

@@ -128,8 +128,8 @@ def poisson_verdict(support: int, expected: float, n_tested: float, *, sample_si
 #: (benchmarks/null_pairs.py; docs/design-notes.md, "The verdict"): the
 #: pairs with no true motion (unrelated real scans, random clouds, disjoint
 #: halves) reach at most 0.81 of the level this gain sets, the right motions
-#: of fourteen real scan pairs at least 2.08 of it; noisy pairs with partial
-#: overlap fall below it (no motion, never a wrong one).
+#: of fourteen real scan pairs at least 2.08 of it; a few noisy pairs with
+#: partial overlap fall below it (no motion, never a wrong one).
 SEARCH_GAIN = 2.2
 
 

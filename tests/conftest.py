@@ -29,3 +29,65 @@ def parse_nonrigid():
         return parser.parse_args(argv)
 
     return parse
+
+
+# ------------------------------------------------------------ compile ahead
+#: Kernels a cold run of the whole suite compiles, called once on tiny input through
+#: the wrappers the product uses (so with the product's argument types), in the
+#: order the suite first needs them: the congruent-triple search (test_batch), the
+#: stick pass (test_catadioptric_motions), similar triples (test_peeling), the
+#: eigen solver (test_voting), and the ball pass last (test_affine2d, the first
+#: file, compiles it itself).
+_COMPILE_AHEAD = """
+import numpy as np
+from gatv.models.rigid.congruent import TargetIndex, trial_motions
+from gatv.models.similarity import similar_trial_motions
+from gatv.voting import vote
+from gatv.voting._eigen import eig3_batch
+
+rng = np.random.default_rng(0)
+x = rng.uniform(-1.0, 1.0, (40, 3))
+normals = rng.normal(size=(40, 3))
+normals /= np.linalg.norm(normals, axis=1)[:, None]
+index = TargetIndex(x, 0.05)
+trial_motions(x, index, eps=0.01, max_triples=8, rng=rng, wide=2, sequential=True,
+              source_normals=normals, target_normals=normals, max_enumerated=4)
+vote(x, 0.3, normals, saliency=np.ones(40))  # the stick pass alone
+similar_trial_motions(x, index, eps=0.01, max_triples=2, rng=rng)
+eig3_batch(np.zeros((2, 6)), np.empty((2, 3)), np.empty((2, 3, 3)))
+vote(x, 0.3)
+"""
+
+#: Fewer collected tests than this (a file or a few) start no compilation ahead.
+COMPILE_AHEAD_FROM = 200
+
+_ahead: list = []
+
+
+def pytest_collection_finish(session):
+    """On a whole-suite run, compile the big kernels in a second process, beside the first tests.
+
+    numba compiles on one core; on a cold cache (a fresh clone) the suite spends
+    about 130 CPU-s compiling, most of it while the other core idles.  The
+    process below fills numba's on-disk cache (the same ``NUMBA_CACHE_DIR``),
+    from which the tests then load the kernels; a kernel a test reaches first is
+    compiled there as before (numba writes cache files atomically).  On a warm
+    cache it only loads them (a few CPU-s).  ``GATV_TEST_COMPILE_AHEAD=0``
+    turns it off.
+    """
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if os.environ.get("GATV_TEST_COMPILE_AHEAD", "1") == "0" or len(session.items) < COMPILE_AHEAD_FROM:
+        return
+    root = Path(__file__).resolve().parents[1]
+    _ahead.append(subprocess.Popen([sys.executable, "-c", _COMPILE_AHEAD], cwd=root,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    for proc in _ahead:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()

@@ -43,6 +43,7 @@ from numba import get_num_threads
 from scipy.spatial import cKDTree
 
 from . import stages
+from ._fit_kernels import kabsch3
 from ._validation import (
     as_points,
     check_fraction,
@@ -85,15 +86,35 @@ __all__ = [
 ]
 
 
+def _cell_keys(index: np.ndarray) -> np.ndarray:
+    """One int64 per row of integer cell indices ``(i, j, k)``, in the rows' lexicographic order.
+
+    Row-major over the indices' ranges, so sorting the keys sorts the cells
+    as ``np.unique(index, axis=0)`` would, at a fraction of its cost; the
+    rows themselves when the ranges' product would overflow.
+    """
+    index = index - index.min(axis=0)
+    dims = index.max(axis=0) + 1
+    if float(np.prod(dims.astype(np.float64))) >= 2.0**62:
+        return index
+    return (index[:, 0] * dims[1] + index[:, 1]) * dims[2] + index[:, 2]
+
+
+def _unique_cells(index: np.ndarray, **options):
+    """``np.unique`` of the cells of the rows of ``index`` (as :func:`_cell_keys`)."""
+    keys = _cell_keys(index)
+    return np.unique(keys, axis=0 if keys.ndim == 2 else None, **options)
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Centroids of the points in each occupied cell of a grid of side ``voxel``."""
     pts = as_points(points, "points")
     voxel = check_positive(voxel, "voxel")
     key = np.floor((pts - pts.min(axis=0)) / voxel).astype(np.int64)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    _, inv, counts = _unique_cells(key, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    out = np.zeros((counts.size, 3))
-    np.add.at(out, inv, pts)
+    # Each cell's sum in the points' order, as np.add.at adds (and many times faster).
+    out = np.stack([np.bincount(inv, weights=pts[:, k], minlength=counts.size) for k in range(3)], axis=1)
     return out / counts[:, None]
 
 
@@ -103,7 +124,7 @@ def _voxel_for(points: np.ndarray, n_points: int) -> float:
     lo, hi = ext / 2000.0, ext / 2.0
     for _ in range(24):
         mid = np.sqrt(lo * hi)
-        n = len(np.unique(np.floor(points / mid).astype(np.int64), axis=0))
+        n = len(_unique_cells(np.floor(points / mid).astype(np.int64)))
         if n > n_points:
             lo = mid
         else:
@@ -438,7 +459,9 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
         w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
         A = np.hstack([np.cross(p - c, n), n]) * np.sqrt(w)[:, None]
         b = -r * np.sqrt(w)
-        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        # The normal equations: a 6x6 system in place of the (n, 6) one (least squares of minimum
+        # norm, so a slide along a plane or a spin about an axis stays zero).
+        x, *_ = np.linalg.lstsq(np.einsum("ij,ik->jk", A, A), np.einsum("ij,i->j", A, b), rcond=None)
         omega, delta = x[:3], x[3:]
         Rinc = Rotor.from_rotvec(omega).as_matrix()
         R = Rinc @ R
@@ -612,7 +635,7 @@ def register_surfaces(
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
     # Stage timings from the start of the call.
-    for key in ("t_prepare", "t_trials", "t_judge"):
+    for key in ("t_prepare", "t_trials", "t_judge", "t_polish", "t_verdict"):
         if key in info:
             info[key] += prepared
     if not match:
@@ -710,6 +733,8 @@ VERDICT_STREAM = 0x7E4D1C7
 VERDICT_ITERATIONS = 10
 #: Source points each draw is screened on.
 VERDICT_SCREEN = 1000
+#: Most source points the polish of a wrong draw moves (a random share of the search's coarse sample).
+VERDICT_SAMPLE = 8000
 #: Gates the verdict counts supports at: the final gate and its halves (a true
 #: motion's pairs sit at the noise, a wrong one's fill the gate).
 VERDICT_GATES = 5
@@ -730,6 +755,25 @@ def point_icp(X, Y, tree, R, t, gate, iterations=10):
             break
         R, t = R_new, t_new
     return R, t
+
+
+def _screen(X, Y, tree, R, t, gate, iterations=10) -> int:
+    """The points of ``X`` within ``gate`` of ``Y`` after :func:`point_icp` from ``(R, t)`` (the verdict's screen).
+
+    Its fits by the numba Kabsch (equal to :func:`gatv.fitting.fit_rigid`
+    to rounding); the last query counts when the ICP stopped at the motion it queried.
+    """
+    for _ in range(iterations):
+        d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+        ok = np.isfinite(d)
+        if np.count_nonzero(ok) < 3:
+            return int(np.count_nonzero(ok))
+        R_new, t_new = kabsch3(X[ok], Y[j[ok]])
+        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
+            return int(np.count_nonzero(ok))
+        R, t = R_new, t_new
+    d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
+    return int(np.count_nonzero(np.isfinite(d)))
 
 
 def _on_surface(X, Y, normals, tree, R, t, gates, reach) -> np.ndarray:
@@ -786,11 +830,8 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates, reach)
     starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
-    ranks = []
-    for R, t in starts:
-        R, t = point_icp(screen, Ys, tree, R, t, voxel)
-        d, _ = tree.query(screen @ R.T + t, k=1, distance_upper_bound=voxel)
-        ranks.append(np.count_nonzero(np.isfinite(d)))
+    screen_y = np.ascontiguousarray(Ys)
+    ranks = [_screen(screen, screen_y, tree, R, t, voxel) for R, t in starts]
     c = Xs.mean(axis=0)
 
     def judged(wrong):
@@ -947,16 +988,19 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
                                                                           replace=False)]
 
-    def polish(R, t, finest=sub, iterations=30):
-        """Point-to-plane ICP with a gate shrinking from a voxel; the points brought onto the surface."""
+    def polish(R, t, points=None, iterations=30, count=True):
+        """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
+        the points brought onto the surface (None without ``count``: the verdict counts its own)."""
         g = gate
         if refine:
             while True:
-                R, t = refine_point_to_plane(finest if g <= fine else coarse, Ys, target_normals, R, t, g,
-                                             tree=tree, iterations=iterations)
+                moving = points if points is not None else sub if g <= fine else coarse
+                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations)
                 if g <= fine:
                     break
                 g = max(fine, g / 2.0)
+        if not count:
+            return R, t, g, None
         dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
         # Source points on the target's surface (within the gate): a measure
         # that does not favour a motion for landing on the very sample
@@ -977,13 +1021,15 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
-    info.update(final_gate=g, on_surface=on)
+    info.update(final_gate=g, on_surface=on, t_polish=time.perf_counter() - t0)
     if verdict:
         report(0.95, "verdict")
-        # The wrong motions polished as the search's, on the coarse sample and for fewer iterations a gate
-        # (a wrong start wanders where a right one settles at once): a tenth of the cost, nearly their level.
+        # The wrong motions polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse sample and
+        # for fewer iterations a gate (a wrong start wanders where a right one settles at once).
+        sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
+            rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
         judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
-                                           polish=lambda R_, t_: polish(R_, t_, coarse, VERDICT_ITERATIONS),
+                                           polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
                                            n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
                                            rng=np.random.default_rng([seed, VERDICT_STREAM]))
         info.update(verdict=judged.to_dict(), verdict_gates=figures, t_verdict=time.perf_counter() - t0)

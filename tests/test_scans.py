@@ -233,3 +233,48 @@ def test_local_scatter_names_k_when_it_exceeds_the_reference():
 
     with pytest.raises(InputError, match="`k`"):
         local_scatter(np.zeros((5, 3)), np.zeros((1, 3)), 6)
+
+
+def test_voxel_cells_match_the_row_unique_they_replace():
+    """The flat cell keys give the cells, their order and their centroids of ``np.unique(axis=0)``."""
+    from gatv.scans import _unique_cells, _voxel_for
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(4000, 3)) * [1.0, 0.2, 3.0] - 5.0
+    key = np.floor((pts - pts.min(axis=0)) / 0.3).astype(np.int64)
+    ref, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    out = np.zeros((counts.size, 3))
+    np.add.at(out, inv.ravel(), pts)
+    np.testing.assert_array_equal(voxel_downsample(pts, 0.3), out / counts[:, None])
+    for voxel in (0.05, 0.7):
+        cells = np.floor(pts / voxel).astype(np.int64)
+        assert len(_unique_cells(cells)) == len(np.unique(cells, axis=0))
+    assert _voxel_for(pts, 200) > 0
+    huge = np.array([[0, 0, 0], [2**40, 2**40, 2**40], [0, 0, 0]], dtype=np.int64)
+    assert len(_unique_cells(huge)) == 2  # ranges whose product overflows: the rows themselves
+
+
+def test_verdict_screen_counts_as_point_icp_then_a_query():
+    from scipy.spatial import cKDTree
+
+    from gatv.scans import _screen, point_icp, tangent_motions
+
+    src, tgt, _, _ = _resampled_sphere_pair(n_source=800, n_target=1500)
+    tree = cKDTree(tgt)
+    for R, t in tangent_motions(src, tgt, 8, np.random.default_rng(0), target_tree=tree):
+        R2, t2 = point_icp(src, tgt, tree, R, t, 0.3)
+        d, _ = tree.query(src @ R2.T + t2, k=1, distance_upper_bound=0.3)
+        assert _screen(src, tgt, tree, R, t, 0.3) == np.count_nonzero(np.isfinite(d))
+
+
+def test_point_to_plane_step_on_a_plane_leaves_the_free_motions_alone():
+    """On a plane the slide and the spin are free: the minimum-norm step leaves them at zero."""
+    from gatv.scans import refine_point_to_plane
+
+    rng = np.random.default_rng(4)
+    tgt = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    src = np.c_[rng.uniform(-0.8, 0.8, (500, 2)), np.full(500, 0.01)]
+    normals = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    R, t = refine_point_to_plane(src, tgt, normals, np.eye(3), np.zeros(3), 0.1)
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(t, [0.0, 0.0, -0.01], atol=1e-12)

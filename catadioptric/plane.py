@@ -102,7 +102,8 @@ def homography_from_rays(x, y):
         (the plane lies in front of both views).
     """
     A = _dlt_rows(x, y)
-    _, _, vt = np.linalg.svd(A)
+    # The null vector only: no 2K x 2K U (full V while 2K < 9, where the reduced one would lack it).
+    _, _, vt = np.linalg.svd(A, full_matrices=A.shape[-2] < A.shape[-1])
     H = vt[:, -1, :].reshape(-1, 3, 3)
     s = np.einsum("tij,tkj,tki->t", H, x, y)
     return H * np.where(s < 0, -1.0, 1.0)[:, None, None]

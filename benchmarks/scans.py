@@ -52,7 +52,10 @@ Usage::
 
     python benchmarks/scans.py [--seed 0] [--clutter 0,0.3,0.5] [--overlap 0.4] [--noise 0,2,4]
                                [--methods gatv,o3d-ransac,o3d-fgr] [--out benchmarks/results]
-                               [--scheduler local|ADDRESS]
+                               [--scheduler local|ADDRESS] [--stages]
+
+``--stages`` adds a table of the CPU seconds of each stage of gatv's scans
+pipeline (``info["cpu_<stage>"]``) per row; the CSV has them always.
 """
 
 from __future__ import annotations
@@ -85,6 +88,8 @@ UWA = ("chef", "parasaurolophus")
 METHODS = ("gatv", "o3d-ransac", "o3d-fgr")
 #: Decimations of the bunny's reconstruction (``bun_zipper_<res>.ply``), in bun000's frame.
 MESHES = ("res2", "res3", "res4")
+#: The scans pipeline's stages (``gatv.scans.STAGES``): ``--stages`` prints each one's CPU seconds.
+STAGES = ("prepare", "trials", "judge", "polish", "verdict")
 #: Success tolerances (degrees, millimetres) per dataset.
 TOLERANCE = {"bunny": (1.0, 2.0), "uwa": (0.3, 1.0), "mesh": (2.0, 2.0)}
 
@@ -164,8 +169,14 @@ def run_gatv(source, target, seed):
     from gatv.registration import register
 
     m = register(source, target, seed=seed)
+    # Each stage's own CPU seconds (the info's are from the call's start, up to each stage's end).
+    ends = [m.info.get(f"cpu_{stage}") for stage in STAGES]
+    stages, last = {}, 0.0
+    for stage, end in zip(STAGES, ends):
+        if end is not None:
+            stages[f"cpu_{stage}"], last = end - last, end
     return m.rotation, m.translation, {"pipeline": m.info.get("pipeline", ""), "noise": m.info.get("noise"),
-                                       "ambiguous": m.info.get("ambiguous", False), "ok": bool(m)}
+                                       "ambiguous": m.info.get("ambiguous", False), "ok": bool(m), **stages}
 
 
 def _o3d_features(points, voxel):
@@ -236,7 +247,8 @@ def run_row(task: tuple) -> dict:
         row["noise_ratio"] = float(estimate) / sigma
     return dict(row, rotation_error_deg=rot, centroid_error_mm=centre, time_s=seconds, cpu_s=cpu,
                 success=bool(extra.get("ok", True)) and rot <= tol_deg and centre <= tol_mm,
-                ambiguous=bool(extra.get("ambiguous", False)), pipeline=extra.get("pipeline", ""))
+                ambiguous=bool(extra.get("ambiguous", False)), pipeline=extra.get("pipeline", ""),
+                **{k: v for k, v in extra.items() if k.startswith("cpu_")})
 
 
 def main(argv=None) -> int:
@@ -255,6 +267,8 @@ def main(argv=None) -> int:
                              "decimated reconstruction), ... (default: the seven scan pairs)")
     parser.add_argument("--o3d-voxel-share", type=float, default=1 / 40,
                         help="Open3D's voxel as a share of the target's bounding-box diagonal")
+    parser.add_argument("--stages", action="store_true",
+                        help="also print the CPU seconds of each stage of gatv's scans pipeline per row")
     add_scheduler_argument(parser)
     args = parser.parse_args(argv)
     unknown = [m for m in args.methods if m not in METHODS]
@@ -310,8 +324,17 @@ def main(argv=None) -> int:
                                 fmt(max(times) if times else None, 2), fmt(median(r.get("cpu_s") for r in cell), 2)])
     print(markdown_table(summary[0], summary[1:], align="l" + ("r" if noisy else "") + "lrrrr"))
     print("CPU: process time of the call, all threads added up (Open3D and numba both use threads).")
+    staged = [r for r in rows if "cpu_prepare" in r]
+    if args.stages and staged:
+        print("\nCPU seconds per stage of gatv's scans pipeline (gatv.scans.STAGES; rest: from the verdict's end "
+              "to the call's)\n")
+        body = [[r["pair"], f"{r['clutter']:.0%}", *(fmt(r.get(f"cpu_{s}"), 2) for s in STAGES),
+                 fmt(r["cpu_s"] - sum(r.get(f"cpu_{s}", 0.0) for s in STAGES), 2), fmt(r["cpu_s"], 2)]
+                for r in staged]
+        print(markdown_table(["pair", "clutter", *STAGES, "rest", "call"], body, align="ll" + "r" * (len(STAGES) + 2)))
     keys = ["pair", "dataset", "clutter", "overlap", "noise", "method", "rotation_error_deg", "centroid_error_mm",
-            "time_s", "cpu_s", "success", "ambiguous", "pipeline", "noise_ratio", "error"]
+            "time_s", "cpu_s", "success", "ambiguous", "pipeline", "noise_ratio",
+            *(f"cpu_{s}" for s in STAGES), "error"]
     suffix = ("" if args.overlap is None else f"_overlap{round(100 * args.overlap)}") + (
         "_noise" if noisy else "")
     path = write_csv(args.out / f"scans{suffix}.csv", keys, [[r.get(k, "") for k in keys] for r in rows])

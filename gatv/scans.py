@@ -485,6 +485,21 @@ def register_scans(source, target, **options) -> RigidMotion:
     return out
 
 
+#: The stages :func:`match_surfaces` times: ``info["t_<stage>"]`` (wall) and ``info["cpu_<stage>"]``
+#: (process time, every thread), seconds from the start of the call at the stage's end.
+STAGES = ("prepare", "trials", "judge", "polish", "verdict")
+
+
+def _clock() -> tuple[float, float]:
+    return time.perf_counter(), time.process_time()
+
+
+def _stamp(info: dict, stage: str, start: tuple[float, float]) -> None:
+    """``info["t_<stage>"]`` and ``info["cpu_<stage>"]``: wall and process time since ``start``."""
+    info[f"t_{stage}"] = time.perf_counter() - start[0]
+    info[f"cpu_{stage}"] = time.process_time() - start[1]
+
+
 #: Rival motions within this share of the best support make the answer
 #: ambiguous (a symmetric or nearly planar object).
 RIVAL_SHARE = 0.8
@@ -600,14 +615,15 @@ def register_surfaces(
         ``target ≈ source @ rotation.T + translation``; ``correspondences``
         index the input points (one-to-one nearest pairs within the final
         gate, on the points kept as surface).  ``info`` has the voxel size
-        and stage timings; ``noise`` (the two scans' noise, root mean
+        and stage timings (``t_<stage>`` wall and ``cpu_<stage>`` process
+        seconds from the call's start at each of :data:`STAGES`' ends); ``noise`` (the two scans' noise, root mean
         square), ``scan_noise`` (each scan's, :func:`scan_noise`),
         ``projected`` (the points of each scan's plane fits, 0 when it was
         not projected, :func:`project_to_surface`) and ``residual_noise``
         (the point-to-plane residuals of the final pairs, per scan, as
         :func:`plane_noise`).
     """
-    t0 = time.perf_counter()
+    t0 = _clock()
     X = RIGID.check_points(source, "source")
     Y = RIGID.check_points(target, "target")
     report = check_progress(progress)
@@ -626,7 +642,7 @@ def register_surfaces(
     ix, iy = tx.rows, ty.rows
     Xs, Ys = tx.points[ix], ty.points[iy]
     nys = ty.normals if ty.normals is not None else _normals(Ys)
-    prepared = time.perf_counter() - t0
+    prepared = np.subtract(_clock(), t0)
     match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
                            confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                            n_judged=n_judged, refine=refine, memory_budget=memory_budget,
@@ -635,9 +651,10 @@ def register_surfaces(
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
     # Stage timings from the start of the call.
-    for key in ("t_prepare", "t_trials", "t_judge", "t_polish", "t_verdict"):
-        if key in info:
-            info[key] += prepared
+    for stage in STAGES:
+        for key, offset in zip((f"t_{stage}", f"cpu_{stage}"), prepared):
+            if key in info:
+                info[key] += float(offset)
     if not match:
         return stages.failure(RIGID, info["reason"], info)
     noise = pooled_noise(tx.noise.sigma, ty.noise.sigma)
@@ -656,7 +673,7 @@ def register_surfaces(
     info.update(noise=noise, thickness=flat,
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,
                 projected=tuple(0 if t.projection is None else t.projection.neighbours for t in (tx, ty)),
-                time_s=time.perf_counter() - t0)
+                time_s=time.perf_counter() - t0[0], cpu_s=time.process_time() - t0[1])
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
 
@@ -937,7 +954,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     segmentation has its own levels).  ``noise``: the two scans' noise
     combined, for the verdict's reach (:func:`surface_verdict`).
     """
-    t0 = time.perf_counter()
+    t0 = _clock()
     report = progress if progress is not None else (lambda fraction, message="": None)
     info: dict = {}
     none = np.empty((0, 2), np.int64)
@@ -949,7 +966,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:
         return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="too few voxels"))
     nx, ny = _normals(Xd), _normals(Yd)
-    info["t_prepare"] = time.perf_counter() - t0
+    _stamp(info, "prepare", t0)
 
     # Trial motions: voxel-sized tolerances; long sides for a stable rotation.
     report(0.1, "trial motions")
@@ -964,7 +981,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                            min_side=0.25 * diameter, max_matches=256, accept=0,
                            source_normals=nx, target_normals=ny, feature_tol=feature_tol,
                            progress=lambda f, m: report(0.1 + 0.6 * f, m))
-    info.update(triples=trials.n_triples, congruent=trials.n_congruent, t_trials=time.perf_counter() - t0)
+    info.update(triples=trials.n_triples, congruent=trials.n_congruent)
+    _stamp(info, "trials", t0)
     if not len(trials):
         return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="no congruent triples"))
 
@@ -978,7 +996,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                             dict(info, reason="tensor voting found no consistent plane"))
     fits.sort(key=lambda f: -f.support)
     best = fits[0]
-    info.update(judged_support=best.support, t_judge=time.perf_counter() - t0)
+    info.update(judged_support=best.support)
+    _stamp(info, "judge", t0)
     rivals = _rivals(best, fits[1:], voxel)
 
     # Polish: point-to-plane ICP with a shrinking gate, using the target's
@@ -1024,7 +1043,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             info["ambiguous"] = True
             info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
             break
-    info.update(final_gate=g, on_surface=on, t_polish=time.perf_counter() - t0)
+    info.update(final_gate=g, on_surface=on)
+    _stamp(info, "polish", t0)
     if verdict:
         report(0.95, "verdict")
         # The wrong motions polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse sample and
@@ -1035,7 +1055,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                                            polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
                                            n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
                                            rng=np.random.default_rng([seed, VERDICT_STREAM]))
-        info.update(verdict=judged.to_dict(), verdict_gates=figures, t_verdict=time.perf_counter() - t0)
+        info.update(verdict=judged.to_dict(), verdict_gates=figures)
+        _stamp(info, "verdict", t0)
         if not judged:
             return SurfaceMatch(None, None, g, none, 0, dict(info, reason=judged.reason()))
     pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)

@@ -763,37 +763,27 @@ VERDICT_GATES = 5
 NOISE_REACH = 3.0
 
 
-def point_icp(X, Y, tree, R, t, gate, iterations=10):
-    """Point-to-point ICP inside ``gate``: what a polish does to a wrong start (the verdict's cheap screen)."""
-    for _ in range(iterations):
-        d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
-        ok = np.isfinite(d)
-        if np.count_nonzero(ok) < 3:
-            break
-        R_new, t_new = fit_rigid(X[ok], Y[j[ok]])
-        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
-            break
-        R, t = R_new, t_new
-    return R, t
+def point_icp(X, Y, tree, R, t, gate, iterations=10, *, fit=fit_rigid):
+    """Point-to-point ICP inside ``gate``: what a polish does to a wrong start (the cheap screens of
+    :func:`surface_verdict` and of :func:`gatv.motions.scans.chance_support`).
 
-
-def _screen(X, Y, tree, R, t, gate, iterations=10) -> int:
-    """The points of ``X`` within ``gate`` of ``Y`` after :func:`point_icp` from ``(R, t)`` (the verdict's screen).
-
-    Its fits by the numba Kabsch (equal to :func:`gatv.fitting.fit_rigid`
-    to rounding); the last query counts when the ICP stopped at the motion it queried.
+    Returns ``(R, t, support)``: the motion reached and the points of ``X``
+    within ``gate`` of ``Y`` under it (the last query's count when the ICP
+    stopped at the motion it queried).  ``fit(source, target) -> (R, t)``:
+    :func:`gatv.fitting.fit_rigid`, or the numba ``kabsch3`` (equal to
+    rounding, cheaper on the verdict's many small fits).
     """
     for _ in range(iterations):
         d, j = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
         ok = np.isfinite(d)
         if np.count_nonzero(ok) < 3:
-            return int(np.count_nonzero(ok))
-        R_new, t_new = kabsch3(X[ok], Y[j[ok]])
+            return R, t, int(np.count_nonzero(ok))
+        R_new, t_new = fit(X[ok], Y[j[ok]])
         if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
-            return int(np.count_nonzero(ok))
+            return R, t, int(np.count_nonzero(ok))
         R, t = R_new, t_new
     d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate)
-    return int(np.count_nonzero(np.isfinite(d)))
+    return R, t, int(np.count_nonzero(np.isfinite(d)))
 
 
 def _on_surface(X, Y, normals, tree, R, t, gates, reach) -> np.ndarray:
@@ -850,8 +840,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates, reach)
     starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
-    screen_y = np.ascontiguousarray(Ys)
-    ranks = [_screen(screen, screen_y, tree, R, t, voxel) for R, t in starts]
+    ranks = [point_icp(screen, Ys, tree, R, t, voxel, fit=kabsch3)[2] for R, t in starts]
     c = Xs.mean(axis=0)
 
     def judged(wrong):

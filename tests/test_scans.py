@@ -277,16 +277,20 @@ def test_voxel_cells_match_the_row_unique_they_replace():
 
 
 def test_verdict_screen_counts_as_point_icp_then_a_query():
+    """point_icp's support is a fresh query at the motion it returns, and the verdict's screen (the numba
+    Kabsch as its fit) counts as the fit_rigid one does."""
     from scipy.spatial import cKDTree
 
-    from gatv.scans import _screen, point_icp, tangent_motions
+    from gatv._fit_kernels import kabsch3
+    from gatv.scans import point_icp, tangent_motions
 
     src, tgt, _, _ = _resampled_sphere_pair(n_source=800, n_target=1500)
     tree = cKDTree(tgt)
     for R, t in tangent_motions(src, tgt, 8, np.random.default_rng(0), target_tree=tree):
-        R2, t2 = point_icp(src, tgt, tree, R, t, 0.3)
+        R2, t2, support = point_icp(src, tgt, tree, R, t, 0.3)
         d, _ = tree.query(src @ R2.T + t2, k=1, distance_upper_bound=0.3)
-        assert _screen(src, tgt, tree, R, t, 0.3) == np.count_nonzero(np.isfinite(d))
+        assert support == np.count_nonzero(np.isfinite(d))
+        assert point_icp(src, tgt, tree, R, t, 0.3, fit=kabsch3)[2] == support
 
 
 def test_point_to_plane_step_on_a_plane_leaves_the_free_motions_alone():

@@ -220,14 +220,15 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
         # Screen every draw on a smaller sample; only the best-ranked few are polished
         # and counted on the whole sample (the maximum is decided among them).
         screen = sub[rng.choice(sub.shape[0], CHANCE_SCREEN, replace=False)]
-        ranks = [np.count_nonzero(_support(screen, tree, *point_icp(screen, Y, tree, R, t, gate, polish), gate))
-                 for R, t in starts]
+        ranks = [point_icp(screen, Y, tree, R, t, gate, polish)[2] for R, t in starts]
         starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:N_CHANCE_FINAL]]
     best = 0
     for R, t in starts:
         if polish:
-            R, t = point_icp(sub, Y, tree, R, t, gate, polish)
-        best = max(best, int(np.count_nonzero(_support(sub, tree, R, t, gate))))
+            R, t, support = point_icp(sub, Y, tree, R, t, gate, polish)
+        else:
+            support = np.count_nonzero(_support(sub, tree, R, t, gate))
+        best = max(best, int(support))
     return int(np.ceil(best * scale))
 
 

@@ -66,6 +66,7 @@ from .voting import extract_surfaces, vote
 __all__ = [
     "LocalScatter",
     "ScanNoise",
+    "SourceFrame",
     "SurfaceMatch",
     "SurfaceProjection",
     "SurfaceTokens",
@@ -81,7 +82,9 @@ __all__ = [
     "register_surfaces",
     "scan_noise",
     "surface_points",
+    "surface_support",
     "surface_tokens",
+    "surface_verdict",
     "voxel_downsample",
 ]
 
@@ -786,20 +789,60 @@ def point_icp(X, Y, tree, R, t, gate, iterations=10, *, fit=fit_rigid):
     return R, t, int(np.count_nonzero(np.isfinite(d)))
 
 
-def _on_surface(X, Y, normals, tree, R, t, gates, reach) -> np.ndarray:
+#: Cosine of the largest angle between a source point's normal (moved) and its target sample's at which
+#: the two surfaces count as one there (about 26°): where a wrong motion lays one surface across the other,
+#: the two cross within the gate at an angle; under the right motion the normals agree to their noise.
+NORMAL_AGREEMENT = 0.9
+#: Source points (each with its ``VERDICT_NEIGHBOURS - 1`` nearest on its own scan) over which a point's
+#: height above the target's tangent plane is averaged for the verdict's finer gates (:func:`surface_support`).
+VERDICT_NEIGHBOURS = 16
+
+
+@dataclass(frozen=True, eq=False)
+class SourceFrame:
+    """What the verdict needs of the source once, for every motion it counts (:func:`surface_support`)."""
+
+    #: (N, 3) unit normals, unoriented (least-variance axes of 12 neighbours, as :func:`tangent_motions`).
+    normals: np.ndarray
+    #: (N, VERDICT_NEIGHBOURS) rows of each point's nearest source points, itself first.
+    neighbours: np.ndarray
+
+    @classmethod
+    def of(cls, X: np.ndarray, tree: cKDTree | None = None) -> "SourceFrame":
+        tree = cKDTree(X) if tree is None else tree
+        normals = local_scatter(X, X, min(12, X.shape[0]), tree).normals
+        neighbours = tree.query(X, k=min(VERDICT_NEIGHBOURS, X.shape[0]))[1].reshape(X.shape[0], -1)
+        return cls(normals, neighbours)
+
+
+def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame) -> np.ndarray:
     """Source points on the target's surface under ``(R, t)``, at each of ``gates`` (descending).
 
-    Within ``gates[0]`` of a target point; then, for each finer gate,
-    within ``reach`` (at least ``gates[0]``) of a target point and within
-    the gate of its tangent plane: the distance to the surface, not to its
-    sample points, so that a coarse sampling (a mesh's vertices) or a noisy
-    one, whose samples lie off the surface, counts as a dense exact one.
+    A point counts where its normal, moved, agrees with its nearest target
+    sample's (:data:`NORMAL_AGREEMENT`) and it lies within ``gates[0]`` of
+    that sample; for each finer gate, within ``reach`` (at least
+    ``gates[0]``) of a sample and with its *local height* within the gate:
+    its height above the sample's tangent plane averaged over its
+    :data:`VERDICT_NEIGHBOURS` nearest source points.  The distance to the
+    surface, not to its samples, so that a coarse sampling (a mesh's
+    vertices) counts as a dense one; averaged, so that the scans' noise
+    falls by about the square root of the neighbours while the gap between
+    two surfaces that a wrong motion lays tangentially onto each other,
+    smooth over that neighbourhood, stays.
     """
     moved = X @ R.T + t
     d, j = tree.query(moved, k=1, distance_upper_bound=max(reach, gates[0]))
-    ok = np.flatnonzero(np.isfinite(d))
-    r = np.abs(np.einsum("ij,ij->i", moved[ok] - Y[j[ok]], normals[j[ok]]))
-    return np.array([np.count_nonzero(d[ok] <= gates[0])] + [np.count_nonzero(r <= g) for g in gates[1:]])
+    near = np.isfinite(d)
+    j = np.where(near, j, 0)
+    n = normals[j]
+    agree = near & (np.abs(np.einsum("ij,ij->i", frame.normals @ R.T, n)) >= NORMAL_AGREEMENT)
+    off = np.where(near[:, None], moved - Y[j], 0.0)
+    # Each neighbour's offset from its own nearest sample, along this point's normal.
+    heights = np.einsum("ikj,ij->ik", off[frame.neighbours], n)
+    counted = near[frame.neighbours]
+    h = np.abs(heights.sum(axis=1)) / np.maximum(counted.sum(axis=1), 1)
+    return np.array([np.count_nonzero(agree & (d <= gates[0]))]
+                    + [np.count_nonzero(agree & (h <= g)) for g in gates[1:]])
 
 
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
@@ -815,29 +858,33 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     coarse-to-fine point-to-plane ICP, ``polish(R, t) -> (R, t, gate, _)``);
     those that end on the motion itself (within 2° and 3 gates at the
     source's centroid) are not wrong ones (when none is left, nothing
-    rivals the motion and it passes).  Supports are the source points
-    within ``gate`` of a target point and, at ``gate``'s halves
-    (:data:`VERDICT_GATES` gates in all), within that of its tangent plane
-    (``target_normals``): two surfaces that a wrong motion lays onto each
-    other touch and cross, so its points fill the gate, while a right
-    motion's sit at the noise and stay within the finer gates.  At each gate the level is the best wrong motion's
-    support (plus three of its Poisson deviations, for small counts) times
-    the search's gain (:func:`gatv.verdict.wrong_motion_verdict`); the gate
-    where the motion stands out most decides.  ``n_tested``: the motions
-    the search tried, recorded.  ``noise``: the two scans' noise along
-    the normal, combined (``hypot`` of each one's :func:`scan_noise`): a
-    point on the surface lies that far off its nearest target sample, so
-    the finer gates count points within ``gate + NOISE_REACH * noise`` of
-    a sample (:data:`NOISE_REACH`) and within the gate of its tangent
-    plane; on scans far less noisy than their sampling, about the gate.  Returns the
-    verdict and its per-gate figures (``info["verdict_gates"]``).
+    rivals the motion and it passes).  Supports are the source points whose
+    normals agree with the target's there and that lie within ``gate`` of a
+    target point and, at ``gate``'s halves (:data:`VERDICT_GATES` gates in
+    all), whose local height over the target's tangent plane
+    (``target_normals``), averaged over their source neighbours, is within
+    that gate (:func:`surface_support`): two surfaces that a wrong motion lays
+    onto each other touch, part and cross, so its points fill the gate,
+    while a right motion's sit at the noise, which the averaging shrinks.
+    At each gate the level is the best wrong motion's support (plus three
+    of its Poisson deviations, for small counts) times the search's gain
+    (:func:`gatv.verdict.wrong_motion_verdict`); the gate where the motion
+    stands out most decides.  ``n_tested``: the motions the search tried,
+    recorded.  ``noise``: the two scans' noise along the normal, combined
+    (``hypot`` of each one's :func:`scan_noise`): a point on the surface
+    lies that far off its nearest target sample, so the finer gates count
+    points within ``gate + NOISE_REACH * noise`` of a sample
+    (:data:`NOISE_REACH`); on scans far less noisy than their sampling,
+    about the gate.  Returns the verdict and its per-gate figures
+    (``info["verdict_gates"]``).
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     tree = cKDTree(Ys) if tree is None else tree
     gates = [gate / 2.0**k for k in range(VERDICT_GATES)]
     # A point on the surface is off its nearest sample by the two scans' noise along the normal too.
     reach = gate + NOISE_REACH * float(noise)
-    found = _on_surface(Xs, Ys, target_normals, tree, R0, t0, gates, reach)
+    frame = SourceFrame.of(Xs)
+    found = surface_support(Xs, Ys, target_normals, tree, R0, t0, gates, reach, frame)
     starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
     ranks = [point_icp(screen, Ys, tree, R, t, voxel, fit=kabsch3)[2] for R, t in starts]
@@ -854,7 +901,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         R, t, g, _ = polish(*starts[k])
         same = rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
         if not same:
-            wrong.append(_on_surface(Xs, Ys, target_normals, tree, R, t, gates, reach))
+            wrong.append(surface_support(Xs, Ys, target_normals, tree, R, t, gates, reach, frame))
             # More draws only raise the levels: once every gate's is reached, the motion has failed.
             if not any(v for v, _ in judged(wrong)):
                 break

@@ -35,6 +35,7 @@ along the surface (:func:`surface_tokens`).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -938,6 +939,11 @@ class SurfaceMatch:
 #: Source points of the point-to-plane polish (a random subsample of larger scans).
 FINE_SAMPLE = 8000
 
+#: Triples a batch of :func:`match_surfaces`'s adaptive search (the whole-budget search: 512): the
+#: adaptive stop is checked after each batch, and a right motion's share of a scan pair's voxel points
+#: (0.5-0.95) needs 5-70 triples.
+ADAPTIVE_BATCH = 64
+
 #: Leaf size of the target's k-d tree that the polish and the verdict query (scipy's default: 16):
 #: larger leaves make the many queries of points off the surface (the verdict's wrong draws) cheaper;
 #: the neighbours found are the same.
@@ -994,6 +1000,16 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     whose reason says so.  False leaves the verdict to the caller (motion
     segmentation has its own levels).  ``noise``: the two scans' noise
     combined, for the verdict's reach (:func:`surface_verdict`).
+
+    With the verdict, the search stops at the first motion that passes it:
+    the triples are drawn in batches of :data:`ADAPTIVE_BATCH` until they
+    are as many as the best trial's inlier share needs (adaptive RANSAC
+    termination, ``trial_motions(adaptive_confidence=confidence)``); when
+    that motion fails the verdict (or none is found) short of the budget,
+    the whole budget is drawn from the seed's stream as without the stop.
+    ``info["search"]`` says which (``"adaptive"`` or ``"whole budget"``,
+    then with ``info["adaptive"]``: the triples drawn first, and why they
+    gave no motion).
     """
     t0 = _clock()
     report = progress if progress is not None else (lambda fraction, message="": None)
@@ -1017,88 +1033,112 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     budget = n_triples_needed(float(min_overlap), confidence)
     if max_triples is not None:
         budget = min(budget, max_triples)
-    rng = np.random.default_rng(seed)
-    trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
-                           min_side=0.25 * diameter, max_matches=256, accept=0,
-                           source_normals=nx, target_normals=ny, feature_tol=feature_tol,
-                           progress=lambda f, m: report(0.1 + 0.6 * f, m))
-    info.update(triples=trials.n_triples, congruent=trials.n_congruent)
-    _stamp(info, "trials", t0)
-    if not len(trials):
-        return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="no congruent triples"))
-
-    # Tensor voting judges the best trials on the downsampled sets.
-    report(0.7, "tensor voting")
     P = stages.prepare(Xd, Yd, RIGID)
-    tol = gate / 3.5  # so that the judge's gate is one voxel
-    fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices) if j is not None]
-    if not fits:
-        return SurfaceMatch(None, None, voxel, none, 0,
-                            dict(info, reason="tensor voting found no consistent plane"))
-    fits.sort(key=lambda f: -f.support)
-    best = fits[0]
-    info.update(judged_support=best.support)
-    _stamp(info, "judge", t0)
-    rivals = _rivals(best, fits[1:], voxel)
-
-    # Polish: point-to-plane ICP with a shrinking gate, using the target's
-    # normals.
-    report(0.85, "refine")
     fine = 3.0 * target_spacing
     tree = cKDTree(Ys, leafsize=QUERY_LEAFSIZE)
-    rng_sub = np.random.default_rng(seed)
-    sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
-    coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
-                                                                          replace=False)]
 
-    def polish(R, t, points=None, iterations=30, count=True):
-        """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
-        the points brought onto the surface (None without ``count``: the verdict counts its own)."""
-        g = gate
-        if refine:
-            while True:
-                moving = points if points is not None else sub if g <= fine else coarse
-                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations)
-                if g <= fine:
-                    break
-                g = max(fine, g / 2.0)
-        if not count:
-            return R, t, g, None
-        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-        # Source points on the target's surface (within the gate): a measure
-        # that does not favour a motion for landing on the very sample
-        # points (the one-to-one pairs do).
-        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
+    def attempt(adaptive: bool, info: dict) -> SurfaceMatch:
+        """Stages 2-5 from the seed's streams: with the adaptive stop, or drawing the whole budget."""
+        rng = np.random.default_rng(seed)
+        if adaptive:
+            # Adaptive RANSAC termination in small batches; the verdict below catches a wrong motion it stops at.
+            trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
+                                   min_side=0.25 * diameter, max_matches=256, accept=0,
+                                   source_normals=nx, target_normals=ny, feature_tol=feature_tol,
+                                   batch=ADAPTIVE_BATCH, adaptive_confidence=confidence, min_share=min_overlap,
+                                   progress=lambda f, m: report(0.1 + 0.6 * f, m))
+        else:
+            trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
+                                   min_side=0.25 * diameter, max_matches=256, accept=0,
+                                   source_normals=nx, target_normals=ny, feature_tol=feature_tol,
+                                   progress=lambda f, m: report(0.1 + 0.6 * f, m))
+        info.update(triples=trials.n_triples, congruent=trials.n_congruent)
+        _stamp(info, "trials", t0)
+        if not len(trials):
+            return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="no congruent triples"))
 
-    R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3])
-    info["ambiguous"] = False
-    for rival in rivals:
-        # Judged nearly as well: polish it too and compare at full resolution.
-        Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
-        if (rotation_angle_deg(Rr @ R.T) < 1.0
-                and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
-            continue  # polishing brought it onto the best motion
-        if on_r > on:
-            R, t, g, on, Rr, tr, gr, on_r = Rr, tr, gr, on_r, R, t, g, on
-        if on_r >= RIVAL_SHARE * on:
-            info["ambiguous"] = True
-            info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
-            break
-    info.update(final_gate=g, on_surface=on)
-    _stamp(info, "polish", t0)
-    if verdict:
-        report(0.95, "verdict")
-        # The wrong motions polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse sample and
-        # for fewer iterations a gate (a wrong start wanders where a right one settles at once).
-        sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
-            rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
-        judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
-                                           polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
-                                           n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
-                                           rng=np.random.default_rng([seed, VERDICT_STREAM]))
-        info.update(verdict=judged.to_dict(), verdict_gates=figures)
-        _stamp(info, "verdict", t0)
-        if not judged:
-            return SurfaceMatch(None, None, g, none, 0, dict(info, reason=judged.reason()))
-    pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
-    return SurfaceMatch(R, t, g, pairs, on, info)
+        # Tensor voting judges the best trials on the downsampled sets.
+        report(0.7, "tensor voting")
+        tol = gate / 3.5  # so that the judge's gate is one voxel
+        fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices) if j is not None]
+        if not fits:
+            return SurfaceMatch(None, None, voxel, none, 0,
+                                dict(info, reason="tensor voting found no consistent plane"))
+        fits.sort(key=lambda f: -f.support)
+        best = fits[0]
+        info.update(judged_support=best.support)
+        _stamp(info, "judge", t0)
+        rivals = _rivals(best, fits[1:], voxel)
+
+        # Polish: point-to-plane ICP with a shrinking gate, using the target's
+        # normals.
+        report(0.85, "refine")
+        rng_sub = np.random.default_rng(seed)
+        sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
+        coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
+                                                                              replace=False)]
+
+        def polish(R, t, points=None, iterations=30, count=True):
+            """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
+            the points brought onto the surface (None without ``count``: the verdict counts its own)."""
+            g = gate
+            if refine:
+                while True:
+                    moving = points if points is not None else sub if g <= fine else coarse
+                    R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations)
+                    if g <= fine:
+                        break
+                    g = max(fine, g / 2.0)
+            if not count:
+                return R, t, g, None
+            dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+            # Source points on the target's surface (within the gate): a measure
+            # that does not favour a motion for landing on the very sample
+            # points (the one-to-one pairs do).
+            return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
+
+        R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3])
+        info["ambiguous"] = False
+        for rival in rivals:
+            # Judged nearly as well: polish it too and compare at full resolution.
+            Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
+            if (rotation_angle_deg(Rr @ R.T) < 1.0
+                    and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
+                continue  # polishing brought it onto the best motion
+            if on_r > on:
+                R, t, g, on, Rr, tr, gr, on_r = Rr, tr, gr, on_r, R, t, g, on
+            if on_r >= RIVAL_SHARE * on:
+                info["ambiguous"] = True
+                info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
+                break
+        info.update(final_gate=g, on_surface=on)
+        _stamp(info, "polish", t0)
+        if verdict:
+            report(0.95, "verdict")
+            # The wrong motions polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse sample and
+            # for fewer iterations a gate (a wrong start wanders where a right one settles at once).
+            sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
+                rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
+            judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
+                                               polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
+                                               n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
+                                               rng=np.random.default_rng([seed, VERDICT_STREAM]))
+            info.update(verdict=judged.to_dict(), verdict_gates=figures)
+            _stamp(info, "verdict", t0)
+            if not judged:
+                return SurfaceMatch(None, None, g, none, 0, dict(info, reason=judged.reason()))
+        pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
+        return SurfaceMatch(R, t, g, pairs, on, info)
+
+    if not verdict:
+        return attempt(False, info)
+    # Stop at the first motion that passes the verdict: the adaptive search draws as many triples as the best
+    # trial's inlier share needs; when its motion fails (or none is found) and it stopped short of the
+    # budget, the whole budget is drawn, as without the adaptive stop.
+    first = attempt(True, dict(info))
+    if first or first.info["triples"] >= budget:
+        return dataclasses.replace(first, info=dict(first.info, search="adaptive"))
+    second = attempt(False, dict(info))
+    return dataclasses.replace(second, info=dict(second.info, search="whole budget",
+                                                 adaptive={"triples": first.info["triples"],
+                                                           "reason": first.info.get("reason", "")}))

@@ -304,3 +304,51 @@ def test_point_to_plane_step_on_a_plane_leaves_the_free_motions_alone():
     R, t = refine_point_to_plane(src, tgt, normals, np.eye(3), np.zeros(3), 0.1)
     np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(t, [0.0, 0.0, -0.01], atol=1e-12)
+
+
+@given(seed=st.integers(0, 2**16), confidence=st.sampled_from([0.9, 0.999]), min_share=st.floats(0.05, 0.6))
+@settings(max_examples=4, deadline=None)
+def test_the_adaptive_search_stops_at_the_ransac_bound_of_its_best_trial(seed, confidence, min_share):
+    """Adaptive RANSAC termination: the triples drawn reach the bound the best trial's inlier share
+    needs within one batch, and stay within the budget; a whole-budget search draws every triple."""
+    from gatv.models.rigid.congruent import TargetIndex, n_triples_needed, trial_motions
+
+    src, tgt, _, _ = _resampled_sphere_pair(seed % 7, 400, 400)
+    index = TargetIndex(tgt, 0.15)
+    budget, batch = 200, 16
+    seen = []  # (triples drawn, best support) after each batch
+
+    def progress(fraction, message):
+        drawn, best = message.split(" triples, best support ")
+        seen.append((int(drawn), int(best)))
+
+    adaptive = trial_motions(src, index, eps=0.15, max_triples=budget, rng=np.random.default_rng(seed), keep=4,
+                             accept=0, batch=batch, adaptive_confidence=confidence, min_share=min_share,
+                             progress=progress)
+
+    def bound(best):
+        return n_triples_needed(max(best / src.shape[0], min_share, 1e-6), confidence)
+
+    assert adaptive.n_triples == seen[-1][0] <= budget
+    assert all(drawn < bound(best) for drawn, best in seen[:-1])  # no batch ended past its bound ...
+    assert adaptive.n_triples == budget or adaptive.n_triples >= bound(seen[-1][1])  # ... but the last
+    whole = trial_motions(src, index, eps=0.15, max_triples=budget, rng=np.random.default_rng(seed), keep=4,
+                          accept=0, batch=batch)
+    assert whole.n_triples == budget
+
+
+def test_a_motion_that_fails_its_verdict_after_the_adaptive_stop_gets_the_whole_budget():
+    """Two unrelated random surfaces: the adaptive search stops at a wrong motion, the verdict rejects
+    it, and the whole budget is drawn before the answer "no motion"; a true pair stops early."""
+    rng = np.random.default_rng(3)
+    src, tgt, R, _ = _resampled_sphere_pair(2, 3000, 3000)  # a stretched copy of the surface below: similar
+    # enough that the adaptive search stops at a wrong motion, then fails its verdict
+    other = _resampled_sphere_pair(5, 3000, 3000)[0] * [1.0, 1.6, 0.5]  # another surface
+    m = register_scans(src, tgt, seed=0, n_points=300)
+    assert m and m.info["search"] == "adaptive"
+    assert rotation_error_deg(m.rotation, R) < 0.5
+    null = register_scans(other @ np.linalg.qr(rng.normal(size=(3, 3)))[0], tgt, seed=0, n_points=300)
+    assert not null
+    assert null.info["search"] == "whole budget"
+    assert null.info["adaptive"]["triples"] < null.info["triples"]
+    assert "wrong motions" in null.info["adaptive"]["reason"]

@@ -305,6 +305,7 @@ def trial_motions(
     max_enumerated: int = 0,
     sequential: bool = False,
     min_share: float = 0.0,
+    adaptive_confidence: float | None = None,
     progress=None,
 ) -> TrialMotions:
     """Draw source triples, match them congruently, score the motions.
@@ -362,6 +363,15 @@ def trial_motions(
         Smallest share of the source that the caller's number of triples is
         drawn to find (its RANSAC bound): the sequential test's alternative
         is a motion of the larger of this share and ``accept``.
+    adaptive_confidence : float, optional
+        Stop, after a batch, once the triples drawn are as many as the RANSAC
+        bound needs (:func:`n_triples_needed` at this confidence) for the
+        inlier share the best trial so far shows (its support over the
+        source's points, at least ``min_share``): adaptive RANSAC
+        termination (Hartley and Zisserman, *Multiple View Geometry*,
+        section 4.7.1).  Where the best trial is a wrong motion the caller's
+        check must catch it and search again without this stop.  Small
+        ``batch`` sizes let it stop sooner.
     """
     source = kernel_array(source)
     n = source.shape[0]
@@ -423,6 +433,9 @@ def trial_motions(
         if progress is not None:
             progress(min(1.0, drawn / max_triples), f"{drawn} triples, best support {pool.best}")
         if pool.best >= accept:
+            break
+        if adaptive_confidence is not None and drawn >= n_triples_needed(
+                max(pool.best / n, float(min_share), 1e-6), float(adaptive_confidence)):
             break
     trials = pool.trials(index.radius, threshold, drawn, n_congruent)
     return dataclasses.replace(trials, n_listed=n_listed, n_visited=n_visited, n_probes=n_probes,

@@ -838,12 +838,13 @@ def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame)
     n = normals[j]
     agree = near & (np.abs(np.einsum("ij,ij->i", frame.normals @ R.T, n)) >= NORMAL_AGREEMENT)
     off = np.where(near[:, None], moved - Y[j], 0.0)
-    # Each neighbour's offset from its own nearest sample, along this point's normal.
-    heights = np.einsum("ikj,ij->ik", off[frame.neighbours], n)
-    counted = near[frame.neighbours]
-    h = np.abs(heights.sum(axis=1)) / np.maximum(counted.sum(axis=1), 1)
-    return np.array([np.count_nonzero(agree & (d <= gates[0]))]
-                    + [np.count_nonzero(agree & (h <= g)) for g in gates[1:]])
+    # Each neighbour's offset from its own nearest sample, along this point's normal (where the normals agree:
+    # elsewhere a point does not count).
+    rows = np.flatnonzero(agree)
+    nb = frame.neighbours[rows]
+    heights = np.einsum("ikj,ij->ik", off[nb], n[rows])
+    h = np.abs(heights.sum(axis=1)) / np.maximum(near[nb].sum(axis=1), 1)
+    return np.array([np.count_nonzero(d[rows] <= gates[0])] + [np.count_nonzero(h <= g) for g in gates[1:]])
 
 
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,

@@ -722,3 +722,63 @@ def test_flat_clouds_are_chunked_along_their_longest_axis_and_match_reference(sc
     tv = vote(p, sigma, normals, saliency=sal)
     ref = _reference.stick_pass(p, normals, sal, sigma)
     np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+
+
+def _chunk_tasks_serially(task, nch, args_of):
+    """The passes' parallel loop run in one thread: phase 0 the even chunks, phase 1 the odd ones."""
+    for phase in range(2):
+        for c in range((nch + 1) // 2):
+            task(np.int64(2 * c + phase), np.int64(phase), *args_of())
+
+
+@pytest.mark.parametrize("simd", [False, True])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pass_chunk_tasks_reproduce_the_passes_and_the_reference(seed, simd):
+    # the body of each pass's parallel loop is a function of its own (_ball_task,
+    # _stick_task; numba compiles the passes in half the time): run chunk by
+    # chunk in one thread it gives the passes' results to the last bit, and the
+    # numpy reference's
+    from gatv.voting._passes import NL_ROW
+    from gatv.voting.api import Engine
+
+    rng = np.random.default_rng(seed)
+    p = np.vstack([rng.uniform(0.0, 1.0, (700, 3)), rng.uniform(0.0, 0.05, (2 * NL_ROW, 3))])
+    p[:30] = p[30:60]  # coincident pairs
+    n = p.shape[0]
+    sigma = 0.07
+    eng = Engine(p, sigma, 10**8)
+    eng.simd = simd
+    g = eng.grid
+    nch = eng.cb.shape[0] - 1
+    assert nch >= 4 and eng.perm is None  # several chunks a phase; kernel axes = caller's axes
+    t6, vals, e1, cnt = eng.ball(record=True)
+    nbr, nstart, nup = eng.lists
+
+    tab = _fields.ball_table4()
+    tscale = _fields.BALL_TABLE_SIZE / eng.radius**2
+    acc, v2, e2, c2 = np.zeros((n, 6)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, np.int64)
+    row = nbr.shape[0] // n
+    nbr2, nstart2, nup2 = np.empty(n * row, np.int32), np.empty(n, np.int64), np.empty(n, np.int64)
+    _chunk_tasks_serially(K._ball_task, np.int64(nch), lambda: (
+        np.int64(nch), True, g.xs, g.ys, g.zs, *eng._cells(), tab, tscale, eng.cb, np.int64(eng.cap), simd,
+        acc, v2, e2, c2, nbr2, eng.cb * row, nstart2, nup2))
+    for a, b in ((t6, acc), (vals, v2), (e1, e2), (cnt, c2), (nstart, nstart2), (nup, nup2)):
+        np.testing.assert_array_equal(a, b)
+    ref = _reference.components(_reference.ball_pass(eng.points, sigma))
+    np.testing.assert_allclose(acc, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    sal = rng.uniform(0.0, 1.0, n)
+    sal[rng.uniform(size=n) < 0.2] = 0.0
+    nrm, ws = eng.to_sorted(normals), eng.to_sorted(sal)
+    t6, vals, e1, cnt = eng.stick(nrm, ws)
+    rec = K.stick_records(g.xs, g.ys, g.zs, nrm, ws)
+    acc, v2, e2, c2 = np.zeros((n, 6)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, np.int64)
+    _chunk_tasks_serially(K._stick_task, np.int64(nch), lambda: (
+        np.int64(nch), True, rec, g.xs, g.ys, g.zs, ws, *eng._cells(), 1.0 / sigma**2, 4.0 * _fields.GAMMA,
+        1.0 / _fields.SIGMA_REF**2, eng.cb, np.int64(eng.cap), simd, acc, v2, e2, c2, nbr, nstart, nup))
+    for a, b in ((t6, acc), (vals, v2), (e1, e2), (cnt, c2)):
+        np.testing.assert_array_equal(a, b)
+    ref = _reference.components(_reference.stick_pass(eng.points, nrm, ws, sigma))
+    np.testing.assert_allclose(acc, ref, rtol=0, atol=1e-10 * np.abs(ref).max())

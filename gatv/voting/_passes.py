@@ -145,6 +145,19 @@ NL_ROW = 48
 _FLUSH_FLAGS = {"reassoc", "contract"}
 
 
+def prange_only():
+    """numba's ``parallel`` option with only ``prange`` loops made parallel.
+
+    ``parallel=True`` also turns array expressions, allocations and
+    reductions (``np.zeros``, ``a.max()``) into parallel loops, each compiled
+    as one more outlined function with its wrappers; on small arrays
+    they cost more compile time than they save.  A fresh dict for each
+    use: numba empties the one it is given.
+    """
+    return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False,
+            "numpy": False, "stencil": False, "fusion": False, "prange": True}
+
+
 @intrinsic
 def _collect_simd(typingctx, xs, ys, zs, j0, j1, xi, yi, zi, r2, bj, db, cnt):
     """:func:`_collect` for the dense layout, 8 candidates at a time.
@@ -268,7 +281,7 @@ def _run(start, hashed, mask, nx, ny, m, ix, cy, cz, kx, xl, yl, zl, h, inv_h, r
     return start[base + x0], start[base + x1 + 1], -1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=prange_only())
 def half_shell_capacity(start, nx, ny, nz, hashed, m):
     """Most tokens that the half-shell runs of one votee can hold (before the distance test).
 
@@ -332,7 +345,7 @@ def _collect(xs, ys, zs, cix, ciy, ciz, hashed, cx, cy, cz, j0, j1, xi, yi, zi, 
     return np.int64(c)
 
 
-@njit(cache=True, inline="always", boundscheck=False)
+@njit(cache=True, error_model="numpy", boundscheck=False)
 def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, inv_h, r2, bj, db, rows,
            simd):
     """Upper neighbours of token ``i`` (sorted index j > i, ``d² < r²``): their number ``cnt``.
@@ -349,6 +362,8 @@ def _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     The nonempty runs are found first (into ``rows``, a ``(5, (m+1)(2m+1)²)``
     scratch: j0, j1, cx, cy, cz) and the first token of each is touched, so
     their cache misses overlap; then the runs are scanned.
+
+    A function of its own (not numba-inlined), compiled once for both passes.
     """
     xi = xs[i]
     yi = ys[i]
@@ -453,14 +468,15 @@ def _ball_pairs(db, cnt, tab, tscale, out):
     return s00, s01, s02, s11, s12, s22
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", boundscheck=False)
 def _eig_chunks(acc, vals, e1, cb, ch, nch, simd):
     """Eigen-analysis of the tokens of chunks ``ch, ch + 1`` (and 0 when ``ch == 1``).
 
     Called after odd chunk ``ch`` is done: its tokens and those of even chunk
     ``ch + 1`` (written only by ``ch`` and itself) have their final tensors,
     and no other iteration of the parallel loop writes them.  ``simd``: use
-    :func:`eig_rows_simd`.
+    :func:`eig_rows_simd`.  A function of its own (not numba-inlined),
+    compiled once for both passes.
     """
     c0 = 0 if ch == 1 else ch
     c1 = min(ch + 2, nch)
@@ -475,6 +491,54 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch, simd):
             e1[i, 0] = ex
             e1[i, 1] = ey
             e1[i, 2] = ez
+
+
+@njit(cache=True, error_model="numpy", boundscheck=False)
+def _ball_task(ch, phase, nch, record, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
+               tab, tscale, cb, cap, simd, acc, vals, e1, counts, nbr, rb, nstart, nup):
+    """Chunk ``ch`` of :func:`ball_pass` (phase ``phase``): its tokens' votes, then the eigen-analysis.
+
+    The body of the pass's parallel loop, as a function of its own: numba's
+    parallel passes (copy propagation, outlining, typing the body a second
+    time) then see one call instead of the inlined scan, votes and
+    eigen-solver, which halves the pass's compile time.  The arithmetic and
+    the order of every sum are the same.  ``error_model="numpy"`` and
+    ``boundscheck=False`` as the pass had for its inlined body.
+    """
+    inv_h = 1.0 / h
+    if ch < nch:
+        bj = np.empty(cap, np.int64)
+        db = np.empty((4, cap))
+        out = np.empty((6, cap))
+        rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
+        pos = rb[ch] if record else 0
+        lim = rb[ch + 1] if record else 0
+        for i in range(cb[ch], cb[ch + 1]):
+            cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                         lo, h, inv_h, r2, bj, db, rows, simd)
+            if simd:
+                s00, s01, s02, s11, s12, s22 = _ball_pairs_simd(db, cnt, tab, tscale, out)
+            else:
+                s00, s01, s02, s11, s12, s22 = _ball_pairs(db, cnt, tab, tscale, out)
+            _scatter(bj, 0, cnt, out, acc, counts)
+            acc[i, 0] += 1.0 + s00
+            acc[i, 1] += s01
+            acc[i, 2] += s02
+            acc[i, 3] += 1.0 + s11
+            acc[i, 4] += s12
+            acc[i, 5] += 1.0 + s22
+            counts[i] += 1 + cnt
+            if record:
+                nup[i] = cnt
+                if pos + cnt <= lim:
+                    nstart[i] = pos
+                    for k in range(cnt):
+                        nbr[pos + k] = np.int32(bj[k])
+                    pos += cnt
+                else:
+                    nstart[i] = -1
+    if phase == 1:
+        _eig_chunks(acc, vals, e1, cb, ch, nch, simd)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
@@ -500,7 +564,6 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     n = xs.shape[0]
     record = nstart.shape[0] == n
     nch = cb.shape[0] - 1
-    inv_h = 1.0 / h
     ctr = np.zeros(2, np.int64)  # next chunk of each phase (dynamic scheduling)
     for phase in range(2):
         for _t in prange(nth):
@@ -508,40 +571,9 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                 c = _fetch_add(ctr, phase, 1)
                 if c >= (nch + 1) // 2:
                     break
-                ch = 2 * c + phase
-                if ch < nch:
-                    bj = np.empty(cap, np.int64)
-                    db = np.empty((4, cap))
-                    out = np.empty((6, cap))
-                    rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
-                    pos = rb[ch] if record else 0
-                    lim = rb[ch + 1] if record else 0
-                    for i in range(cb[ch], cb[ch + 1]):
-                        cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                     lo, h, inv_h, r2, bj, db, rows, simd)
-                        if simd:
-                            s00, s01, s02, s11, s12, s22 = _ball_pairs_simd(db, cnt, tab, tscale, out)
-                        else:
-                            s00, s01, s02, s11, s12, s22 = _ball_pairs(db, cnt, tab, tscale, out)
-                        _scatter(bj, 0, cnt, out, acc, counts)
-                        acc[i, 0] += 1.0 + s00
-                        acc[i, 1] += s01
-                        acc[i, 2] += s02
-                        acc[i, 3] += 1.0 + s11
-                        acc[i, 4] += s12
-                        acc[i, 5] += 1.0 + s22
-                        counts[i] += 1 + cnt
-                        if record:
-                            nup[i] = cnt
-                            if pos + cnt <= lim:
-                                nstart[i] = pos
-                                for k in range(cnt):
-                                    nbr[pos + k] = np.int32(bj[k])
-                                pos += cnt
-                            else:
-                                nstart[i] = -1
-                if phase == 1:
-                    _eig_chunks(acc, vals, e1, cb, ch, nch, simd)
+                _ball_task(2 * c + phase, phase, nch, record, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz,
+                           hashed, mask, m, lo, h, r2, tab, tscale, cb, cap, simd, acc, vals, e1, counts, nbr,
+                           rb, nstart, nup)
 
 
 @njit(cache=True, parallel=True, boundscheck=False)
@@ -820,6 +852,69 @@ def _scatter(bj, k0, cnt, out, acc, counts):
         counts[j] += 1
 
 
+@njit(cache=True, error_model="numpy", boundscheck=False)
+def _stick_task(ch, phase, nch, use_nl, rec, xs, ys, zs, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                lo, h, r2, inv_s2, gamma4, lmin2, cb, cap, simd, acc, vals, e1, counts, nbr, nstart, nup):
+    """Chunk ``ch`` of :func:`stick_pass` (phase ``phase``): its tokens' votes, then the eigen-analysis.
+
+    The body of the pass's parallel loop, as a function of its own (see :func:`_ball_task`).
+    """
+    inv_h = 1.0 / h
+    if ch < nch:
+        bj = np.empty(cap, np.int64)
+        rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
+        buf = np.empty((7, cap))
+        out = np.empty((6, cap))
+        for i in range(cb[ch], cb[ch + 1]):
+            wi = ws[i]
+            nix = rec[i, 3]
+            niy = rec[i, 4]
+            niz = rec[i, 5]
+            listed = use_nl and nstart[i] >= 0
+            if listed:
+                k0 = nstart[i]
+                cnt = nup[i]
+            else:
+                # buf's first rows take the offsets; _gather overwrites them
+                cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
+                             lo, h, inv_h, r2, bj, buf, rows, simd)
+                k0 = 0
+            if listed:
+                nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+            else:
+                nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
+            both = wi != 0.0
+            if simd:
+                s00, s01, s02, s11, s12, s22 = _stick_pairs_simd(buf, cnt, nix, niy, niz, wi, both,
+                                                                 inv_s2, gamma4, lmin2, out)
+            else:
+                s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
+                                                            inv_s2, gamma4, lmin2, out)
+            if both:
+                if listed:
+                    _scatter(nbr, k0, cnt, out, acc, counts)
+                else:
+                    _scatter(bj, k0, cnt, out, acc, counts)
+                # own stick (l = 0): w n nᵀ
+                wx = wi * nix
+                wy = wi * niy
+                s00 += wx * nix
+                s01 += wx * niy
+                s02 += wx * niz
+                s11 += wy * niy
+                s12 += wy * niz
+                s22 += wi * niz * niz
+            acc[i, 0] += s00
+            acc[i, 1] += s01
+            acc[i, 2] += s02
+            acc[i, 3] += s11
+            acc[i, 4] += s12
+            acc[i, 5] += s22
+            counts[i] += nv + (1 if both else 0)
+    if phase == 1:
+        _eig_chunks(acc, vals, e1, cb, ch, nch, simd)
+
+
 @njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
 def stick_pass(xs, ys, zs, normals, ws, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
                lo, h, r2, inv_s2, gamma4, lmin2, cb, nth, cap, simd, acc, vals, e1, counts, nbr, nstart, nup):
@@ -842,7 +937,6 @@ def stick_pass(xs, ys, zs, normals, ws, cix, ciy, ciz, start, nx, ny, nz, hashed
     n = xs.shape[0]
     use_nl = nstart.shape[0] == n
     nch = cb.shape[0] - 1
-    inv_h = 1.0 / h
     rec = stick_records(xs, ys, zs, normals, ws)
     ctr = np.zeros(2, np.int64)  # next chunk of each phase (dynamic scheduling)
     for phase in range(2):
@@ -851,57 +945,6 @@ def stick_pass(xs, ys, zs, normals, ws, cix, ciy, ciz, start, nx, ny, nz, hashed
                 c = _fetch_add(ctr, phase, 1)
                 if c >= (nch + 1) // 2:
                     break
-                ch = 2 * c + phase
-                if ch < nch:
-                    bj = np.empty(cap, np.int64)
-                    rows = np.empty((5, (m + 1) * (2 * m + 1) ** 2), np.int64)
-                    buf = np.empty((7, cap))
-                    out = np.empty((6, cap))
-                    for i in range(cb[ch], cb[ch + 1]):
-                        wi = ws[i]
-                        nix = rec[i, 3]
-                        niy = rec[i, 4]
-                        niz = rec[i, 5]
-                        listed = use_nl and nstart[i] >= 0
-                        if listed:
-                            k0 = nstart[i]
-                            cnt = nup[i]
-                        else:
-                            # buf's first rows take the offsets; _gather overwrites them
-                            cnt = _upper(i, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m,
-                                         lo, h, inv_h, r2, bj, buf, rows, simd)
-                            k0 = 0
-                        if listed:
-                            nv = _gather(nbr, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
-                        else:
-                            nv = _gather(bj, k0, cnt, xs[i], ys[i], zs[i], rec, buf)
-                        both = wi != 0.0
-                        if simd:
-                            s00, s01, s02, s11, s12, s22 = _stick_pairs_simd(buf, cnt, nix, niy, niz, wi, both,
-                                                                             inv_s2, gamma4, lmin2, out)
-                        else:
-                            s00, s01, s02, s11, s12, s22 = _stick_pairs(buf, cnt, nix, niy, niz, wi, both,
-                                                                        inv_s2, gamma4, lmin2, out)
-                        if both:
-                            if listed:
-                                _scatter(nbr, k0, cnt, out, acc, counts)
-                            else:
-                                _scatter(bj, k0, cnt, out, acc, counts)
-                            # own stick (l = 0): w n nᵀ
-                            wx = wi * nix
-                            wy = wi * niy
-                            s00 += wx * nix
-                            s01 += wx * niy
-                            s02 += wx * niz
-                            s11 += wy * niy
-                            s12 += wy * niz
-                            s22 += wi * niz * niz
-                        acc[i, 0] += s00
-                        acc[i, 1] += s01
-                        acc[i, 2] += s02
-                        acc[i, 3] += s11
-                        acc[i, 4] += s12
-                        acc[i, 5] += s22
-                        counts[i] += nv + (1 if both else 0)
-                if phase == 1:
-                    _eig_chunks(acc, vals, e1, cb, ch, nch, simd)
+                _stick_task(2 * c + phase, phase, nch, use_nl, rec, xs, ys, zs, ws, cix, ciy, ciz, start, nx, ny,
+                            nz, hashed, mask, m, lo, h, r2, inv_s2, gamma4, lmin2, cb, cap, simd, acc, vals, e1,
+                            counts, nbr, nstart, nup)

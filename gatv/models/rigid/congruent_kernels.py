@@ -23,6 +23,18 @@ _ORIGIN = np.zeros(3)
 _DIMS = np.ones(3, np.int64)
 
 
+def _prange_only():
+    """numba's ``parallel`` option with only ``prange`` loops made parallel.
+
+    ``parallel=True`` also turns the kernels' output allocations (``np.zeros``,
+    ``np.full``) into parallel loops, each compiled as one more outlined
+    function with its wrappers.  A fresh dict for each use: numba empties
+    the one it is given.
+    """
+    return {"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False,
+            "numpy": False, "stencil": False, "fusion": False, "prange": True}
+
+
 @njit(cache=True)
 def pair_table(points):
     """All pairs ``i < j`` of ``points`` sorted by length.
@@ -385,7 +397,8 @@ def _features_agree(src, i, j, sn, tgt, k, l, tn, tol):
 def _grown(a, size):
     """``a`` copied into a new array of ``size`` entries."""
     b = np.empty(size, a.dtype)
-    b[: a.shape[0]] = a
+    for i in range(a.shape[0]):  # not ``b[:n] = a``: see triple_hypotheses' copies
+        b[i] = a[i]
     return b
 
 
@@ -590,7 +603,7 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
     return ks, ls, ms, listed, probes
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=_prange_only())
 def triple_hypotheses(
     source,
     target,
@@ -680,8 +693,13 @@ def triple_hypotheses(
             nvisited[q] += nv
             if sc > scores[q]:
                 scores[q] = sc
-                rots[q] = R
-                trans[q] = t
+                # Element copies, not ``rots[q] = R``: an array assigned to a slice compiles numba's
+                # shape-mismatch message (string formatting, ~1.5 CPU-s a shape) into every function
+                # of the parallel loop's chain.
+                for r in range(3):
+                    trans[q, r] = t[r]
+                    for u in range(3):
+                        rots[q, r, u] = R[r, u]
         nmatch[q] = ks.shape[0]
         nlisted[q] = listed
         nprobes[q] = probes
@@ -835,8 +853,10 @@ def similar_triple_hypotheses(
                                                   dims, radius, scores[q] + 1, mark, found)
                     if n_in > scores[q]:
                         scores[q] = n_in
-                        lins[q] = A
-                        trans[q] = t
+                        for r in range(3):  # element copies: see triple_hypotheses
+                            trans[q, r] = t[r]
+                            for u in range(3):
+                                lins[q, r, u] = A[r, u]
                     if found >= max_matches:
                         break
                 if found >= max_matches:

@@ -1041,18 +1041,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     def attempt(adaptive: bool, info: dict) -> SurfaceMatch:
         """Stages 2-5 from the seed's streams: with the adaptive stop, or drawing the whole budget."""
         rng = np.random.default_rng(seed)
-        if adaptive:
-            # Adaptive RANSAC termination in small batches; the verdict below catches a wrong motion it stops at.
-            trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
-                                   min_side=0.25 * diameter, max_matches=256, accept=0,
-                                   source_normals=nx, target_normals=ny, feature_tol=feature_tol,
-                                   batch=ADAPTIVE_BATCH, adaptive_confidence=confidence, min_share=min_overlap,
-                                   progress=lambda f, m: report(0.1 + 0.6 * f, m))
-        else:
-            trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
-                                   min_side=0.25 * diameter, max_matches=256, accept=0,
-                                   source_normals=nx, target_normals=ny, feature_tol=feature_tol,
-                                   progress=lambda f, m: report(0.1 + 0.6 * f, m))
+        # Adaptive RANSAC termination in small batches; the verdict below catches a wrong motion it stops at.
+        stop = dict(batch=ADAPTIVE_BATCH, adaptive_confidence=confidence, min_share=min_overlap) if adaptive else {}
+        trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
+                               min_side=0.25 * diameter, max_matches=256, accept=0,
+                               source_normals=nx, target_normals=ny, feature_tol=feature_tol,
+                               progress=lambda f, m: report(0.1 + 0.6 * f, m), **stop)
         info.update(triples=trials.n_triples, congruent=trials.n_congruent)
         _stamp(info, "trials", t0)
         if not len(trials):

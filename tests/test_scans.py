@@ -338,12 +338,12 @@ def test_the_adaptive_search_stops_at_the_ransac_bound_of_its_best_trial(seed, c
 
 
 def test_a_motion_that_fails_its_verdict_after_the_adaptive_stop_gets_the_whole_budget():
-    """Two unrelated random surfaces: the adaptive search stops at a wrong motion, the verdict rejects
-    it, and the whole budget is drawn before the answer "no motion"; a true pair stops early."""
+    """A true pair is found by the adaptive search alone.  Against a stretched copy of the surface
+    (similar enough that the adaptive search stops at a wrong motion) the verdict rejects that motion,
+    and the whole budget is drawn before the answer "no motion"."""
     rng = np.random.default_rng(3)
-    src, tgt, R, _ = _resampled_sphere_pair(2, 3000, 3000)  # a stretched copy of the surface below: similar
-    # enough that the adaptive search stops at a wrong motion, then fails its verdict
-    other = _resampled_sphere_pair(5, 3000, 3000)[0] * [1.0, 1.6, 0.5]  # another surface
+    src, tgt, R, _ = _resampled_sphere_pair(2, 3000, 3000)
+    other = _resampled_sphere_pair(5, 3000, 3000)[0] * [1.0, 1.6, 0.5]  # the surface stretched
     m = register_scans(src, tgt, seed=0, n_points=300)
     assert m and m.info["search"] == "adaptive"
     assert rotation_error_deg(m.rotation, R) < 0.5

@@ -116,16 +116,31 @@ def triangle_pose(src, dst):
 @njit(cache=True)
 def _triangle_frame(p):
     """Rows ``u, v, n``: ``u`` along ``b - a``, ``n`` along ``(b - a) × (c - a)``; NaN when nearly collinear."""
+    # Element by element: an array assigned to a slice compiles numba's shape-mismatch message (seconds).
     f = np.empty((3, 3))
     e1 = p[1] - p[0]
     e2 = p[2] - p[0]
-    n = np.cross(e1, e2)
+    n = np.empty(3)
+    _cross(e1, e2, n)
     l1 = np.sqrt(e1 @ e1)
     ln = np.sqrt(n @ n)
     if not (ln > 1e-12 * l1 * np.sqrt(e2 @ e2)):
-        f[:, :] = np.nan
+        for r in range(3):
+            for k in range(3):
+                f[r, k] = np.nan
         return f
-    f[0] = e1 / l1
-    f[2] = n / ln
-    f[1] = np.cross(f[2], f[0])
+    for k in range(3):
+        f[0, k] = e1[k] / l1
+        f[2, k] = n[k] / ln
+    f[1, 0] = f[2, 1] * f[0, 2] - f[2, 2] * f[0, 1]  # n × u
+    f[1, 1] = f[2, 2] * f[0, 0] - f[2, 0] * f[0, 2]
+    f[1, 2] = f[2, 0] * f[0, 1] - f[2, 1] * f[0, 0]
     return f
+
+
+@njit(cache=True)
+def _cross(a, b, out):
+    """``out = a × b`` for 3-vectors, as ``np.cross`` computes it, without its general machinery."""
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]

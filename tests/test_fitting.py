@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from gatv._fit_kernels import kabsch3, triangle_pose, umeyama3
+from gatv._fit_kernels import _cross, kabsch3, triangle_pose, umeyama3
 from gatv.errors import InputError
 from gatv.fitting import fit_rigid, kabsch, umeyama
 from gatv.ga import Rotor
@@ -147,3 +147,13 @@ def test_reflections_are_turned_into_rotations():
 def test_bad_input(args, match):
     with pytest.raises(InputError, match=match):
         kabsch(*args)
+
+
+@given(st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=6, max_size=6))
+@settings(max_examples=50, deadline=None)
+def test_cross_kernel_equals_numpys_cross_bit_for_bit(values):
+    """``_cross`` (triangle_pose's frame) is numpy's cross product, to the last bit."""
+    a, b = np.array(values[:3]), np.array(values[3:])
+    out = np.empty(3)
+    _cross(a, b, out)
+    np.testing.assert_array_equal(out, np.cross(a, b))

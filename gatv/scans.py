@@ -36,6 +36,7 @@ along the surface (:func:`surface_tokens`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass
 
@@ -807,13 +808,15 @@ class SourceFrame:
     normals: np.ndarray
     #: (N, VERDICT_NEIGHBOURS) rows of each point's nearest source points, itself first.
     neighbours: np.ndarray
+    #: The source's k-d tree, when kept (the tangent wrong motions' source normals query it too).
+    tree: cKDTree | None = None
 
     @classmethod
     def of(cls, X: np.ndarray, tree: cKDTree | None = None) -> "SourceFrame":
         tree = cKDTree(X) if tree is None else tree
         normals = local_scatter(X, X, min(12, X.shape[0]), tree).normals
         neighbours = tree.query(X, k=min(VERDICT_NEIGHBOURS, X.shape[0]))[1].reshape(X.shape[0], -1)
-        return cls(normals, neighbours)
+        return cls(normals, neighbours, tree)
 
 
 def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame) -> np.ndarray:
@@ -850,7 +853,7 @@ def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame)
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
                     n_tested: float, rng: np.random.Generator, tree: cKDTree | None = None,
                     noise: float = 0.0, n_draws: int = VERDICT_DRAWS,
-                    n_polished: int = VERDICT_POLISHED) -> tuple[Verdict, dict]:
+                    n_polished: int = VERDICT_POLISHED, frame: SourceFrame | None = None) -> tuple[Verdict, dict]:
     """Whether the motion ``(rotation, translation)`` beats wrong motions polished as it was.
 
     The verdict stage of the scans pipeline (:mod:`gatv.verdict`, null
@@ -877,17 +880,18 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     lies that far off its nearest target sample, so the finer gates count
     points within ``gate + NOISE_REACH * noise`` of a sample
     (:data:`NOISE_REACH`); on scans far less noisy than their sampling,
-    about the gate.  Returns the verdict and its per-gate figures
-    (``info["verdict_gates"]``).
+    about the gate.  ``frame``: ``SourceFrame.of(Xs)`` when the caller
+    judges several motions of one source.  Returns the verdict and its
+    per-gate figures (``info["verdict_gates"]``).
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     tree = cKDTree(Ys) if tree is None else tree
     gates = [gate / 2.0**k for k in range(VERDICT_GATES)]
     # A point on the surface is off its nearest sample by the two scans' noise along the normal too.
     reach = gate + NOISE_REACH * float(noise)
-    frame = SourceFrame.of(Xs)
+    frame = SourceFrame.of(Xs) if frame is None else frame
     found = surface_support(Xs, Ys, target_normals, tree, R0, t0, gates, reach, frame)
-    starts = tangent_motions(Xs, Ys, n_draws, rng, target_tree=tree)
+    starts = tangent_motions(Xs, Ys, n_draws, rng, source_tree=frame.tree, target_tree=tree)
     screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
     ranks = [point_icp(screen, Ys, tree, R, t, voxel, fit=kabsch3)[2] for R, t in starts]
     c = Xs.mean(axis=0)
@@ -1037,6 +1041,34 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     P = stages.prepare(Xd, Yd, RIGID)
     fine = 3.0 * target_spacing
     tree = cKDTree(Ys, leafsize=QUERY_LEAFSIZE)
+    rng_sub = np.random.default_rng(seed)
+    sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
+    coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
+                                                                          replace=False)]
+    # The wrong motions of the verdict are polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse
+    # sample and for fewer iterations a gate (a wrong start wanders where a right one settles at once).
+    sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
+        rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
+    source_frame = functools.cache(lambda: SourceFrame.of(Xs))  # once for both attempts' verdicts
+
+    def polish(R, t, points=None, iterations=30, count=True):
+        """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
+        the points brought onto the surface (None without ``count``: the verdict counts its own)."""
+        g = gate
+        if refine:
+            while True:
+                moving = points if points is not None else sub if g <= fine else coarse
+                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations)
+                if g <= fine:
+                    break
+                g = max(fine, g / 2.0)
+        if not count:
+            return R, t, g, None
+        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
+        # Source points on the target's surface (within the gate): a measure
+        # that does not favour a motion for landing on the very sample
+        # points (the one-to-one pairs do).
+        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
 
     def attempt(adaptive: bool, info: dict) -> SurfaceMatch:
         """Stages 2-5 from the seed's streams: with the adaptive stop, or drawing the whole budget."""
@@ -1068,30 +1100,6 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # Polish: point-to-plane ICP with a shrinking gate, using the target's
         # normals.
         report(0.85, "refine")
-        rng_sub = np.random.default_rng(seed)
-        sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
-        coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
-                                                                              replace=False)]
-
-        def polish(R, t, points=None, iterations=30, count=True):
-            """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
-            the points brought onto the surface (None without ``count``: the verdict counts its own)."""
-            g = gate
-            if refine:
-                while True:
-                    moving = points if points is not None else sub if g <= fine else coarse
-                    R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations)
-                    if g <= fine:
-                        break
-                    g = max(fine, g / 2.0)
-            if not count:
-                return R, t, g, None
-            dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
-            # Source points on the target's surface (within the gate): a measure
-            # that does not favour a motion for landing on the very sample
-            # points (the one-to-one pairs do).
-            return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
-
         R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3])
         info["ambiguous"] = False
         for rival in rivals:
@@ -1110,14 +1118,11 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         _stamp(info, "polish", t0)
         if verdict:
             report(0.95, "verdict")
-            # The wrong motions polished as the search's, on :data:`VERDICT_SAMPLE` of its coarse sample and
-            # for fewer iterations a gate (a wrong start wanders where a right one settles at once).
-            sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
-                rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
             judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
                                                polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
                                                n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
-                                               rng=np.random.default_rng([seed, VERDICT_STREAM]))
+                                               rng=np.random.default_rng([seed, VERDICT_STREAM]),
+                                               frame=source_frame())
             info.update(verdict=judged.to_dict(), verdict_gates=figures)
             _stamp(info, "verdict", t0)
             if not judged:

@@ -188,12 +188,11 @@ def run_gatv(source, target, seed):
 def _o3d_features(points, voxel):
     import open3d as o3d
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    down = pcd.voxel_down_sample(voxel)
+    down = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
     down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
-    return pcd, down, fpfh
+    return down, fpfh
 
 
 def run_open3d(source, target, seed, method, voxel):
@@ -201,8 +200,8 @@ def run_open3d(source, target, seed, method, voxel):
 
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(int(seed))
-    src, src_down, src_f = _o3d_features(source, voxel)
-    tgt, tgt_down, tgt_f = _o3d_features(target, voxel)
+    src_down, src_f = _o3d_features(source, voxel)
+    tgt_down, tgt_f = _o3d_features(target, voxel)
     if method == "o3d-ransac":
         coarse = reg.registration_ransac_based_on_feature_matching(
             src_down, tgt_down, src_f, tgt_f, True, 1.5 * voxel,
@@ -213,15 +212,13 @@ def run_open3d(source, target, seed, method, voxel):
         coarse = reg.registration_fgr_based_on_feature_matching(
             src_down, tgt_down, src_f, tgt_f,
             reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * voxel))
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-    fine = reg.registration_icp(src, tgt, 0.4 * voxel, coarse.transformation,
-                                reg.TransformationEstimationPointToPlane())
-    T = np.asarray(fine.transformation)
-    return T[:3, :3], T[:3, 3], {"ok": True}
+    T = np.asarray(coarse.transformation)
+    R, t = _o3d_polish(source, target, T[:3, :3], T[:3, 3], voxel)
+    return R, t, {"ok": True}
 
 
 def _o3d_polish(source, target, R, t, voxel):
-    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel, as the Open3D rows polish."""
+    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel: every peer row's polish."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration

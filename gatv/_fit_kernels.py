@@ -132,9 +132,7 @@ def _triangle_frame(p):
     for k in range(3):
         f[0, k] = e1[k] / l1
         f[2, k] = n[k] / ln
-    f[1, 0] = f[2, 1] * f[0, 2] - f[2, 2] * f[0, 1]  # n × u
-    f[1, 1] = f[2, 2] * f[0, 0] - f[2, 0] * f[0, 2]
-    f[1, 2] = f[2, 0] * f[0, 1] - f[2, 1] * f[0, 0]
+    _cross(f[2], f[0], f[1])  # n × u
     return f
 
 

@@ -178,6 +178,8 @@ class ScanNoise:
     sigma: float
     neighbours: int
     radius: float
+    #: Points the measurement handled: those put into k-d trees and the neighbours fitted.
+    work: int = 0
 
 
 def _reference(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
@@ -297,17 +299,21 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     at = pts[rows[rng.choice(rows.size, min(rows.size, NOISE_SAMPLE), replace=False)]]
     full_tree = None  # the whole scan's, built once for the neighbourhoods that use every point
     k = 8
+    work = 0
     while True:
         k = min(k, n - 1)
         share = min(1.0, 2 * FIT_POINTS / k)
         ref = _reference(pts, share, rng)
+        if ref is not pts or full_tree is None:
+            work += ref.shape[0]  # a k-d tree built
         if ref is pts and full_tree is None:
             full_tree = cKDTree(pts)
         kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
+        work += at.shape[0] * kk
         _, _, sd, radius = _plane_fits(at, ref, kk, full_tree if ref is pts else None, quadric=True)
         sigma, r = float(np.median(sd)), float(np.median(radius))
         if r >= NOISE_RADIUS * sigma or k >= n - 1:
-            return ScanNoise(sigma, int(k), r)
+            return ScanNoise(sigma, int(k), r, int(work))
         k *= 2
 
 
@@ -318,9 +324,11 @@ class SurfaceProjection:
     points: np.ndarray  # (N, 3)
     normals: np.ndarray  # (N, 3) unit, unoriented
     neighbours: int  # points (at full density) of each plane fit
+    work: int = 0  # points handled: the fits' k-d tree and the neighbours of every point projected
 
 
-def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 4096) -> SurfaceProjection | None:
+def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 4096,
+                       rows=None) -> SurfaceProjection | None:
     """Moving least-squares projection onto the plane fitted within :data:`PROJECTION_RADIUS` noise deviations.
 
     Each point moves along the normal of the least-squares plane of its
@@ -333,11 +341,16 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
     curvature bias is alike in two scans of one surface.  ``None`` when
     fewer than :data:`PROJECTION_MIN_NEIGHBOURS` points fall within the
     radius: the noise is within the sampling, and the scan stays as it is.
+
+    ``rows``: project only these rows (the planes still fitted to the whole
+    scan); ``points`` and ``normals`` of the result are then those rows',
+    each equal to its row of the whole scan's projection.
     """
     pts = as_points(points, "points", min_points=4)
     if not isinstance(noise, ScanNoise):
         raise InputError(f"Expected `noise` a ScanNoise (as `scan_noise(points)` returns), got {type(noise).__name__}.")
     n = pts.shape[0]
+    moving = pts if rows is None else pts[np.asarray(rows, dtype=np.int64)]
     k = round(noise.neighbours * (PROJECTION_RADIUS * noise.sigma / max(noise.radius, 1e-300)) ** 2)
     k = min(k, n - 1)
     if k < PROJECTION_MIN_NEIGHBOURS:
@@ -346,14 +359,14 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
     ref = _reference(pts, min(1.0, FIT_POINTS / k), rng)
     kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
     tree = cKDTree(ref)
-    out = np.empty_like(pts)
-    normals = np.empty_like(pts)
-    for start in range(0, n, chunk):
-        p = pts[start:start + chunk]
+    out = np.empty_like(moving)
+    normals = np.empty_like(moving)
+    for start in range(0, moving.shape[0], chunk):
+        p = moving[start:start + chunk]
         centroid, normal, _, _ = _plane_fits(p, ref, kk, tree, residuals=False)
         out[start:start + chunk] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
         normals[start:start + chunk] = normal
-    return SurfaceProjection(out, normals, int(k))
+    return SurfaceProjection(out, normals, int(k), int(ref.shape[0] + moving.shape[0] * kk))
 
 
 def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0,
@@ -401,6 +414,8 @@ class SurfaceTokens:
         Their unit normals (None without clutter removal or projection: none computed).
     noise : ScanNoise
     projection : SurfaceProjection or None
+    voted : int
+        Points tensor voting ran on (each vote counted).
     """
 
     points: np.ndarray
@@ -408,10 +423,23 @@ class SurfaceTokens:
     normals: np.ndarray | None
     noise: ScanNoise
     projection: SurfaceProjection | None
+    voted: int = 0
+
+
+#: Most points of a scan that tensor voting, and so the whole scans pipeline past its noise, works on
+#: (:func:`surface_points`' ``max_points``): larger scans are voted on a random subsample of this many.
+VOTE_POINTS = 60000
+
+
+def vote_sample(n: int, seed: int = 0) -> np.ndarray | None:
+    """The rows of an ``n``-point scan that :func:`surface_points` votes on (None: all of them)."""
+    if n <= VOTE_POINTS:
+        return None
+    return np.sort(np.random.default_rng(seed).choice(n, VOTE_POINTS, replace=False))
 
 
 def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
-                   memory_budget: float | None = None) -> SurfaceTokens:
+                   memory_budget: float | None = None, all_points: bool = True) -> SurfaceTokens:
     """Stage 1 of :func:`register_surfaces` for one scan: its noise, its surface, its points on salient surfaces.
 
     Tensor voting keeps the points on salient surfaces (``clutter=True``;
@@ -419,21 +447,35 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     (:func:`scan_noise`); a scan noisier than its sampling is projected onto
     its surface (:func:`project_to_surface`) and voted on again, since the
     first vote drops the noisy points of a surface along with the clutter.
+
+    ``all_points=False``: project only the rows the vote samples from a
+    scan of more than :data:`VOTE_POINTS` points (:func:`vote_sample`; the
+    others stay as given in ``points``), which are all that ``rows`` can
+    hold: the same ``rows`` and the same points there, at a cost that stops
+    growing with the scan beyond its noise (a 128-neighbour fit a point).
     """
     n = points.shape[0]
+    voted = 0
     if clutter:
-        rows, normals = surface_points(points, seed=seed, memory_budget=memory_budget)
+        rows, normals = surface_points(points, seed=seed, max_points=VOTE_POINTS, memory_budget=memory_budget)
+        voted += min(n, VOTE_POINTS)
     else:
         rows, normals = np.arange(n), None
     noise = scan_noise(points, at=rows, seed=seed)
-    projection = project_to_surface(points, noise, seed=seed)
+    sample = vote_sample(n, seed) if clutter and not all_points else None
+    projection = project_to_surface(points, noise, seed=seed, rows=sample)
     if projection is not None:
-        points = projection.points
+        if sample is None:
+            points = projection.points
+        else:
+            points = np.array(points, dtype=np.float64)
+            points[sample] = projection.points
         if clutter:
-            rows, normals = surface_points(points, seed=seed, memory_budget=memory_budget)
+            rows, normals = surface_points(points, seed=seed, max_points=VOTE_POINTS, memory_budget=memory_budget)
+            voted += min(n, VOTE_POINTS)
         else:
             normals = projection.normals
-    return SurfaceTokens(points, rows, normals, noise, projection)
+    return SurfaceTokens(points, rows, normals, noise, projection, voted)
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
@@ -626,7 +668,12 @@ def register_surfaces(
         ``projected`` (the points of each scan's plane fits, 0 when it was
         not projected, :func:`project_to_surface`) and ``residual_noise``
         (the point-to-plane residuals of the final pairs, per scan, as
-        :func:`plane_noise`).
+        :func:`plane_noise`).  ``work``: the points each step handled,
+        both scans together (``input``; ``noise``, ``projection``: points
+        put into k-d trees plus neighbours fitted; ``vote``: points voted
+        on; ``match``: the surface points the matching stages take), which
+        grow no faster than the scans (and stop growing past
+        :data:`VOTE_POINTS` a scan but for ``input`` and ``noise``).
     """
     t0 = _clock()
     X = RIGID.check_points(source, "source")
@@ -642,8 +689,8 @@ def register_surfaces(
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
 
     report(0.0, "surface tokens")
-    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget)
-    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget)
+    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False)
+    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False)
     ix, iy = tx.rows, ty.rows
     Xs, Ys = tx.points[ix], ty.points[iy]
     nys = ty.normals if ty.normals is not None else _normals(Ys)
@@ -655,6 +702,15 @@ def register_surfaces(
                            progress=lambda f, m: report(0.05 + 0.95 * f, m))
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
+    # Points each step handled, summed over both scans: what grows with the scans' size (the matching
+    # past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples of them).
+    info["work"] = {
+        "input": int(X.shape[0] + Y.shape[0]),
+        "noise": int(tx.noise.work + ty.noise.work),
+        "projection": int(sum(t.projection.work for t in (tx, ty) if t.projection is not None)),
+        "vote": int(tx.voted + ty.voted + (Ys.shape[0] if ty.normals is None else 0)),
+        "match": int(Xs.shape[0] + Ys.shape[0]),
+    }
     # Stage timings from the start of the call.
     for stage in STAGES:
         for key, offset in zip((f"t_{stage}", f"cpu_{stage}"), prepared):
@@ -923,6 +979,14 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
 
 
 @dataclass(frozen=True, eq=False)
+class _Ranked:
+    """A polished trial motion (4x4) and its support on the surface (:func:`match_surfaces`' partial search)."""
+
+    matrix: np.ndarray
+    support: int
+
+
+@dataclass(frozen=True, eq=False)
 class SurfaceMatch:
     """What :func:`match_surfaces` found: the motion, its final pairs and support.
 
@@ -948,6 +1012,13 @@ FINE_SAMPLE = 8000
 #: adaptive stop is checked after each batch, and a right motion's share of a scan pair's voxel points
 #: (0.5-0.95) needs 5-70 triples.
 ADAPTIVE_BATCH = 64
+
+#: Trial motions the partial-overlap search (:func:`match_surfaces`' third attempt) polishes and ranks by
+#: the source points they bring onto the target's surface.  At 40% overlap the right motion's congruent
+#: triples rank 8th to 25th by their support among the voxel points (a half-turn laid across a cropped
+#: target covers more of its voxels), and only the polish at the fine gates, counting points whose normals
+#: agree, tells it apart (11,053 against 7,400 points on bun090<-bun045).
+PARTIAL_TRIALS = 32
 
 #: Leaf size of the target's k-d tree that the polish and the verdict query (scipy's default: 16):
 #: larger leaves make the many queries of points off the surface (the verdict's wrong draws) cheaper;
@@ -1012,9 +1083,18 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     termination, ``trial_motions(adaptive_confidence=confidence)``); when
     that motion fails the verdict (or none is found) short of the budget,
     the whole budget is drawn from the seed's stream as without the stop.
-    ``info["search"]`` says which (``"adaptive"`` or ``"whole budget"``,
-    then with ``info["adaptive"]``: the triples drawn first, and why they
-    gave no motion).
+    When the whole budget's motion fails too, a third search assumes a
+    partial overlap: its triples' sides need only span a quarter of the
+    *smaller* scan (a triangle of the overlap lies in both), and its
+    :data:`PARTIAL_TRIALS` best trial motions are each polished (as the
+    verdict polishes its wrong draws) and ranked by their supports on the
+    surface (:func:`surface_support` at the final gate), not by the voxel
+    points' support and tensor voting; the best then goes on as before
+    (rivals, polish, verdict).  ``info["search"]`` says which search gave
+    the answer (``"adaptive"``, ``"whole budget"`` or ``"partial
+    overlap"``; after the first, ``info["adaptive"]`` and after the second
+    ``info["whole_budget"]``: the triples drawn and why they gave no
+    motion).
     """
     t0 = _clock()
     report = progress if progress is not None else (lambda fraction, message="": None)
@@ -1035,6 +1115,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     gate = voxel
     index = TargetIndex(Yd, gate, memory_budget=memory_budget)
     diameter = float(np.linalg.norm(Xd.max(axis=0) - Xd.min(axis=0)))
+    target_diameter = float(np.linalg.norm(Yd.max(axis=0) - Yd.min(axis=0)))
     budget = n_triples_needed(float(min_overlap), confidence)
     if max_triples is not None:
         budget = min(budget, max_triples)
@@ -1070,13 +1151,28 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # points (the one-to-one pairs do).
         return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
 
-    def attempt(adaptive: bool, info: dict) -> SurfaceMatch:
-        """Stages 2-5 from the seed's streams: with the adaptive stop, or drawing the whole budget."""
+    def ranked_on_surface(trials) -> list:
+        """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""
+        frame = source_frame()
+        out = []
+        for R, t in zip(trials.rotations, trials.translations):
+            R, t, g, _ = polish(R, t, sample, VERDICT_ITERATIONS, False)
+            count = surface_support(Xs, Ys, target_normals, tree, R, t, [g], g + NOISE_REACH * float(noise), frame)
+            out.append(_Ranked(homogeneous(R, t), int(count[0])))
+        return sorted(out, key=lambda f: -f.support)
+
+    def attempt(mode: str, info: dict) -> SurfaceMatch:
+        """Stages 2-5 from the seed's streams: with the adaptive stop, drawing the whole budget, or for a
+        partial overlap (shorter sides, more trials, ranked on the surface)."""
         rng = np.random.default_rng(seed)
         # Adaptive RANSAC termination in small batches; the verdict below catches a wrong motion it stops at.
-        stop = dict(batch=ADAPTIVE_BATCH, adaptive_confidence=confidence, min_share=min_overlap) if adaptive else {}
-        trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng, keep=n_judged,
-                               min_side=0.25 * diameter, max_matches=256, accept=0,
+        stop = (dict(batch=ADAPTIVE_BATCH, adaptive_confidence=confidence, min_share=min_overlap)
+                if mode == "adaptive" else {})
+        partial = mode == "partial overlap"
+        span = min(diameter, target_diameter) if partial else diameter
+        trials = trial_motions(Xd, index, eps=voxel, max_triples=budget, rng=rng,
+                               keep=max(n_judged, PARTIAL_TRIALS) if partial else n_judged,
+                               min_side=0.25 * span, max_matches=256, accept=0,
                                source_normals=nx, target_normals=ny, feature_tol=feature_tol,
                                progress=lambda f, m: report(0.1 + 0.6 * f, m), **stop)
         info.update(triples=trials.n_triples, congruent=trials.n_congruent)
@@ -1084,10 +1180,16 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         if not len(trials):
             return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="no congruent triples"))
 
-        # Tensor voting judges the best trials on the downsampled sets.
-        report(0.7, "tensor voting")
-        tol = gate / 3.5  # so that the judge's gate is one voxel
-        fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices) if j is not None]
+        if partial:
+            # Polished and counted on the surface, where the voxel points' support ranks a wrong motion first.
+            report(0.7, "trial motions on the surface")
+            fits = ranked_on_surface(trials)
+        else:
+            # Tensor voting judges the best trials on the downsampled sets.
+            report(0.7, "tensor voting")
+            tol = gate / 3.5  # so that the judge's gate is one voxel
+            fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices)
+                    if j is not None]
         if not fits:
             return SurfaceMatch(None, None, voxel, none, 0,
                                 dict(info, reason="tensor voting found no consistent plane"))
@@ -1131,14 +1233,19 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         return SurfaceMatch(R, t, g, pairs, on, info)
 
     if not verdict:
-        return attempt(False, info)
+        return attempt("whole budget", info)
     # Stop at the first motion that passes the verdict: the adaptive search draws as many triples as the best
     # trial's inlier share needs; when its motion fails (or none is found) and it stopped short of the
-    # budget, the whole budget is drawn, as without the adaptive stop.
-    first = attempt(True, dict(info))
-    if first or first.info["triples"] >= budget:
+    # budget, the whole budget is drawn, as without the adaptive stop; when that fails too, the search for a
+    # partial overlap.
+    first = attempt("adaptive", dict(info))
+    if first:
         return dataclasses.replace(first, info=dict(first.info, search="adaptive"))
-    second = attempt(False, dict(info))
-    return dataclasses.replace(second, info=dict(second.info, search="whole budget",
-                                                 adaptive={"triples": first.info["triples"],
-                                                           "reason": first.info.get("reason", "")}))
+    gave = {"adaptive": {"triples": first.info["triples"], "reason": first.info.get("reason", "")}}
+    if first.info["triples"] < budget:
+        second = attempt("whole budget", dict(info))
+        if second:
+            return dataclasses.replace(second, info=dict(second.info, search="whole budget", **gave))
+        gave["whole_budget"] = {"triples": second.info["triples"], "reason": second.info.get("reason", "")}
+    third = attempt("partial overlap", dict(info))
+    return dataclasses.replace(third, info=dict(third.info, search="partial overlap", **gave))

@@ -247,7 +247,11 @@ def test_local_scatter_is_the_pca_of_the_k_nearest_neighbours(seed, k, noise):
         # the normal's eigenvalue is the sum of squared heights about the least-squares plane
         assert fit.eigenvalues[i, 0] == pytest.approx(np.sum((local @ fit.normals[i]) ** 2), abs=1e-12)
         if noise < 0.01:
-            assert abs(fit.normals[i] @ normal) > 0.95
+            # The fitted plane tilts by about the noise over the neighbourhood's spread in the plane (its
+            # middle eigenvalue): four points nearly in a line tilt far (seed 85, k = 4: 19 degrees);
+            # worst 1.8x this bound over 1,200 neighbourhoods of k = 4-8.
+            tilt = np.sqrt(max(0.0, 1.0 - (fit.normals[i] @ normal) ** 2))
+            assert tilt <= 4.0 * noise * np.sqrt(k / fit.eigenvalues[i, 1]) + 1e-6
 
 
 def test_local_scatter_names_k_when_it_exceeds_the_reference():
@@ -340,7 +344,7 @@ def test_the_adaptive_search_stops_at_the_ransac_bound_of_its_best_trial(seed, c
 def test_a_motion_that_fails_its_verdict_after_the_adaptive_stop_gets_the_whole_budget():
     """A true pair is found by the adaptive search alone.  Against a stretched copy of the surface
     (similar enough that the adaptive search stops at a wrong motion) the verdict rejects that motion,
-    and the whole budget is drawn before the answer "no motion"."""
+    the whole budget is drawn, and then the partial-overlap search, before the answer "no motion"."""
     rng = np.random.default_rng(3)
     src, tgt, R, _ = _resampled_sphere_pair(2, 3000, 3000)
     other = _resampled_sphere_pair(5, 3000, 3000)[0] * [1.0, 1.6, 0.5]  # the surface stretched
@@ -349,6 +353,8 @@ def test_a_motion_that_fails_its_verdict_after_the_adaptive_stop_gets_the_whole_
     assert rotation_error_deg(m.rotation, R) < 0.5
     null = register_scans(other @ np.linalg.qr(rng.normal(size=(3, 3)))[0], tgt, seed=0, n_points=300)
     assert not null
-    assert null.info["search"] == "whole budget"
-    assert null.info["adaptive"]["triples"] < null.info["triples"]
-    assert "wrong motions" in null.info["adaptive"]["reason"]
+    assert null.info["search"] == "partial overlap"
+    assert null.info["adaptive"]["triples"] < null.info["whole_budget"]["triples"] == null.info["triples"]
+    for search in ("adaptive", "whole_budget"):
+        assert "wrong motions" in null.info[search]["reason"]
+    assert "wrong motions" in null.info["reason"]

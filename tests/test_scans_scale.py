@@ -1,0 +1,87 @@
+"""Scans of any size (issue 38): the work a call reports grows at most linearly in the points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gatv import Rotor, register_scans
+from gatv.scans import FIT_POINTS, NOISE_SAMPLE, VOTE_POINTS, surface_tokens
+
+
+def _bumpy(rng, n, noise):
+    """``n`` random points of a generic closed bumpy surface (about 4.5 units²), with Gaussian noise."""
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    x, y, z = u.T
+    r = (1.0 + 0.2 * np.sin(2.1 * x + 1.3 * y + 0.7 * z + 0.4)
+         + 0.15 * np.cos(1.7 * x - 2.3 * y + 1.1 * z + 1.0) + 0.1 * np.sin(3 * z + 0.2))
+    return u * r[:, None] * np.array([1.0, 0.8, 0.6]) + rng.normal(0.0, noise, (n, 3))
+
+
+def _pair(n, seed=0, noise=0.01):
+    """Two samplings of the surface at ``n`` points each, the target moved (noise a few spacings at 10⁵)."""
+    rng = np.random.default_rng(seed)
+    R = Rotor.from_axis_angle([0.3, -1.0, 0.4], np.radians(140.0))
+    return _bumpy(rng, n, noise), (R >> _bumpy(rng, n, noise)) + np.array([2.0, -1.0, 0.5])
+
+
+def _bounds(n):
+    """Linear bounds on each count of one scan of ``n`` points (``work`` of :func:`gatv.register_surfaces`).
+
+    The noise: its k-d trees (the whole scan once, then halving subsamples) and the fits of
+    NOISE_SAMPLE neighbourhoods of at most 2 FIT_POINTS + 1 points, one a doubling of the neighbourhood;
+    the projection: its fits' tree and FIT_POINTS + 1 neighbours of each row the vote samples; the
+    votes (two when projected) and the matching: at most VOTE_POINTS each.
+    """
+    sampled = min(n, VOTE_POINTS)
+    return {"input": n, "noise": 2 * n + NOISE_SAMPLE * (2 * FIT_POINTS + 1) * int(np.ceil(np.log2(n))),
+            "projection": n + sampled * (FIT_POINTS + 1), "vote": 2 * sampled, "match": sampled}
+
+
+def test_the_work_of_a_large_scan_stays_within_linear_bounds():
+    """Stage 1 of a scan past the vote's sample, against bounds linear in its points (projecting every
+    row instead: 9.3 million points handled against the projection's bound of 7.9 million)."""
+    n = VOTE_POINTS + 90000
+    tokens = surface_tokens(_bumpy(np.random.default_rng(4), n, 0.01), seed=1, all_points=False)
+    assert tokens.projection is not None
+    bound = _bounds(n)
+    assert 0 < tokens.noise.work <= bound["noise"]
+    assert 0 < tokens.projection.work <= bound["projection"]
+    assert tokens.voted == bound["vote"]
+
+
+@pytest.mark.slow  # two calls at 64k and 256k points a scan (about 20 s)
+def test_the_work_of_a_call_grows_at_most_linearly_in_the_points():
+    """What ``register_scans`` reports for scans of 64k and 256k points: within the linear bounds of
+    :func:`_bounds` at both sizes, and growing no faster than the points from one to the other (up to
+    the noise estimate's own spread: its square sets the projection's neighbourhoods, and the
+    projection's fits reach FIT_POINTS only past 10^5 points)."""
+    small, factor = VOTE_POINTS + 4000, 4
+    works = []
+    for n in (small, small * factor):
+        m = register_scans(*_pair(n), seed=0)
+        works.append(m.info["work"])
+        bound = _bounds(n)
+        for key, value in m.info["work"].items():
+            assert 0 < value <= 2 * bound[key], (n, key, value, 2 * bound[key])  # both scans
+    a, b = works
+    assert b["input"] == factor * a["input"] == 2 * factor * small
+    for key in a:
+        assert b[key] <= 1.25 * factor * a[key], (key, a[key], b[key])
+    # Past the vote's sample the vote and the matching stop growing.
+    assert b["vote"] <= 4 * VOTE_POINTS and b["match"] <= 2 * VOTE_POINTS
+
+
+def test_a_large_scan_is_projected_only_where_the_vote_samples_and_alike():
+    """The rows the pipeline keeps, and their points, are those of projecting the whole scan."""
+    rng = np.random.default_rng(3)
+    points = _bumpy(rng, VOTE_POINTS + 20000, 0.01)
+    whole = surface_tokens(points, seed=5)
+    sampled = surface_tokens(points, seed=5, all_points=False)
+    assert whole.projection is not None and sampled.projection is not None
+    np.testing.assert_array_equal(sampled.rows, whole.rows)
+    np.testing.assert_array_equal(sampled.points[sampled.rows], whole.points[whole.rows])
+    np.testing.assert_array_equal(sampled.normals, whole.normals)
+    assert sampled.projection.work < whole.projection.work
+    assert sampled.voted == whole.voted == 2 * VOTE_POINTS

@@ -11,6 +11,10 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
   25k differently sampled (independent 80% subsets of 12.5k / 31k points).
 * ``elastic``: the plane under a smooth random warp (6 Gaussian bumps,
   amplitude 1), 10k and 100k points, the same rows.
+* ``body``: the articulated body of ``shared/data/nonrigid_bcpd_human`` (6,890
+  rows, two poses: the arms turn by about 50° at the shoulders), each set an
+  independent 80% of the rows (the truth: the rows both share), the target
+  as given and turned by a random rotation of 60° and of 180°.
 * ``bunny``: ``shared/data/nonrigid_bcpd_bunny`` x → y (rotated about 93°,
   scaled about 0.83, deformed; 8,171 rows) and bunny-x-co → y (the 1,600-point
   outlier blob in the source), with the similarity model as pre-alignment
@@ -65,7 +69,7 @@ Scores (every method, every row):
 
 Usage::
 
-    python benchmarks/nonrigid.py [--cases face,twist,elastic,bunny,two-motion] [--sizes 2000,10000,25000]
+    python benchmarks/nonrigid.py [--cases face,twist,elastic,body,bunny,two-motion] [--sizes 2000,10000,25000]
                                   [--methods gatv,cpd,bcpd,filterreg] [--fractions 0,0.5] [--trials 1]
                                   [--timeout 600] [--peer-memory-gb 4] [--scheduler ADDRESS]
 
@@ -112,8 +116,8 @@ TOLD = {"gatv+sim": ("bunny",)}
 #: (``--peer-info blind``, the default): CPD's own default in Myronenko's reference
 #: code (``opt.outliers = 0.1``), the same for every row, as gatv is told nothing.
 PEER_W = 0.1
-GROUPS = ("face", "twist", "elastic", "bunny", "two-motion", "small")
-DEFAULT_GROUPS = ("face", "twist", "elastic", "bunny", "two-motion")
+GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion", "small")
+DEFAULT_GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion")
 DEFAULT_SIZES = (2000, 10000, 25000)
 PEER_MODULE = {"cpd": "pycpd", "bcpd": "probreg", "filterreg": "probreg"}
 
@@ -124,11 +128,12 @@ class Case:
     """One row: how to build its trial (picklable: names and numbers only)."""
 
     name: str
-    kind: str  # "plane", "face", "bunny", "two", "small-plane", "small-face"
+    kind: str  # "plane", "face", "body", "bunny", "two", "small-plane", "small-face"
     n: int = 0  # points per set (planes) or rows drawn (small faces)
     warp: str = ""  # twist90, elastic, face-y, face-g.y, ...
     sampled: bool = False  # independent 80% subsets
     outliers_ok: bool = True  # outliers are added at f > 0
+    turn: float = 0.0  # the target also turned by a random rotation of this many degrees
 
 
 @dataclass(frozen=True)
@@ -184,6 +189,8 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         x, y = _plane_pair(case, rng)
     elif case.kind == "face":
         x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
+    elif case.kind == "body":
+        x, y = _load("nonrigid_bcpd_human/female-x.txt"), _load("nonrigid_bcpd_human/female-y.txt")
     elif case.kind == "small-face":
         x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
         drawn = rng.choice(len(x), size=case.n, replace=False)
@@ -214,6 +221,12 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         labels = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
     else:
         raise ValueError(case.kind)
+    if case.turn:
+        from gatv.ga import Rotor
+
+        axis = rng.normal(size=3)
+        R = Rotor.from_axis_angle(axis / np.linalg.norm(axis), np.radians(case.turn)).as_matrix()
+        y = y @ R.T
     xr, yr = _subsets(x, y, rng, case.sampled)
     X, Yt, Y = x[xr], y[xr], y[yr]  # source, its true positions, target
     n_out = outlier_count(f, X.shape[0]) if case.outliers_ok else 0
@@ -484,6 +497,10 @@ def cases(groups, sizes):
                 for n in sizes if 10_000 <= n <= 25_000]
     if "elastic" in groups:
         out += [Case(f"elastic 1, {n // 1000}k", "plane", n, "elastic") for n in sizes if n >= 10_000]
+    if "body" in groups:
+        out += [Case("body x→y, sampled 80%/80%", "body", sampled=True),
+                Case("body x→y turned 60°, sampled 80%/80%", "body", sampled=True, turn=60.0),
+                Case("body x→y turned 180°, sampled 80%/80%", "body", sampled=True, turn=180.0)]
     if "bunny" in groups:
         out += [Case("bunny x→y (sim. + deform)", "bunny", warp="bunny-x", outliers_ok=False),
                 Case("bunny x-co→y (+1,600 blob)", "bunny", warp="bunny-x-co", outliers_ok=False)]
@@ -568,7 +585,10 @@ def main(argv=None) -> int:
         chosen = [c for c in chosen if args.only in c.name]
     if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
         print(f"data not found in {DATA}: face and bunny rows left out")
-        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny")]
+        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny", "body")]
+    elif not (DATA / "nonrigid_bcpd_human" / "female-x.txt").is_file():
+        print(f"body data not found in {DATA}: body rows left out")
+        chosen = [c for c in chosen if c.kind != "body"]
     tasks = []
     for c in chosen:
         for f in fractions:

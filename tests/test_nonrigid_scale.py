@@ -161,9 +161,17 @@ def test_multiscale_falls_back_to_the_coarse_placement_when_the_identity_window_
     x = deform.sample_plane(200, 10.0, seed=3)
     y = deform.twist(x, 30.0) + [25.0, 0.0, 0.0]  # a shift of ~35 spacings: no identity window holds it
     trial = deform.nonrigid_trial(x, y, 0.0, seed=4)
-    m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
+    # without the rigid starts (prealign=False) the coarse solve places the windows
+    m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80,
+                 prealign=False)
     assert m.info["placement"] == "coarse"
     assert [w["placement"] for w in m.info["windows"]][:2] == ["identity", "identity"]
+    precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
+    assert precision >= 0.98 and recall >= 0.9
+    # by default the bounded rigid pre-alignment places them first (a shift is a rigid motion)
+    m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
+    assert m.info["placement"] == "rigid" and "time_coarse_s" not in m.info
+    assert [w["placement"] for w in m.info["windows"]] == ["identity", "identity", "rigid"]
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.98 and recall >= 0.9
 

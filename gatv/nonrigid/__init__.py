@@ -5,7 +5,9 @@
 
 See :mod:`gatv.nonrigid.registration` for the algorithm,
 :mod:`gatv.nonrigid.multiscale` for the multi-resolution path (10⁴–10⁵
-points), :mod:`gatv.nonrigid.segment` for several non-rigid motions, and
+points), :mod:`gatv.nonrigid.segment` for several non-rigid motions,
+:mod:`gatv.nonrigid.parts` for articulated motions (seeds in every part,
+near-rigid parts and their joints in ``info["parts"]``), and
 :mod:`gatv.nonrigid.deformations` for the generators used by the tests,
 benchmarks and gallery.
 """

@@ -16,6 +16,8 @@ so the same seed gives the same result.
   hinge line turns about it (a jaw opening, like the chin of the paper's
   head model, section 4.2).
 * :func:`rigid` — a rigid motion, to compose with the others.
+* :func:`two_link_arm` — an articulated tube: two links, each turned
+  rigidly about its joint (a shoulder and an elbow), with the truth.
 * :func:`nonrigid_trial` — source and moved copy with outliers added to both,
   shuffled, with the true pairs.
 
@@ -44,6 +46,7 @@ __all__ = [
     "rigid",
     "sample_plane",
     "twist",
+    "two_link_arm",
 ]
 
 
@@ -389,3 +392,67 @@ def nonrigid_trial(points, moved, outlier_fraction: float = 0.0, *, noise: float
     pairs = np.column_stack([np.argsort(perm_s)[:n], np.argsort(perm_t)[:n]])
     pairs = pairs[np.argsort(pairs[:, 0])]
     return NonRigidTrial(src[perm_s], tgt[perm_t], pairs, float(outlier_fraction))
+
+
+@dataclass(frozen=True, eq=False)
+class ArticulatedArm:
+    """A two-link arm and its motion: ``source`` (N, 3) on the tube, ``target`` the moved rows
+    (row ``i`` of one is row ``i`` of the other), ``labels`` (N,) the link of each row (0, 1),
+    ``rotations`` (2, 3, 3) and ``translations`` (2, 3) of the links
+    (``target ≈ source @ R.T + t``), ``joints`` (2, 3) the shoulder and the elbow (source frame),
+    ``axis`` (3,) the axis both joints turn about."""
+
+    source: np.ndarray
+    target: np.ndarray
+    labels: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    joints: np.ndarray
+    axis: np.ndarray
+
+
+def two_link_arm(n: int = 600, angles=(30.0, 45.0), *, length: float = 20.0, radius: float = 1.5,
+                 axis=(0.0, 0.0, 1.0), seed=0) -> ArticulatedArm:
+    """An articulated arm: a tube along x whose two halves turn about their joints.
+
+    ``n`` points on the tube ``y² + z² = radius²``, ``0 <= x <= length``, by
+    jittered-grid sampling of its unrolled surface.  The first link
+    (``x < length / 2``) turns by ``angles[0]`` degrees about ``axis``
+    through the shoulder (the origin); the second turns by
+    ``angles[1]`` more about the same axis through the elbow
+    (``(length / 2, 0, 0)``, carried by the first link).  Each link is
+    rigid; the whole is piecewise rigid, with a crease at the elbow.
+
+    Returns
+    -------
+    ArticulatedArm
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 8:
+        raise InputError(f"Expected `n` to be an integer >= 8, got {n!r}.")
+    length = check_positive(length, "length")
+    radius = check_positive(radius, "radius")
+    a = _axis(axis)
+    if len(angles) != 2:
+        raise InputError(f"Expected `angles` to be two angles in degrees, got {angles!r}.")
+    a1, a2 = _angle(angles[0], "angles[0]"), _angle(angles[1], "angles[1]")
+    rng = np.random.default_rng(seed)
+    flat = sample_plane(int(n), 1.0, seed=rng) + 0.5  # the unit square
+    x = flat[:, 0] * length
+    phi = flat[:, 1] * 2.0 * np.pi
+    src = np.column_stack([x, radius * np.cos(phi), radius * np.sin(phi)])
+    labels = (src[:, 0] >= 0.5 * length).astype(np.int64)
+    shoulder, elbow = np.zeros(3), np.array([0.5 * length, 0.0, 0.0])
+
+    def turn(th, centre):
+        K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        R = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+        return R, centre - R @ centre
+
+    R1, t1 = turn(a1, shoulder)
+    R2, t2 = turn(a2, elbow)  # about the elbow, then the first link's motion
+    R12, t12 = R1 @ R2, R1 @ t2 + t1
+    rotations = np.stack([R1, R12])
+    translations = np.stack([t1, t12])
+    tgt = np.einsum("nij,nj->ni", rotations[labels], src) + translations[labels]
+    return ArticulatedArm(_frozen(src), _frozen(tgt), _frozen(labels, np.int64), rotations, translations,
+                          np.stack([shoulder, elbow]), a)

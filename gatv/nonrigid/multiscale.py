@@ -48,6 +48,7 @@ __all__ = [
     "LocalAffineWarp",
     "Refined",
     "dense_rows",
+    "local_gates",
     "grid_subsample",
     "local_eq41_pairs",
     "loo_affine_residuals",
@@ -72,6 +73,44 @@ GROW_NEIGHBOURS = 12
 GROW_AMBIGUITY = 0.5
 #: Rows per block when evaluating k-nearest-neighbour fits (bounds temporaries).
 _BLOCK = 20_000
+#: A local gate (:func:`local_gates`) is at least this share of the gate of the median spacing:
+#: near-duplicate rows (a mesh's dense seams) do not shrink it to nothing.
+LOCAL_GATE_MIN = 0.5
+
+
+# ------------------------------------------------------------------ gates
+def local_gates(Y, tree_y, gate: float, floor: float = 0.0, k: int = 8) -> np.ndarray:
+    """The sampling gate of each target row: half the local spacing plus the noise ``floor``, and
+    at least ``LOCAL_GATE_MIN`` times ``gate`` (the gate of the median spacing).
+
+    The local spacing of row ``j`` is the median nearest-neighbour distance of its ``k`` nearest
+    rows.  A mesh of a body is sampled ten times more densely at the face and hands than along
+    the limbs (nearest neighbours 2–26 mm on the body, median 10 mm); one gate from the median
+    spacing of the dense rows (6 mm) is a fifth of a limb's spacing, and the growth could not
+    follow a limb whose warp it predicts within a third of that spacing; at the face and hands
+    the same gate holds two or three samples, and the growth waits there as ambiguous.
+    """
+    Y = np.asarray(Y, dtype=np.float64)
+    if Y.shape[0] < k + 1:
+        return np.full(Y.shape[0], float(gate))
+    d1 = tree_y.query(Y, k=2)[0][:, 1]
+    near = tree_y.query(Y, k=k)[1]
+    return np.maximum(float(gate) * LOCAL_GATE_MIN, 0.5 * np.median(d1[near], axis=1) + floor)
+
+
+def _within(d, j, gate) -> np.ndarray:
+    """``d <= gate`` of the target rows ``j`` (``gate`` a float or a per-target-row array); False
+    where ``d`` is infinite (no target within the query bound)."""
+    ok = np.isfinite(d)
+    if np.ndim(gate) == 0:
+        return ok & (d <= gate)
+    out = np.zeros(d.shape, bool)
+    out[ok] = d[ok] <= np.asarray(gate)[j[ok]]
+    return out
+
+
+def _bound(gate) -> float:
+    return float(np.max(gate)) if np.ndim(gate) else float(gate)
 
 
 # ------------------------------------------------------------------ subsampling
@@ -290,9 +329,9 @@ class Refined:
     gate: float
 
 
-def _match(moved, tree, gate: float):
-    dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
-    ok = np.flatnonzero(np.isfinite(dist))
+def _match(moved, tree, gate):
+    dist, j = tree.query(moved, k=1, distance_upper_bound=_bound(gate))
+    ok = np.flatnonzero(_within(dist, j, gate))
     cand = np.stack([ok, j[ok]], axis=1).astype(np.int64)
     if ok.size == 0:
         return cand
@@ -301,7 +340,7 @@ def _match(moved, tree, gate: float):
 
 
 def refine(X, Y, tree_y, warp, coarse_spacing: float, spacing: float, floor: float,
-           *, report=None, max_iter: int = 4) -> Refined:
+           *, report=None, max_iter: int = 4, local=None) -> Refined:
     """Propagate a coarse warp to full resolution and match within the sampling gate.
 
     Levels: ``REFINE_LEVELS`` times ``coarse_spacing`` (plus the noise
@@ -311,7 +350,8 @@ def refine(X, Y, tree_y, warp, coarse_spacing: float, spacing: float, floor: flo
     within the gate; matches whose displacement is off the leave-one-out
     affine trend of their neighbours by more than the gate are dropped; a
     :class:`LocalAffineWarp` is fitted on the rest and moves the source for
-    the next level.
+    the next level.  ``local``: per-target-row gates (:func:`local_gates`), used where they are
+    wider than a level's gate.
     """
     gate_final = 0.5 * spacing + floor
     gates = [g * coarse_spacing + floor for g in REFINE_LEVELS]
@@ -319,20 +359,21 @@ def refine(X, Y, tree_y, warp, coarse_spacing: float, spacing: float, floor: flo
     levels = []
     pairs = np.empty((0, 2), np.int64)
     current = warp
-    for n, gate in enumerate(gates):
+    for n, level in enumerate(gates):
+        gate = level if local is None else np.maximum(level, local)
         new = _match(current(X), tree_y, gate)
         if new.shape[0] >= 5:
             D = Y[new[:, 1]] - X[new[:, 0]]
             res = loo_affine_residuals(X[new[:, 0]], D)
-            new = new[res <= gate]
+            new = new[res <= (gate if np.ndim(gate) == 0 else gate[new[:, 1]])]
         if new.shape[0] < 5:
             break
-        repeat = gate == gate_final and new.shape == pairs.shape and np.array_equal(new, pairs)
+        repeat = level == gate_final and new.shape == pairs.shape and np.array_equal(new, pairs)
         pairs = new
         levels.append(int(pairs.shape[0]))
         current = LocalAffineWarp(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])
         if report is not None:
-            report(n / len(gates), f"full resolution: gate {gate:.3g}, {pairs.shape[0]} matches")
+            report(n / len(gates), f"full resolution: gate {level:.3g}, {pairs.shape[0]} matches")
         if repeat:
             break
     if not levels:
@@ -342,14 +383,15 @@ def refine(X, Y, tree_y, warp, coarse_spacing: float, spacing: float, floor: flo
 
 
 # ------------------------------------------------------------------ local eq. 41 at full resolution
-def local_eq41_pairs(X, Y, pairs, strain: float, gate: float, k: int = MLS_NEIGHBOURS):
+def local_eq41_pairs(X, Y, pairs, strain: float, gate, k: int = MLS_NEIGHBOURS):
     """Eq. 41 between each match's token and its nearest matched neighbour's (Fig. 14).
 
     The local rotation axis ``A`` of each match is that of the rigid motion
     (Kabsch/Horn) of its ``k`` nearest matches; with ``V = d_a − d_b`` and
     ``Vs = s_a − s_b`` the residual is ``|V × (A × Vs)| / |Vs|`` (as
     :func:`gatv.ga.eq41_residual`), and a match passes when it is at most
-    ``strain · |x_a − x_b| + gate`` (local strain, sampling and noise).  For
+    ``strain · |x_a − x_b| + gate`` (local strain, sampling and noise; ``gate`` a float or one
+    per match).  For
     a rotation of a few degrees the axis is ill-conditioned; then
     ``A × Vs`` is nearly ``Vs`` scaled and the test reduces to the length
     half (``V · Vs``), which is well defined.
@@ -385,14 +427,15 @@ def local_eq41_pairs(X, Y, pairs, strain: float, gate: float, k: int = MLS_NEIGH
         r = np.linalg.norm(np.cross(V, np.cross(axis, Vs)), axis=1) / np.where(nvs > 0, nvs, 1.0)
         length = np.abs(np.sum(V * Vs, axis=1)) / np.where(nvs > 0, nvs, 1.0)
         r = np.where(na[:, 0] > 1e-12, r, length)
-        passed[rows] = r <= strain * np.linalg.norm(xs[rows] - xs[b], axis=1) + gate
+        g = gate if np.ndim(gate) == 0 else np.asarray(gate)[rows]
+        passed[rows] = r <= strain * np.linalg.norm(xs[rows] - xs[b], axis=1) + g
     return passed, R, t
 
 
 
 # ------------------------------------------------------------------ growth at full resolution
-def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree_x=None,
-         max_rounds: int = 10_000, report=None) -> np.ndarray:
+def grow(X, Y, tree_y, seeds, gate, *, spacing: float | None = None, tree_x=None,
+         max_rounds: int = 10_000, report=None, used_source=None, used_target=None) -> np.ndarray:
     """Grow matches ring by ring at full resolution with the local affine warp of the matched region.
 
     The vectorised form of :func:`gatv.nonrigid.hypotheses.grow_rings`.
@@ -416,16 +459,21 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     ----------
     spacing : float, optional
         Source sampling spacing (the warp's ridge); default :func:`gatv.candidates.median_spacing` of ``X``.
+    gate : float or (M,) ndarray
+        The match gate, or one per target row (:func:`local_gates`).
     tree_x : cKDTree, optional
         Of ``X`` (built when not given).
+    used_source, used_target : (N,), (M,) ndarray of bool, optional
+        Rows already taken by other matches (another part's growth): never matched here, and
+        not part of this growth's warp.  Returned pairs are this growth's only (seeds included).
     """
     pairs = np.asarray(seeds, np.int64).reshape(-1, 2)
     if tree_x is None:
         tree_x = cKDTree(X)
     h = float(spacing) if spacing is not None else median_spacing(X)
     kn = min(GROW_NEIGHBOURS, X.shape[0])
-    used_s = np.zeros(X.shape[0], bool)
-    used_t = np.zeros(Y.shape[0], bool)
+    used_s = np.zeros(X.shape[0], bool) if used_source is None else np.array(used_source, bool)
+    used_t = np.zeros(Y.shape[0], bool) if used_target is None else np.array(used_target, bool)
     used_s[pairs[:, 0]] = True
     used_t[pairs[:, 1]] = True
     frontier = pairs[:, 0]
@@ -450,7 +498,7 @@ def grow(X, Y, tree_y, seeds, gate: float, *, spacing: float | None = None, tree
     return pairs[np.argsort(pairs[:, 0], kind="stable")]
 
 
-def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate: float, h: float, kn: int,
+def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate, h: float, kn: int,
           ambiguity: float, *, claimed: bool = False) -> np.ndarray:
     """One ring of :func:`grow`: the unused source points among the ``kn`` nearest of ``centres``,
     moved by the local affine warp of ``pairs`` and matched one-to-one (closest first) to their
@@ -464,8 +512,8 @@ def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate: float, h: 
         return np.empty((0, 2), np.int64)
     xs = X[pairs[:, 0]]
     warp = LocalAffineWarp(xs, Y[pairs[:, 1]] - xs, spacing=h)
-    d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=gate)
-    ok = np.isfinite(d)
+    d, j = tree_y.query(warp(X[free]), k=4, distance_upper_bound=_bound(gate))
+    ok = _within(d, j, gate)  # each target within its own gate
     ok[ok] = ~used_t[j[ok]]
     first = np.argmax(ok, axis=1)  # the nearest unused target's column (distances come sorted)
     rivals = ok.copy()

@@ -41,9 +41,20 @@ How it works
    expected by chance are at most a quarter of its support and it explains
    a tenth of the smaller set.  When none counts the result is empty, with
    ``info["reason"]``: fewer, correct matches rather than many wrong ones.
-7. **Fit:** the winner is grown and re-verified; each correspondence gets
+7. **Seeds in every part** (:mod:`gatv.nonrigid.parts`): where the growth
+   did not reach (a limb past a joint that turned), rigid windows of the
+   uncovered rows are registered and grown over the rows no part holds,
+   one-to-one; a part counts when its growth is as large as a hypothesis
+   must be and meets the earlier matches continuously or at a joint.  The
+   multi-resolution path gates each target row by its local spacing
+   (:func:`gatv.nonrigid.multiscale.local_gates`), and, when no
+   identity-placed window counts, tries a bounded rigid pre-alignment before
+   the coarse solve.
+8. **Fit:** the winner is grown and re-verified; each correspondence gets
    the rigid motion fitted on its nearest matches, and the thin-plate
-   warp's smoothing is chosen by 5-fold cross-validation unless given.
+   warp's smoothing is chosen by 5-fold cross-validation unless given;
+   the matches are split into near-rigid parts with their joints
+   (``info["parts"]``, ``info["joints"]``).
 """
 
 from __future__ import annotations
@@ -72,6 +83,7 @@ from ..registration import register as rigid_register
 from . import multiscale as ms
 from .hypotheses import farthest_points
 from .motion import Diagnostics, NonRigidMotion
+from .parts import parts_info, seed_parts
 from ..verdict import chance_verdict
 from .stages import (
     ANNEAL_PREFERENCE,
@@ -122,6 +134,14 @@ def _hypothesis_verdict(problem: Problem, verdict, support: int | None = None) -
         key = max(scores, key=lambda k: scores[k].support / level(k))
     n = scores[key].support if support is None else support
     return chance_verdict(n, level(key), len(scores), method=VERDICT_METHOD).to_dict()
+
+
+def _add_parts(info: dict, source_points, target_points, spacing: float, floor: float, seed: int) -> None:
+    """``info["parts"]``, ``info["joints"]``, ``info["part_labels"]`` (per correspondence) of the
+    reported matches (:func:`gatv.nonrigid.parts.parts_info`)."""
+    t0 = time.perf_counter()
+    parts, joints, labels = parts_info(source_points, target_points, spacing=spacing, floor=floor, seed=seed)
+    info.update(parts=parts, joints=joints, part_labels=labels, time_parts_s=time.perf_counter() - t0)
 
 
 def _check_points(points, name: str) -> np.ndarray:
@@ -250,6 +270,14 @@ def register(
         :meth:`~NonRigidMotion.warp`; falsy with ``info["reason"]`` when
         nothing was found.  ``info["hypothesis"]`` names the hypothesis
         reported, ``info["hypotheses"]`` the support and chance of each.
+        ``info["parts"]``: the near-rigid parts of the matches
+        (:func:`gatv.nonrigid.parts.parts_info`), each with its rigid motion
+        (``rotor`` scalar first, ``rotation``, ``translation``, ``angle_deg``,
+        ``size``, ``rms``, ``joints``); ``info["joints"]``: between parts that
+        meet, the axis, angle and centre of their relative rotation;
+        ``info["part_labels"]``: the part of each correspondence (-1: none).
+        ``info["part_windows"]``: the windows searched where the first growth
+        did not reach (:func:`gatv.nonrigid.parts.seed_parts`).
 
     Raises
     ------
@@ -408,8 +436,20 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
                         diagnostics)
 
     report(0.9, "fit")
-    fit = fit_local_motions(problem, refine_winner(problem, hypotheses, verdict, settings), settings)
+    matched = refine_winner(problem, hypotheses, verdict, settings)
+    if settings.grow and matched.shape[0] >= 4:
+        # seeds in every part, as in the multi-resolution path
+        rows_x, rows_y = ms.dense_rows(X), ms.dense_rows(Y)
+        found = seed_parts(X, Y, cKDTree(X), problem.tree, rows_x, rows_y, matched, gate=problem.verify_gate,
+                           spacing=problem.spacing, spacing_x=median_spacing(X[rows_x]),
+                           least=max(4.0, MIN_SHARE * problem.n_smaller), strain=settings.strain,
+                           seed=settings.seed, noise=settings.noise)
+        if found.windows:
+            info.update(part_windows=list(found.windows), n_part_growths=int(found.growth.max()))
+        matched = found.pairs
+    fit = fit_local_motions(problem, matched, settings)
     info["verdict"] = _hypothesis_verdict(problem, verdict, int(fit.pairs.shape[0]))
+    _add_parts(info, fit.source_points, fit.target_points, problem.spacing, problem.noise_floor, settings.seed)
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
     return NonRigidMotion(fit.pairs, fit.source_points, fit.target_points, fit.rotations,
@@ -486,6 +526,27 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # every identity window: then the same windows again with it
     seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
                                  replace(settings, local=False), window_points, report, tried, "identity")
+    if seeds is None and settings.prealign == "auto" and prior is None:
+        # a large rigid motion on top of the warp (a body turned by 60° or 180°): the dominant rigid
+        # motion of the coarse sets (bounded search) places the same windows; kept only when one counts
+        report(0.06, "rigid pre-alignment (bounded)")
+        t0 = time.perf_counter()
+        found = rigid_register(X[si], Y[ti], model="rigid", seed=settings.seed,
+                               noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5),
+                               max_triples=AUTO_RIGID_TRIPLES)
+        info["auto_prealign"] = {"support": int(found.support) if found else 0,
+                                 "time_s": time.perf_counter() - t0}
+        if found:
+            A = np.asarray(found.matrix, dtype=float)
+            Xp = X @ A[:3, :3].T + A[:3, 3]
+            tree_xp = cKDTree(Xp[dx])
+            seeds, local = _seed_windows(Xp, Y, tree_xp, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
+                                         margin, replace(settings, local=False), window_points, report, tried,
+                                         "rigid")
+            info["auto_prealign"]["angle_deg"] = float(found.angle_deg)
+            if seeds is not None:
+                prior, X, tree_xd = A, Xp, tree_xp
+                tree_x = cKDTree(X)
     if seeds is None and settings.local:
         seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
                                      margin, settings, window_points, report, tried, "identity")
@@ -526,30 +587,45 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
 
     # 4. growth, polish, final local matching within the sampling gate, local eq. 41
     gate = 0.5 * spacing + floor
+    # half the local spacing where the target is sampled more sparsely than the median (a body's
+    # limbs against its face and hands)
+    gates = ms.local_gates(Y, tree_y, gate, floor)
     report(0.5, f"growth from {seeds.shape[0]} seeds")
     t0 = time.perf_counter()
-    pairs = ms.grow(X, Y, tree_y, seeds, gate, spacing=median_spacing(X[dx]), tree_x=tree_x,
+    pairs = ms.grow(X, Y, tree_y, seeds, gates, spacing=median_spacing(X[dx]), tree_x=tree_x,
                     report=lambda f, m: report(0.5 + 0.3 * f, m))
     info.update(n_seeds=int(seeds.shape[0]), n_grown=int(pairs.shape[0]),
                 time_growth_s=time.perf_counter() - t0)
+    # seeds in every part: the rows the first growth left uncovered (a limb past a joint that
+    # turned) are searched again by rigid windows and grown over what no part holds
+    t0 = time.perf_counter()
+    report(0.8, "part windows")
+    found = seed_parts(X, Y, tree_x, tree_y, dx, dy, pairs, gate=gates, spacing=spacing,
+                       spacing_x=median_spacing(X[dx]), least=max(4.0, MIN_SHARE * min(dx.size, dy.size)),
+                       strain=settings.strain, seed=settings.seed, noise=settings.noise)
+    pairs = found.pairs[np.argsort(found.pairs[:, 0], kind="stable")]
+    info.update(part_windows=list(found.windows), n_part_growths=int(found.growth.max()),
+                time_part_windows_s=time.perf_counter() - t0)
     report(0.85, "final local matching")
     refined = ms.refine(X, Y, tree_y, ms.LocalAffineWarp(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]]),
-                        spacing, spacing, floor, max_iter=2)
+                        spacing, spacing, floor, max_iter=2, local=gates)
     if refined.pairs.shape[0] >= 4:
         pairs = refined.pairs
     # matches no farther from the local affine trend than 8 median residuals (as the seeds on
     # exact data): a match shifted by one sample stands out by about a spacing
     res = ms.loo_affine_residuals(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])
     if res.size:
-        keep = res <= min(gate, 8.0 * float(np.median(res)) + floor + 1e-9 * spacing)
+        g = gates[pairs[:, 1]]  # 8 median residuals, scaled where the local gate is wider
+        keep = res <= np.minimum(g, (8.0 * float(np.median(res)) + floor + 1e-9 * spacing) * g / gate)
         if keep.sum() >= 4:
             info["n_trend_rejected"] = int((~keep).sum())
             pairs = pairs[keep]
-    passed, R, t = ms.local_eq41_pairs(X, Y, pairs, settings.strain, gate)
+    passed, R, t = ms.local_eq41_pairs(X, Y, pairs, settings.strain, gates[pairs[:, 1]])
     info.update(n_eq41_rejected=int((~passed).sum()), gate=gate, spacing=spacing)
     pairs, R, t = pairs[passed], R[passed], t[passed]
     if prior is not None:  # local rigid motions of the original source points
-        _, R, t = ms.local_eq41_pairs(X0, Y, pairs, settings.strain, gate)
+        _, R, t = ms.local_eq41_pairs(X0, Y, pairs, settings.strain, gates[pairs[:, 1]])
+    _add_parts(info, X0[pairs[:, 0]], Y[pairs[:, 1]], spacing, floor, settings.seed)
     info["verdict"] = dict(_window_verdict(tried), support=int(pairs.shape[0]))
     info["verdict"].update(passed=info["verdict"]["support"] >= info["verdict"]["chance"],
                            margin=info["verdict"]["support"] / max(info["verdict"]["chance"], 1e-300))

@@ -1,0 +1,165 @@
+"""Articulated motions: seeds in every part, local gates, near-rigid parts and their joints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from gatv.candidates import median_spacing
+from gatv.ga import Rotor
+from gatv.nonrigid import multiscale as ms
+from gatv.nonrigid import register
+from gatv.nonrigid.deformations import two_link_arm
+from gatv.nonrigid.parts import Part, joint, parts_info, rigid_parts
+
+BODY = Path(__file__).resolve().parents[2] / "shared" / "data" / "nonrigid_bcpd_human"
+
+
+def _angle_between(R1, R2) -> float:
+    return float(np.degrees(Rotor.from_matrix(np.asarray(R1).T @ np.asarray(R2)).angle))
+
+
+# ------------------------------------------------------------ kernels against numpy references
+def test_local_gates_match_a_loop_over_rows():
+    rng = np.random.default_rng(0)
+    # a sparse half and a dense half: the local gate follows the local spacing
+    y = np.vstack([rng.uniform(0, 10, (300, 3)) * [1, 1, 0], rng.uniform(10, 12, (300, 3)) * [1, 1, 0]])
+    tree = cKDTree(y)
+    gate, floor = 0.1, 0.01
+    got = ms.local_gates(y, tree, gate, floor)
+    d = np.linalg.norm(y[:, None] - y[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    d1 = d.min(axis=1)
+    np.fill_diagonal(d, 0.0)
+    want = np.empty(len(y))
+    for j in range(len(y)):
+        near = np.argsort(d[j], kind="stable")[:8]
+        want[j] = max(ms.LOCAL_GATE_MIN * gate, 0.5 * np.median(d1[near]) + floor)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert np.median(got[:300]) > 2 * np.median(got[300:])
+
+
+def test_growth_never_takes_rows_another_part_holds():
+    x = two_link_arm(400, seed=3).source
+    y = x + [0.3, 0.0, 0.0]
+    tree_y = cKDTree(y)
+    h = median_spacing(y)
+    used_s = np.zeros(len(x), bool)
+    used_t = np.zeros(len(y), bool)
+    used_s[:150] = True
+    used_t[150:200] = True  # the partners of rows 150-199 are taken
+    seeds = np.array([[i, i] for i in range(250, 256)])
+    grown = ms.grow(x, y, tree_y, seeds, 0.4 * h, used_source=used_s, used_target=used_t)
+    assert not np.any(used_s[grown[:, 0]]) and not np.any(used_t[grown[:, 1]])
+    assert len(np.unique(grown[:, 0])) == len(grown) == len(np.unique(grown[:, 1]))
+    free = ~used_s & ~np.isin(np.arange(len(x)), np.arange(150, 200))
+    assert np.mean(grown[:, 0] == grown[:, 1]) == 1.0
+    assert len(grown) >= 0.9 * free.sum()
+
+
+# ------------------------------------------------------------ joints
+@settings(max_examples=30, deadline=None)
+@given(st.floats(5.0, 120.0), st.floats(-1, 1), st.floats(-1, 1), st.floats(0.1, 1),
+       st.floats(-5, 5), st.floats(-5, 5), st.floats(-5, 5))
+def test_joint_of_two_motions_sharing_an_axis_lies_on_it(angle, ax, ay, az, cx, cy, cz):
+    axis = np.array([ax, ay, az]) / np.linalg.norm([ax, ay, az])
+    centre = np.array([cx, cy, cz])
+    Ra = Rotor.from_axis_angle([0.3, -0.2, 0.9], 0.4).as_matrix()
+    ta = np.array([1.0, 2.0, -1.0])
+    Rrel = Rotor.from_axis_angle(axis, np.radians(angle)).as_matrix()
+    # part b: first turn about the axis through the centre, then part a's motion
+    Rb, tb = Ra @ Rrel, Ra @ (centre - Rrel @ centre) + ta
+    boundary = centre + np.random.default_rng(0).normal(scale=0.5, size=(20, 3))
+    j = joint(Part(np.arange(3), Ra, ta, 0.0), Part(np.arange(3), Rb, tb, 0.0), boundary)
+    assert j["gap"] < 1e-8
+    assert abs(j["angle_deg"] - angle) < 1e-6
+    assert abs(abs(np.dot(j["axis"], axis)) - 1.0) < 1e-9
+    c = np.asarray(j["centre"])
+    off = (c - centre) - np.dot(c - centre, axis) * axis  # distance from the axis line
+    assert np.linalg.norm(off) < 1e-7
+
+
+def test_parts_of_the_two_link_arm_from_its_true_pairs():
+    arm = two_link_arm(600, angles=(30.0, 45.0), seed=0)
+    parts, joints, labels = parts_info(arm.source, arm.target, spacing=median_spacing(arm.target))
+    assert len(parts) == 2 and len(joints) == 1
+    for k, p in enumerate(parts):
+        link = np.bincount(arm.labels[labels == k]).argmax()
+        assert _angle_between(p["rotation"], arm.rotations[link]) < 0.5
+        assert np.mean(arm.labels[labels == k] == link) > 0.97
+    j = joints[0]
+    assert abs(abs(j["axis"][2]) - 1.0) < 1e-3 and abs(j["angle_deg"] - 45.0) < 0.5
+    assert np.hypot(j["centre"][0] - arm.joints[1][0], j["centre"][1] - arm.joints[1][1]) < 0.1
+    # one rigid motion: one part, no joint
+    one = rigid_parts(arm.source, arm.source @ arm.rotations[0].T + arm.translations[0],
+                      tolerance=0.01, seed=0)
+    assert len(one) == 1 and one[0].rows.size == 600
+
+
+# ------------------------------------------------------------ end to end
+@pytest.fixture(scope="module")
+def arm_result():
+    arm = two_link_arm(400, angles=(30.0, 45.0), seed=1)
+    perm = np.random.default_rng(7).permutation(400)
+    return arm, perm, register(arm.source, arm.target[perm], seed=0)
+
+
+def test_register_finds_both_links_of_the_arm_and_their_rotations(arm_result):
+    arm, perm, m = arm_result
+    inv = np.argsort(perm)
+    c = m.correspondences
+    ok = inv[c[:, 0]] == c[:, 1]
+    assert ok.mean() >= 0.99
+    for link in (0, 1):  # each link matched, not only the first window's
+        rows = arm.labels[c[:, 0]] == link
+        assert ok[rows].sum() >= 0.9 * np.sum(arm.labels == link)
+    parts = m.info["parts"]
+    assert len(parts) >= 2
+    angles = sorted(_angle_between(np.eye(3), p["rotation"]) for p in parts[:2])
+    assert abs(angles[0] - 30.0) < 1.0 and abs(angles[1] - 75.0) < 1.0
+    assert len(m.info["joints"]) >= 1
+    assert abs(m.info["joints"][0]["angle_deg"] - 45.0) < 1.0
+    labels = m.info["part_labels"]
+    assert labels.shape == (c.shape[0],)
+
+
+@pytest.mark.slow
+def test_register_same_seed_same_parts(arm_result):
+    arm, perm, m = arm_result
+    again = register(arm.source, arm.target[perm], seed=0)
+    assert np.array_equal(again.correspondences, m.correspondences)
+    assert again.info["parts"] == m.info["parts"] and again.info["joints"] == m.info["joints"]
+    assert np.array_equal(again.info["part_labels"], m.info["part_labels"])
+
+
+def test_parts_info_same_seed_same_result():
+    arm = two_link_arm(500, seed=4)
+    a = parts_info(arm.source, arm.target, spacing=median_spacing(arm.target), seed=3)
+    b = parts_info(arm.source, arm.target, spacing=median_spacing(arm.target), seed=3)
+    assert a[0] == b[0] and a[1] == b[1] and np.array_equal(a[2], b[2])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (BODY / "female-x.txt").is_file(), reason="shared data absent")
+def test_articulated_body_sampled_80_80_recall():
+    x = np.loadtxt(BODY / "female-x.txt")
+    y = np.loadtxt(BODY / "female-y.txt")
+    rng = np.random.default_rng(11)
+    n, k = len(x), round(0.8 * len(x))
+    xr = np.sort(rng.choice(n, k, replace=False))
+    yr = np.sort(rng.choice(n, k, replace=False))
+    ps, pt = rng.permutation(k), rng.permutation(k)
+    m = register(x[xr][ps], y[yr][pt], seed=0)
+    c = m.correspondences
+    src, tgt = xr[ps][c[:, 0]], yr[pt][c[:, 1]]
+    shared = np.intersect1d(xr, yr).size
+    assert np.sum(src == tgt) / shared >= 0.9  # exact recall of the rows both sets share
+    h = median_spacing(y[yr])
+    assert np.mean(np.linalg.norm(y[tgt] - y[src], axis=1) <= h) >= 0.95
+    # the arms turn by about 50° at the shoulders: parts that turn are reported
+    assert any(p["angle_deg"] > 30.0 for p in m.info["parts"])

@@ -1132,9 +1132,15 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
     source_frame = functools.cache(lambda: SourceFrame.of(Xs))  # once for both attempts' verdicts
 
+    def on_surface(R, t, g) -> int:
+        """Source points within ``g`` of a target point whose normals agree with its (:func:`surface_support`)."""
+        return int(surface_support(Xs, Ys, target_normals, tree, R, t, [g], g + NOISE_REACH * float(noise),
+                                   source_frame())[0])
+
     def polish(R, t, points=None, iterations=30, count=True):
         """Point-to-plane ICP with a gate shrinking from a voxel (on ``points`` at every gate when given);
-        the points brought onto the surface (None without ``count``: the verdict counts its own)."""
+        the points brought onto the surface (None without ``count``: the verdict counts its own;
+        ``count="normals"``: those whose normals agree too, :func:`on_surface`)."""
         g = gate
         if refine:
             while True:
@@ -1145,6 +1151,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                 g = max(fine, g / 2.0)
         if not count:
             return R, t, g, None
+        if count == "normals":
+            return R, t, g, on_surface(R, t, g)
         dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
         # Source points on the target's surface (within the gate): a measure
         # that does not favour a motion for landing on the very sample
@@ -1153,12 +1161,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
 
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""
-        frame = source_frame()
         out = []
         for R, t in zip(trials.rotations, trials.translations):
-            R, t, g, _ = polish(R, t, sample, VERDICT_ITERATIONS, False)
-            count = surface_support(Xs, Ys, target_normals, tree, R, t, [g], g + NOISE_REACH * float(noise), frame)
-            out.append(_Ranked(homogeneous(R, t), int(count[0])))
+            R, t, _, count = polish(R, t, sample, VERDICT_ITERATIONS, "normals")
+            out.append(_Ranked(homogeneous(R, t), count))
         return sorted(out, key=lambda f: -f.support)
 
     def attempt(mode: str, info: dict) -> SurfaceMatch:
@@ -1202,11 +1208,14 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # Polish: point-to-plane ICP with a shrinking gate, using the target's
         # normals.
         report(0.85, "refine")
-        R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3])
+        # The partial search compares rivals as it ranked them: by the points whose normals agree too (a
+        # half-turn laid across a cropped target brings more points within the gate: 7,644 against 7,351).
+        count = "normals" if partial else True
+        R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3], count=count)
         info["ambiguous"] = False
         for rival in rivals:
             # Judged nearly as well: polish it too and compare at full resolution.
-            Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3])
+            Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3], count=count)
             if (rotation_angle_deg(Rr @ R.T) < 1.0
                     and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
                 continue  # polishing brought it onto the best motion

@@ -59,6 +59,7 @@ from _common import DEFAULT_OUT, markdown_table, parse_list, write_csv
 from gatv.io import read_points
 from gatv.motions import instances, track
 from gatv.motions.instance_search import model_size
+from gatv.motions.tracking import assign_identities
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MESHES = {
@@ -79,6 +80,14 @@ def load_model(name: str, n_points: int, seed: int = 0) -> np.ndarray:
     if pts.shape[0] > n_points:
         pts = pts[np.sort(np.random.default_rng(seed).choice(pts.shape[0], n_points, replace=False))]
     return pts
+
+
+def noise_scale(model, of: str) -> float:
+    """The length the sequences' ``--noise`` is a share of: the model's RMS radius (``rms``, as the other
+    benchmarks' noise) or its bounding-box diagonal (``size``, this benchmark's first runs)."""
+    if of == "size":
+        return model_size(model)
+    return float(np.sqrt(np.mean(np.sum((model - model.mean(axis=0)) ** 2, axis=1))))
 
 
 def random_poses(model, k: int, rng) -> list:
@@ -157,51 +166,43 @@ def _installed(module: str) -> bool:
     return importlib.util.find_spec(module) is not None
 
 
-def run_o3d_sequential(model, scene, seed: int) -> list:
-    """Sequential Open3D RANSAC+FPFH: register, remove the scene points within the gate, repeat."""
+#: Points in a set beyond which the peers match features on a voxel subsample (the real scans) and
+#: polish each pose at full resolution, as ``benchmarks/scans.py`` runs them.
+DENSE_POINTS = 5000
+
+
+def _o3d_polish(source, target, R, t, voxel):
+    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel (``benchmarks/scans.py``'s polish)."""
     import open3d as o3d
 
-    size = model_size(model)
-    voxel = size / 25.0
     reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    start = np.eye(4)
+    start[:3, :3], start[:3, 3] = R, t
+    T = np.asarray(reg.registration_icp(src, tgt, 0.4 * voxel, start,
+                                        reg.TransformationEstimationPointToPlane()).transformation)
+    return T[:3, :3], T[:3, 3]
 
-    def cloud(pts):
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-        return pc, reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
 
-    src, fs = cloud(model)
+def _sequential(model, scene, estimate, voxel):
+    """Register with ``estimate(left) -> (R, t)`` (``None``: none), remove the scene points within the gate, repeat.
+
+    The gate is 1.5 voxels; the loop ends when a pose keeps fewer than 10%
+    of the model's points there.  On dense sets (:data:`DENSE_POINTS`) each
+    pose is polished at full resolution first.
+    """
+    dense = max(model.shape[0], scene.shape[0]) > DENSE_POINTS
     left = scene.copy()
     out = []
-    o3d.utility.random.seed(seed)
     while left.shape[0] >= 10:
-        tgt, ft = cloud(left)
-        res = reg.registration_ransac_based_on_feature_matching(
-            src, tgt, fs, ft, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
-        T = np.asarray(res.transformation)
-        moved = model @ T[:3, :3].T + T[:3, 3]
-        near = np.isfinite(cKDTree(moved).query(left, distance_upper_bound=1.5 * voxel)[0])
-        if near.sum() < 0.1 * model.shape[0]:
+        pose = estimate(left)
+        if pose is None:
             break
-        out.append((T[:3, :3], T[:3, 3]))
-        left = left[~near]
-    return out
-
-
-def run_kiss_sequential(model, scene, seed: int) -> list:
-    """Sequential KISS-Matcher: register, remove the scene points within the gate, repeat."""
-    import kiss_matcher
-
-    size = model_size(model)
-    voxel = size / 25.0
-    left = scene.copy()
-    out = []
-    while left.shape[0] >= 10:
-        matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
-        sol = matcher.estimate(model, left)
-        R, t = np.asarray(sol.rotation), np.asarray(sol.translation).ravel()
+        R, t = pose
+        if dense:
+            R, t = _o3d_polish(model, left, R, t, voxel)
         moved = model @ R.T + t
         near = np.isfinite(cKDTree(moved).query(left, distance_upper_bound=1.5 * voxel)[0])
         if near.sum() < 0.1 * model.shape[0]:
@@ -209,6 +210,84 @@ def run_kiss_sequential(model, scene, seed: int) -> list:
         out.append((R, t))
         left = left[~near]
     return out
+
+
+def run_o3d_sequential(model, scene, seed: int) -> list:
+    """Sequential Open3D RANSAC+FPFH: register, remove the scene points within the gate, repeat."""
+    import open3d as o3d
+
+    voxel = model_size(model) / 25.0
+    reg = o3d.pipelines.registration
+    dense = max(model.shape[0], scene.shape[0]) > DENSE_POINTS
+
+    def cloud(pts):
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        if dense:
+            pc = pc.voxel_down_sample(voxel)
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+        return pc, reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+
+    src, fs = cloud(model)
+    o3d.utility.random.seed(seed)
+
+    def estimate(left):
+        tgt, ft = cloud(left)
+        res = reg.registration_ransac_based_on_feature_matching(
+            src, tgt, fs, ft, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+            reg.RANSACConvergenceCriteria(100000, 0.999))
+        T = np.asarray(res.transformation)
+        return T[:3, :3], T[:3, 3]
+
+    return _sequential(model, scene, estimate, voxel)
+
+
+def run_kiss_sequential(model, scene, seed: int) -> list:
+    """Sequential KISS-Matcher: register, remove the scene points within the gate, repeat.
+
+    KISS-Matcher takes its voxel by hand and refuses millimetre voxels on
+    metre-scale data (``benchmarks/scans.py``), so both sets are scaled to a
+    100-unit model diagonal for it and its translation scaled back.
+    """
+    import kiss_matcher
+
+    size = model_size(model)
+    voxel, scale = size / 25.0, 100.0 / size
+    src = np.ascontiguousarray(model * scale)
+
+    def solve(left):
+        matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel * scale))
+        sol = matcher.estimate(src, np.ascontiguousarray(left * scale))
+        return np.asarray(sol.rotation, dtype=np.float64), np.asarray(sol.translation, dtype=np.float64).ravel() / scale
+
+    def estimate(left):
+        # KISS-Matcher 1.x crashes the process (SIGSEGV) on some small leftovers of a scene (a 188-point
+        # one here): each call runs in a forked child, and a crash ends the loop as "no more instances".
+        return _in_child(solve, left)
+
+    return _sequential(model, scene, estimate, voxel)
+
+
+def _in_child(fn, *args):
+    """``fn(*args)`` in a forked child process; ``None`` when the child dies (a crash in a peer's C++ code)."""
+    import os
+    import pickle
+
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: compute, send, leave without running the parent's exit handlers
+        os.close(read)
+        try:
+            data = pickle.dumps(fn(*args))
+            with os.fdopen(write, "wb") as pipe:
+                pipe.write(data)
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read, "rb") as pipe:
+        data = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    return pickle.loads(data) if data and os.WIFEXITED(status) else None
 
 
 RUNNERS = {"gatv": (run_gatv, None), "o3d-seq": (run_o3d_sequential, "open3d"),
@@ -245,11 +324,94 @@ def scene_rows(args) -> list[dict]:
     return records
 
 
+#: Real-scan scenes: ``name -> (model view, copied view)``; the bunny scans (metres) and the UWA views (mm).
+REAL = {"bunny": ("bun000", "bun045"), "chef": ("view001", "view002"), "parasaurolophus": ("view001", "view002")}
+#: The issue's bar on real scans: every instance within 1 degree and 3 mm.
+REAL_DEG, REAL_MM = 1.0, 3.0
+
+
+def real_scene(name: str, k: int, clutter: float, rng) -> tuple:
+    """``(model, scene, poses, mm)``: ``k`` copies of one real view at random poses among clutter.
+
+    The model is another real view of the object (``REAL``); each pose maps
+    the model onto one copy through the data's (pseudo) ground truth between
+    the two views, ``p_model = R p_view + t``.  Copies lie apart (centroids at
+    least 1.2 model sizes), as parts on a table; clutter is uniform in the
+    copies' bounding box, the share ``clutter`` of the scene.
+    """
+    from gatv.datasets import load_bunny_pair, load_uwa_pair
+
+    if name == "bunny":
+        model, view, R, t = load_bunny_pair(*REAL[name])
+        mm = 1000.0
+    else:
+        model, view, R, t = load_uwa_pair(name)
+        mm = 1.0
+    size = model_size(model)
+    centres: list = []
+    side = 1.6 * size * max(1.0, k ** (1.0 / 3.0))
+    while len(centres) < k:
+        c = rng.uniform(0.0, side, 3)
+        if all(np.linalg.norm(c - d) >= 1.2 * size for d in centres):
+            centres.append(c)
+        else:
+            side *= 1.01
+    rots = Rotation.random(k, random_state=rng).as_matrix().reshape(k, 3, 3)
+    centre = view.mean(axis=0)
+    copies, poses = [], []
+    for Q, c in zip(rots, centres):
+        q = c - Q @ centre  # the view at pose (Q, q); the model at Q R^T, q - Q R^T t
+        copies.append(view @ Q.T + q)
+        poses.append((Q @ R.T, q - Q @ R.T @ t))
+    pts = np.vstack(copies)
+    n_clutter = int(round(clutter / (1.0 - clutter) * pts.shape[0]))
+    scene = np.vstack([pts, rng.uniform(pts.min(axis=0), pts.max(axis=0), (n_clutter, 3))])
+    return model, scene[rng.permutation(scene.shape[0])], poses, mm
+
+
+def real_rows(args) -> list[dict]:
+    records = []
+    for name in args.real:
+        for k in args.real_instances:
+            for s in range(args.real_scenes):
+                rng = np.random.default_rng([args.seed, 41, k, s, len(name)])
+                model, scene, poses, mm = real_scene(name, k, args.real_clutter, rng)
+                centre = model.mean(axis=0)
+                for method in args.methods:
+                    fn, module = RUNNERS[method]
+                    rec = {"object": name, "k": k, "scene": s, "method": method, "n_scene": int(scene.shape[0])}
+                    if module is not None and not _installed(module):
+                        records.append({**rec, "status": "not installed"})
+                        continue
+                    t0 = time.perf_counter()
+                    found = fn(model, scene, args.seed + s)
+                    seconds = time.perf_counter() - t0
+                    # each true copy's error by its closest found instance (one-to-one, Hungarian)
+                    errs = np.full((len(found), k, 2), np.inf)
+                    for i, (R, t) in enumerate(found):
+                        for j, p in enumerate(poses):
+                            a, d = pose_errors(R, t, p, centre)
+                            errs[i, j] = a, d * mm
+                    within = (errs[..., 0] <= REAL_DEG) & (errs[..., 1] <= REAL_MM)
+                    hits, worst = 0, (np.nan, np.nan)
+                    if found:
+                        r, c = linear_sum_assignment(np.where(within, 0.0, 1.0) + errs[..., 0] / 1e3)
+                        hits = int(within[r, c].sum())
+                        if hits == k:
+                            worst = (float(errs[r, c, 0].max()), float(errs[r, c, 1].max()))
+                    rec.update(status="ran", found=len(found), hits=hits, spurious=len(found) - hits,
+                               worst_deg=worst[0], worst_mm=worst[1], time_s=seconds)
+                    records.append(rec)
+                    print(f"# real {name} k={k} scene {s} {method}: {hits}/{k} within {REAL_DEG} deg and "
+                          f"{REAL_MM} mm, {len(found)} found, {seconds:.1f} s", file=sys.stderr, flush=True)
+    return records
+
+
 def sequence_rows(args) -> list[dict]:
     records = []
     for mesh in args.meshes:
         model = load_model(mesh, args.model_points)
-        size = model_size(model)
+        size, scale = model_size(model), noise_scale(model, args.noise_of)
         for k in (1, 2, 3):
             rng = np.random.default_rng([args.seed, 7, k, len(mesh)])
             poses = random_poses(model, k, rng)
@@ -259,20 +421,46 @@ def sequence_rows(args) -> list[dict]:
                     poses = [(Rotation.from_rotvec(_capped(rng, np.radians(20.0))).as_matrix() @ R,
                               t + _capped(rng, size / 3.0)) for R, t in poses]
                 truth.append(poses)
-                frames.append(make_scene(model, poses, 0.0, 0.3, args.noise * size, rng))
-            t0 = time.perf_counter()
-            out = track(model, frames, seed=args.seed)
-            seconds = time.perf_counter() - t0
-            f1 = [score([(m.rotation, m.translation) for m in fr], truth[f], model)["f1"]
-                  for f, fr in enumerate(out.frames)]
-            swaps = _swaps(out, truth, model)
-            rec = {"mesh": mesh, "k": k, "frames": args.frames, "f1": float(np.mean(f1)),
-                   "identities": out.n_identities, "swaps": swaps, "time_s": seconds,
-                   "time_per_frame_s": seconds / args.frames}
-            records.append(rec)
-            print(f"# sequence {mesh} k={k}: F1 {rec['f1']:.3f}, {out.n_identities} identities, {swaps} swaps, "
-                  f"{seconds:.1f} s", file=sys.stderr, flush=True)
+                frames.append(make_scene(model, poses, 0.0, 0.3, args.noise * scale, rng))
+            for method in args.methods:
+                fn, module = RUNNERS[method]
+                rec = {"mesh": mesh, "k": k, "frames": args.frames, "method": method}
+                if module is not None and not _installed(module):
+                    records.append({**rec, "status": "not installed"})
+                    continue
+                t0 = time.perf_counter()
+                if method == "gatv":
+                    out = track(model, frames, seed=args.seed)
+                    found = [[(m.rotation, m.translation) for m in fr] for fr in out.frames]
+                    identities = [list(ids) for ids in out.identities]
+                else:  # the peer on each frame, identities by the closest pose as track gives them
+                    found = [fn(model, frame, args.seed) for frame in frames]
+                seconds = time.perf_counter() - t0
+                if method != "gatv":
+                    identities = assign_identities([_Frame(fr) for fr in found], model.mean(axis=0), size)[0]
+                scores = [score(fr, truth[f], model) for f, fr in enumerate(found)]
+                rec.update(status="ran", f1=float(np.mean([s["f1"] for s in scores])),
+                           recall=float(np.mean([s["recall"] for s in scores])),
+                           precision=float(np.mean([s["precision"] for s in scores])),
+                           identities=len({i for ids in identities for i in ids}),
+                           swaps=_swaps(found, identities, truth, model), time_s=seconds,
+                           time_per_frame_s=seconds / args.frames)
+                records.append(rec)
+                print(f"# sequence {mesh} k={k} {method}: F1 {rec['f1']:.3f}, {rec['identities']} identities, "
+                      f"{rec['swaps']} swaps, {seconds:.1f} s", file=sys.stderr, flush=True)
     return records
+
+
+class _Frame:
+    """A peer's poses of one frame, as :func:`gatv.motions.tracking.assign_identities` reads them."""
+
+    def __init__(self, poses):
+        self.instances = tuple(_Pose(R, t) for R, t in poses)
+
+
+class _Pose:
+    def __init__(self, R, t):
+        self.rotation, self.translation = np.asarray(R), np.asarray(t)
 
 
 def _capped(rng, bound: float) -> np.ndarray:
@@ -280,14 +468,14 @@ def _capped(rng, bound: float) -> np.ndarray:
     return v / np.linalg.norm(v) * rng.uniform(0.0, bound)
 
 
-def _swaps(out, truth, model) -> int:
+def _swaps(found, identities, truth, model) -> int:
     """Identities whose true copy (the closest hit) changed between frames where they were hit."""
     centre, size = model.mean(axis=0), model_size(model)
     owner: dict = {}
     swaps = 0
-    for f, (fr, ids) in enumerate(zip(out.frames, out.identities)):
-        for m, ident in zip(fr, ids):
-            errs = [pose_errors(m.rotation, m.translation, p, centre) for p in truth[f]]
+    for f, (fr, ids) in enumerate(zip(found, identities)):
+        for (R, t), ident in zip(fr, ids):
+            errs = [pose_errors(R, t, p, centre) for p in truth[f]]
             best = int(np.argmin([np.radians(a) + d / size for a, d in errs]))
             a, d = errs[best]
             if a > HIT_DEG or d > HIT_SIZE * size:
@@ -325,14 +513,23 @@ def main(argv=None) -> int:
     p.add_argument("--model-points", type=int, default=150, help="model points (default: 150)")
     p.add_argument("--cut", type=float, default=0.3, help="share of each copy cut away (default: 0.3)")
     p.add_argument("--frames", type=int, default=10, help="frames per sequence; 0: no sequences (default: 10)")
-    p.add_argument("--noise", type=float, default=0.02, help="sequence noise, share of the model size")
+    p.add_argument("--noise", type=float, default=0.02,
+                   help="sequence noise, a share of the model's RMS radius (default: 0.02)")
+    p.add_argument("--noise-of", choices=("rms", "size"), default="rms",
+                   help="what --noise is a share of: the RMS radius (default) or the bounding-box diagonal")
+    p.add_argument("--real", type=parse_list(str), default=list(REAL), metavar="O,O,...",
+                   help="real-scan scenes (bunny, chef, parasaurolophus); '' for none")
+    p.add_argument("--real-instances", type=parse_list(int), default=[2, 3], metavar="K,K,...")
+    p.add_argument("--real-scenes", type=int, default=1, help="real-scan scenes per cell (default: 1)")
+    p.add_argument("--real-clutter", type=float, default=0.3, help="real-scan clutter share (default: 0.3)")
     p.add_argument("--methods", type=parse_list(str), default=list(METHODS), metavar="M,M,...")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    missing = [m for m in args.meshes if m not in MESHES]
+    args.real = [r for r in args.real if r]
+    missing = [m for m in args.meshes if m not in MESHES] + [r for r in args.real if r not in REAL]
     if missing or any(m not in METHODS for m in args.methods):
-        p.error(f"unknown mesh or method: {missing or args.methods}")
+        p.error(f"unknown mesh, real scene or method: {missing or args.methods}")
     if not all(MESHES[m].is_file() for m in args.meshes):
         print(f"the meshes are not in {DATA}: nothing to run", file=sys.stderr)
         return 1
@@ -343,14 +540,38 @@ def main(argv=None) -> int:
     cols = ["mesh", "k", "clutter", "scene", "method", "status", "n_scene", "hits", "found", "true", "recall",
             "precision", "f1", "time_s"]
     write_csv(args.out / "instances.csv", cols, [[r.get(c, "") for c in cols] for r in records])
+    if args.real and args.real_scenes > 0:
+        real = real_rows(args)
+        print("\n## Real scans (copies of one view, another view as the model)\n")
+        h = ["object", "copies", "method", "scene points", f"within {REAL_DEG:g} deg, {REAL_MM:g} mm", "spurious",
+             "worst deg", "worst mm", "s"]
+        rows = []
+        for r in real:
+            if r["status"] != "ran":
+                rows.append([r["object"], r["k"], r["method"], r["n_scene"], r["status"], "", "", "", ""])
+                continue
+            rows.append([r["object"], r["k"], r["method"], r["n_scene"], f"{r['hits']}/{r['k']}", r["spurious"],
+                         f"{r['worst_deg']:.3f}", f"{r['worst_mm']:.2f}", f"{r['time_s']:.1f}"])
+        print(markdown_table(h, rows, align="lrlr" + "r" * 5))
+        cols = ["object", "k", "scene", "method", "status", "n_scene", "found", "hits", "spurious", "worst_deg",
+                "worst_mm", "time_s"]
+        write_csv(args.out / "instances_real.csv", cols, [[r.get(c, "") for c in cols] for r in real])
     if args.frames > 0:
         seq = sequence_rows(args)
-        print("\n## Sequences (track: each frame searched on its own)\n")
-        h = ["mesh", "instances", "frames", "F1 per frame", "identities", "swaps", "s per frame"]
-        print(markdown_table(h, [[r["mesh"], r["k"], r["frames"], f"{r['f1']:.3f}", r["identities"], r["swaps"],
-                                  f"{r['time_per_frame_s']:.1f}"] for r in seq], align="l" + "r" * 6))
-        cols = ["mesh", "k", "frames", "f1", "identities", "swaps", "time_s"]
-        write_csv(args.out / "instances_tracks.csv", cols, [[r[c] for c in cols] for r in seq])
+        print("\n## Sequences (each frame searched on its own; identities by the closest pose)\n")
+        h = ["mesh", "instances", "frames", "method", "F1 per frame", "recall", "precision", "identities",
+             "swaps", "s per frame"]
+        rows = []
+        for r in seq:
+            if r["status"] != "ran":
+                rows.append([r["mesh"], r["k"], r["frames"], r["method"], r["status"], "", "", "", "", ""])
+                continue
+            rows.append([r["mesh"], r["k"], r["frames"], r["method"], f"{r['f1']:.3f}", f"{r['recall']:.3f}",
+                         f"{r['precision']:.3f}", r["identities"], r["swaps"], f"{r['time_per_frame_s']:.1f}"])
+        print(markdown_table(h, rows, align="lrrl" + "r" * 6))
+        cols = ["mesh", "k", "frames", "method", "status", "f1", "recall", "precision", "identities", "swaps",
+                "time_s"]
+        write_csv(args.out / "instances_tracks.csv", cols, [[r.get(c, "") for c in cols] for r in seq])
     return 0
 
 

@@ -13,10 +13,16 @@ repeated until no more planes were found",
   no instance has taken yet, in the pipeline :func:`gatv.register` would
   choose for the whole scene (exact point sets, noisy sets, real scans;
   :func:`gatv.registration.checked_pipeline`), chosen once so that a scene
-  thinned by the rounds does not switch pipelines half way;
+  thinned by the rounds does not switch pipelines half way.  On scans the
+  model is registered against one connected part of the scene's surfaces
+  at a time (:func:`scene_parts`, largest first): the scans verdict judges
+  a motion against wrong motions polished on the data, and on a scene of
+  several copies those polish onto the *other* copies, whose support is as
+  high, so that no copy passes against the whole scene;
 * **accept**: the result's own verdict (:mod:`gatv.verdict`): a falsy
-  result, or one whose ``info["verdict"]`` did not pass, ends the loop, so
-  clutter and partial copies that do not beat chance give nothing;
+  result, or one whose ``info["verdict"]`` did not pass, ends the loop (on
+  scans it sets its part aside and the next part is searched), so clutter
+  and partial copies that do not beat chance give nothing;
 * **remove**: the instance's scene points leave the scene, its
   correspondences and every remaining scene point within the final gate
   of the moved model, so that the points of a copy the one-to-one
@@ -39,14 +45,17 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._validation import as_rng, check_int, check_positive, check_progress, frozen_array
+from ..candidates import median_spacing
 from ..errors import InputError
 from ..models import get_model
 from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..registration import TIME_LIMIT, checked_pipeline, register
+from ..scans import MIN_OVERLAP, VOTE_POINTS
 from ..stages import FINAL_GATE
 
-__all__ = ["LATER_SHARE", "MIN_MODEL_POINTS", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances", "model_size",
-           "expected_share", "pose_distance", "smallest_copy", "validate_model"]
+__all__ = ["LATER_SHARE", "MIN_MODEL_POINTS", "PART_LINK", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances",
+           "model_size", "expected_share", "pose_distance", "scene_parts", "smallest_copy", "smallest_part",
+           "validate_model"]
 
 #: Fewest model points: a rigid motion needs three, and a fourth is the
 #: least support that says more than the sample that made the motion.
@@ -218,6 +227,53 @@ def smallest_copy(found) -> int:
     return max(MIN_MODEL_POINTS, int(np.ceil(LATER_SHARE * best)))
 
 
+#: Surface points closer than this many of their spacings are joined into one part (:func:`scene_parts`;
+#: :data:`gatv.motions.scans.SAMPLING_GATE`, the gate that joins the parts of a scan segmentation).
+PART_LINK = 3.0
+
+
+class _Parts:
+    """The scene's points on salient surfaces, once, for :func:`scene_parts` in every round."""
+
+    def __init__(self, Y: np.ndarray, seed: int, memory_budget):
+        from .scans import scan_surfaces
+
+        self.mask = scan_surfaces(Y, seed=seed, memory_budget=memory_budget).mask
+        on = Y[self.mask]  # the spacing of the points the parts are made of (a sample of a large scene's)
+        self.link = PART_LINK * median_spacing(on if on.shape[0] >= MIN_MODEL_POINTS else Y)
+        #: The share of the scene's rows the vote looked at (a large scene is voted on a sample,
+        #: :data:`gatv.scans.VOTE_POINTS`): a part holds that share of a copy's points.
+        self.voted = min(1.0, VOTE_POINTS / max(Y.shape[0], 1))
+
+
+def smallest_part(X: np.ndarray, Y: np.ndarray) -> int:
+    """The fewest scene points a part must hold to be searched for a copy of the model.
+
+    A copy is found when at least :data:`gatv.scans.MIN_OVERLAP` of the
+    model has a partner on it (the share the scans search draws its
+    triples for), and a part's points cover the copy's surface at the
+    scene's sampling: that share of the model's points, scaled by the two
+    samplings' densities on a surface (the square of their spacings' ratio).
+    """
+    ratio = median_spacing(X) / max(median_spacing(Y), 1e-300)
+    return max(MIN_MODEL_POINTS, int(np.ceil(MIN_OVERLAP * X.shape[0] * ratio**2)))
+
+
+def scene_parts(Y: np.ndarray, rows: np.ndarray, mask: np.ndarray, link: float, least: int) -> list[np.ndarray]:
+    """The connected parts of ``rows`` on the surfaces (``mask``) of ``least`` points or more, largest first.
+
+    Scene points closer than ``link`` are joined (:func:`gatv.motions.scans.regions`):
+    the copies of a model lying apart fall into parts of their own, uniform
+    clutter (off the surfaces the tensor voting keeps) into none.
+    """
+    from .scans import regions
+
+    on = rows[mask[rows]]
+    if on.size < least:
+        return []
+    return [on[r] for r in regions(Y[on], link, min_points=least)]
+
+
 def _stopped_at_limit(result) -> bool:
     """Whether a falsy registration stopped at its time or work bound rather than for want of a motion."""
     return any("stopped" in rec for rec in result.info.get("trials", ()) if isinstance(rec, dict))
@@ -257,7 +313,10 @@ def instances(
         (each instance takes at least one scene point, so the loop runs at
         most as many rounds as the scene has points).
     pipeline : {"auto", "exact", "scans"}, default: "auto"
-        As :func:`gatv.register`; chosen once, for the whole scene.
+        As :func:`gatv.register`; chosen once, for the whole scene.  On
+        scans each round registers the model on one connected part of the
+        scene's surfaces (:func:`scene_parts`): copies that touch fall into
+        one part, and there neither passes the verdict against the other.
     time_limit : float or None, default: ten times :data:`gatv.registration.TIME_LIMIT`
         Seconds for the whole call: no round starts past it, and each
         round's search gets what is left (at most a registration's own
@@ -310,34 +369,67 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
     def remaining() -> np.ndarray:
         return np.flatnonzero((labels < 0) & ~aside)
 
+    parts = _Parts(Y, int(rng.integers(0, 2**31 - 1)), memory_budget) if chosen == "scans" else None
+    least_part = max(MIN_MODEL_POINTS, int(np.ceil(smallest_part(X, Y) * parts.voted))) if parts is not None else 0
+
+    def register_on(rows, share):
+        """One registration of the model on the scene ``rows`` (its record appended to ``rounds``)."""
+        round_seed = int(rng.integers(0, 2**63 - 1))
+        left = None if deadline is None else max(deadline - time.perf_counter(), 1e-3)
+        t0 = time.perf_counter()
+        options = {} if share is None else {"min_inlier_share": share}
+        result = register(X, Y[rows], pipeline=chosen, seed=round_seed, memory_budget=memory_budget,
+                          time_limit=TIME_LIMIT if left is None else min(TIME_LIMIT, left), **options)
+        rounds.append({"round": len(rounds), "scene_points": int(rows.size), "min_inlier_share": share,
+                       "support": int(result.support), "time_s": time.perf_counter() - t0,
+                       "verdict": result.info.get("verdict")})
+        return result
+
     def search():
         rows = remaining()
         if rows.size < MIN_MODEL_POINTS:
             return Stop(f"{rows.size} scene points left, fewer than the {MIN_MODEL_POINTS} an instance needs",
                         exhausted=True)
-        round_seed = int(rng.integers(0, 2**63 - 1))
-        left = None if deadline is None else max(deadline - time.perf_counter(), 1e-3)
-        t0 = time.perf_counter()
-        options = {}
+        if parts is not None:
+            return search_parts(rows)
         share = expected_share(found, X.shape[0]) if chosen == "exact" else None
-        if share is not None:
-            options["min_inlier_share"] = share
         try:
-            result = register(X, Y[rows], pipeline=chosen, seed=round_seed, memory_budget=memory_budget,
-                              time_limit=TIME_LIMIT if left is None else min(TIME_LIMIT, left), **options)
+            result = register_on(rows, share)
         except InputError as exc:
             if found:  # what the earlier rounds left is no point set a motion can be registered on
                 return Stop(f"the {rows.size} scene points left cannot be registered on: {exc}", exhausted=True)
             raise
-        record = {"round": len(rounds), "scene_points": int(rows.size), "min_inlier_share": share,
-                  "support": int(result.support),
-                  "time_s": time.perf_counter() - t0, "verdict": result.info.get("verdict")}
-        rounds.append(record)
         if not result:
             reason = result.info.get("reason", "no motion beats the wrong motions on what remains")
-            record["reason"] = reason
+            rounds[-1]["reason"] = reason
             return Stop(reason, exhausted=not _stopped_at_limit(result))
         return Candidate(result, int(result.support), rows)
+
+    def search_parts(rows):
+        """The scans rounds: the largest part first; a part where no copy passes is set aside."""
+        while True:
+            found_parts = scene_parts(Y, rows, parts.mask, parts.link, least_part)
+            if not found_parts:
+                return Stop(f"no part of the scene's surfaces left holds the {least_part} points a copy needs",
+                            exhausted=True)
+            part = found_parts[0]
+            try:
+                result = register_on(part, None)
+            except InputError as exc:
+                result = None
+                rounds.append({"round": len(rounds), "scene_points": int(part.size), "reason": str(exc)})
+            rounds[-1]["part"] = True
+            if result:
+                verdict = result.info.get("verdict") or {}
+                if verdict.get("passed", False):
+                    return Candidate(result, int(result.support), part)
+            if result is not None:
+                rounds[-1]["reason"] = result.info.get("reason", "the part's motion did not pass its verdict")
+            rounds[-1]["set_aside"] = int(part.size)
+            aside[part] = True
+            rows = remaining()
+            if deadline is not None and time.perf_counter() > deadline:
+                return Stop("the time limit ran out before the next search", exhausted=False)
 
     def accept(candidate: Candidate) -> Judgement:
         verdict = candidate.motion.info.get("verdict") or {}
@@ -367,8 +459,9 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         g = final_gate(result)
         if g > 0:
             moved = X @ np.asarray(result.rotation).T + np.asarray(result.translation)
-            near = cKDTree(moved).query(Y[rows], k=1, distance_upper_bound=g)[0]
-            taken.append(rows[np.isfinite(near)])
+            free = remaining()  # on scans beyond the part searched: the copy's points off the voted surfaces
+            near = cKDTree(moved).query(Y[free], k=1, distance_upper_bound=g)[0]
+            taken.append(free[np.isfinite(near)])
         taken = np.unique(np.concatenate(taken))
         labels[taken] = k
         info = dict(result.info, instance=k, gate=g, scene_points=int(taken.size))

@@ -163,3 +163,27 @@ def test_articulated_body_sampled_80_80_recall():
     assert np.mean(np.linalg.norm(y[tgt] - y[src], axis=1) <= h) >= 0.95
     # the arms turn by about 50° at the shoulders: parts that turn are reported
     assert any(p["angle_deg"] > 30.0 for p in m.info["parts"])
+
+
+def test_part_windows_join_a_limb_at_its_joint_but_not_a_second_body():
+    from gatv.nonrigid.parts import seed_parts
+
+    arm = two_link_arm(500, angles=(20.0, 50.0), seed=5)
+    far = arm.source + [0.0, 40.0, 0.0]  # a second body, 40 units away, with its own rigid motion
+    far_moved = far @ Rotor.from_axis_angle([1, 0, 0], 0.7).as_matrix().T + [3.0, 1.0, 0.0]
+    X = np.vstack([arm.source, far])
+    Y = np.vstack([arm.target, far_moved])
+    n = len(arm.source)
+    first = np.flatnonzero(arm.labels == 0)
+    pairs = np.column_stack([first, first])  # the first link, as the first growth leaves it
+    rows = np.arange(len(X))
+    h = median_spacing(Y)
+    found = seed_parts(X, Y, cKDTree(X), cKDTree(Y), rows, rows, pairs, gate=0.2 * h, spacing=h,
+                       spacing_x=median_spacing(X), least=0.1 * n, seed=0)
+    got = found.pairs
+    assert np.all(got[:, 0] == got[:, 1])  # every match right
+    assert np.all(got[:, 0] < n)  # nothing on the second body
+    assert np.sum(arm.labels[got[:, 0]] == 1) >= 0.9 * np.sum(arm.labels == 1)  # the second link joined
+    assert found.growth.max() == 1
+    kept = [w for w in found.windows if w.get("kept")]
+    assert len(kept) == 1 and kept[0].get("hinge_gap") is not None and kept[0]["hinge_gap"] < 0.2 * h

@@ -156,7 +156,7 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
     used_s[pairs[:, 0]] = True
     used_t[pairs[:, 1]] = True
     growths = [pairs]
-    failed: list = []  # (centre, radius) of windows that did not count: not tried again
+    tried = np.zeros(X.shape[0], bool)  # rows of windows (and their growths) that did not count
     records: list = []
     reach_s, reach_t = UNCOVERED_REACH * spacing_x, UNCOVERED_REACH * spacing
 
@@ -166,18 +166,15 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
         ut = _uncovered(Y, rows_y, matched[:, 1], reach_t)
         if min(us.size, ut.size) < max(least, PART_WINDOW_POINTS):
             return Stop("every part is covered", exhausted=True)
-        free = np.ones(us.size, bool)
-        for c, r in failed:
-            free &= np.sum((X[us] - c) ** 2, axis=1) > r * r
+        free = ~tried[us]
         if not free.any():
             return Stop("no uncovered window left to try", exhausted=True)
         # farthest from every match first: an extremity, the rigid end of a limb
         d = cKDTree(X[matched[:, 0]]).query(X[us[free]], k=1)[0]
         centre = us[free][int(np.argmax(d))]
         k = min(PART_WINDOW_POINTS, us.size)
-        dist, near = cKDTree(X[us]).query(X[centre], k=k)
+        near = cKDTree(X[us]).query(X[centre], k=k)[1]
         window = us[np.atleast_1d(near)]
-        radius = float(np.atleast_1d(dist)[-1])
         record = {"centre": [float(v) for v in X[centre]], "source": int(window.size),
                   "target": int(ut.size), "support": 0}
         records.append(record)
@@ -190,22 +187,23 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
         except ValueError:  # a degenerate window (collinear rows)
             found = None
         if not found:
-            failed.append((X[centre], radius))
-            return Candidate(None, 0, (record, None, X[centre], radius))
+            tried[window] = True
+            return Candidate(None, 0, (record, None, window))
         c = found.correspondences
         seeds = np.column_stack([window[c[:, 0]], ut[c[:, 1]]])
         record.update(rigid_support=int(found.support), angle_deg=round(float(found.angle_deg), 2))
-        return Candidate(seeds, int(seeds.shape[0]), (record, found, X[centre], radius))
+        return Candidate(seeds, int(seeds.shape[0]), (record, found, window))
 
     def accept(candidate):
-        record, _, centre, radius = candidate.detail
+        record, _, window = candidate.detail
         if candidate.motion is None or candidate.support < 3:
             return Judgement(False, "no rigid motion in the window")
         grown = ms.grow(X, Y, tree_y, candidate.motion, gate, spacing=spacing_x, tree_x=tree_x,
                         used_source=used_s, used_target=used_t)
         record["grown"] = int(grown.shape[0])
         if grown.shape[0] < least:
-            failed.append((centre, radius))
+            tried[window] = True
+            tried[grown[:, 0]] = True
             return Judgement(False, "its growth is smaller than a hypothesis must be", detail=grown)
         before = np.vstack(growths)
         record["contacts"] = n = contacts(X, Y, before, grown, strain, gate)
@@ -213,7 +211,8 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
             hinge = hinged(X, Y, before, grown, gate)
             record["hinge_gap"] = None if hinge is None else hinge["gap"]
             if hinge is None or hinge["gap"] > hinge["gate"] or hinge["offset"] > hinge["reach"]:
-                failed.append((centre, radius))
+                tried[window] = True
+                tried[grown[:, 0]] = True
                 return Judgement(False, "its growth does not meet the matched part at a joint", detail=grown)
         return Judgement(True, detail=grown)
 

@@ -437,7 +437,7 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
 
     report(0.9, "fit")
     matched = refine_winner(problem, hypotheses, verdict, settings)
-    if settings.grow and matched.shape[0] >= 4:
+    if settings.grow and settings.parts and matched.shape[0] >= 4:
         # seeds in every part, as in the multi-resolution path
         rows_x, rows_y = ms.dense_rows(X), ms.dense_rows(Y)
         found = seed_parts(X, Y, cKDTree(X), problem.tree, rows_x, rows_y, matched, gate=problem.verify_gate,
@@ -556,7 +556,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         t0 = time.perf_counter()
         sampling = 0.5 * coarse_spacing / 3.5
         coarse_settings = replace(settings, noise=float(np.hypot(settings.noise or 0.0, sampling)),
-                                  gate=None, smoothing=None,
+                                  gate=None, smoothing=None, parts=False,
                                   prealign=False if prior is not None else settings.prealign)
         coarse = _register_direct(X[si], Y[ti], coarse_settings, lambda *a: None, time.perf_counter())
         info.update(coarse_hypothesis=coarse.info.get("hypothesis"), coarse_support=coarse.support,
@@ -704,7 +704,7 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
         tried.append(record)
         if src.size < 4 or tgt.size < 4:
             continue
-        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False),
+        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False, parts=False),
                                  lambda *a: None, time.perf_counter())
         record.update(support=local.support, hypothesis=local.info.get("hypothesis"),
                       verdict=local.info.get("verdict"),

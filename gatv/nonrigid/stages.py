@@ -134,6 +134,7 @@ class Settings:
     memory_budget: float | None
     model: str = "rigid"
     local: bool = True  # try the local hypothesis when nothing counts (not with prealign=False)
+    parts: bool = True  # seed further parts where the growth did not reach (not inside a window)
 
     @property
     def noise_floor(self) -> float:

@@ -909,7 +909,8 @@ def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame)
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
                     n_tested: float, rng: np.random.Generator, tree: cKDTree | None = None,
                     noise: float = 0.0, n_draws: int = VERDICT_DRAWS,
-                    n_polished: int = VERDICT_POLISHED, frame: SourceFrame | None = None) -> tuple[Verdict, dict]:
+                    n_polished: int = VERDICT_POLISHED, frame: SourceFrame | None = None,
+                    searched=()) -> tuple[Verdict, dict]:
     """Whether the motion ``(rotation, translation)`` beats wrong motions polished as it was.
 
     The verdict stage of the scans pipeline (:mod:`gatv.verdict`, null
@@ -937,7 +938,11 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     points within ``gate + NOISE_REACH * noise`` of a sample
     (:data:`NOISE_REACH`); on scans far less noisy than their sampling,
     about the gate.  ``frame``: ``SourceFrame.of(Xs)`` when the caller
-    judges several motions of one source.  Returns the verdict and its
+    judges several motions of one source.  ``searched``: ``(R, t)`` of
+    motions the search itself polished and ranked as it did this one (the
+    partial-overlap search's other trials): those that did not end on the
+    motion are wrong motions selected as it was, and count before the draws
+    (``figures["searched"]`` of them).  Returns the verdict and its
     per-gate figures (``info["verdict_gates"]``).
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
@@ -958,7 +963,11 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         return [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
                                       n_looks=len(gates)), g) for i, g in enumerate(gates)]
 
-    wrong = []
+    # The search's own polished trial motions that did not end on the motion are wrong motions found the
+    # way it was found: they count first.
+    wrong = [surface_support(Xs, Ys, target_normals, tree, R, t, gates, reach, frame) for R, t in searched
+             if not (rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate)]
+    n_searched = len(wrong)
     for k in np.argsort(ranks, kind="stable")[::-1][:n_polished]:
         R, t, g, _ = polish(*starts[k])
         same = rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
@@ -974,6 +983,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     figures = {"gates": [float(x) for x in gates], "support": [int(x) for x in found],
                "chance": [float(v.chance) for v, _ in per_gate], "p_value": [float(v.p_value) for v, _ in per_gate],
                "gate": float(g), "reach": float(reach), "wrong_motions": int(wrong.shape[0]), "drawn": int(n_draws),
+               "searched": n_searched,
                "wrong_support": wrong.tolist()}
     return best, figures
 
@@ -1233,7 +1243,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                                                polish=lambda R_, t_: polish(R_, t_, sample, VERDICT_ITERATIONS, False),
                                                n_tested=max(trials.n_congruent, 1), tree=tree, noise=noise,
                                                rng=np.random.default_rng([seed, VERDICT_STREAM]),
-                                               frame=source_frame())
+                                               frame=source_frame(),
+                                               searched=[(f.matrix[:3, :3], f.matrix[:3, 3]) for f in fits]
+                                               if partial else ())
             info.update(verdict=judged.to_dict(), verdict_gates=figures)
             _stamp(info, "verdict", t0)
             if not judged:

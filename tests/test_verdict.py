@@ -141,6 +141,38 @@ def test_the_verdicts_reach_is_the_gate_plus_the_scans_noise(noise):
     assert figures["support"] == [src.shape[0]] * len(figures["gates"])
 
 
+def test_the_searchs_own_wrong_trials_count_before_the_draws():
+    """``surface_verdict(searched=...)``: a searched motion on the motion itself is dropped (the verdict
+    is the one without it); one 5 degrees off counts first, with its supports at every gate, and only
+    raises the levels."""
+    rng = np.random.default_rng(0)
+    src = _blob(rng, 1500)
+    normals = local_scatter(src, src, 12).normals
+    frame = SourceFrame.of(src)
+    gate = 0.05
+
+    def stay(R, t):
+        return R, t, gate, 0
+
+    def verdict(searched):
+        return surface_verdict(src, src, normals, np.eye(3), np.zeros(3), polish=stay, voxel=0.2, gate=gate,
+                               n_tested=100, rng=np.random.default_rng(1), n_draws=8, n_polished=2,
+                               frame=frame, searched=searched)
+
+    alone, figures = verdict(())
+    same, same_figures = verdict([(Rotation.from_rotvec([0, 0, 0.01]).as_matrix(), np.zeros(3))])  # 0.6 degrees
+    assert same_figures["searched"] == figures["searched"] == 0
+    assert same.to_dict() == alone.to_dict() and same_figures == figures
+    R_off = Rotation.from_rotvec([0, np.radians(5.0), 0]).as_matrix()
+    off, off_figures = verdict([(R_off, np.zeros(3))])
+    assert off_figures["searched"] == 1
+    gates = off_figures["gates"]
+    reach = off_figures["reach"]
+    expected = surface_support(src, src, normals, cKDTree(src), R_off, np.zeros(3), gates, reach, frame)
+    assert off_figures["wrong_support"][0] == [int(x) for x in expected]
+    assert all(a >= b for a, b in zip(off_figures["chance"], figures["chance"]))
+
+
 @pytest.mark.slow
 def test_a_noisy_partial_scan_pair_passes_its_verdict():
     """bun000 and bun090 (56% overlap), each with Gaussian noise of 2% of the source's RMS radius: a

@@ -16,6 +16,13 @@ direction so that only the share ``F`` of the source's points lie on it
 (within 5 mm after the true motion): a partial-overlap row.  The share
 reached (column ``overlap``) is measured after the crop, before clutter;
 a pair whose views overlap less than ``F`` to begin with keeps its own.
+With ``--upsample N`` each view (after the crop, before the noise and
+clutter) is resampled to ``N`` points: random points of the view, each moved
+by isotropic Gaussian noise of ``--upsample-noise`` mm (default 0.5 mm, the
+bunny scanner's resolution), and each row runs in a fresh process whose peak
+resident memory (column ``peak MiB``: the whole process, imports and the
+warm-up call included) is reported: the 10⁶-point rows
+(``--upsample 1000000``).
 With ``--noise 1,2,4`` each row also runs with Gaussian noise on every point
 of both views (before clutter), its standard deviation the given percentage
 of the source view's RMS radius about its centroid (1% is 0.56 mm on the
@@ -56,7 +63,7 @@ within 0.3° and 1 mm (UWA, a few times its pseudo ground truth's tolerance).
 
 Usage::
 
-    python benchmarks/scans.py [--seed 0] [--clutter 0,0.3,0.5] [--overlap 0.4] [--noise 0,2,4]
+    python benchmarks/scans.py [--seed 0] [--clutter 0,0.3,0.5] [--overlap 0.4] [--noise 0,2,4] [--upsample N]
                                [--methods gatv,o3d-ransac,o3d-fgr,kiss] [--out benchmarks/results]
                                [--scheduler local|ADDRESS] [--stages]
 
@@ -67,6 +74,7 @@ pipeline (``info["cpu_<stage>"]``) per row; the CSV has them always.
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import time
 from pathlib import Path
@@ -128,7 +136,8 @@ def _load_mesh_pair(tn: str, sn: str):
     return scan_points, mesh, R.T, -R.T @ t
 
 
-def make_case(name: str, clutter: float, overlap: float | None, seed: int, noise: float = 0.0):
+def make_case(name: str, clutter: float, overlap: float | None, seed: int, noise: float = 0.0,
+              upsample: int | None = None, upsample_noise_mm: float = 0.5):
     """The inputs of one row, the true motion (``p_target = R p_source + t``) and the noise's deviation."""
     from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
@@ -154,10 +163,18 @@ def make_case(name: str, clutter: float, overlap: float | None, seed: int, noise
     q = rng.uniform(-0.2, 0.2, 3) * extent
     moved = source @ Q.T + q
     R_true, t_true = R @ Q.T, t - R @ Q.T @ q
+    centroid = moved.mean(axis=0) if upsample else None
+    if upsample:  # its own stream, so that the rows without it stay those of earlier runs
+        up = np.random.default_rng([seed, upsample])
+        moved, target = (pts[up.integers(0, len(pts), upsample)] + up.normal(0.0, upsample_noise_mm / mm,
+                                                                                (upsample, 3))
+                         for pts in (moved, target))
     sigma = noise / 100.0 * float(np.sqrt(((source - source.mean(axis=0)) ** 2).sum(axis=1).mean()))
     if sigma > 0:  # drawn only for noisy rows: the noise-free rows stay those of earlier runs
         moved = moved + rng.normal(0.0, sigma, moved.shape)
         target = target + rng.normal(0.0, sigma, target.shape)
+    if centroid is None:
+        centroid = moved.mean(axis=0)
     if clutter > 0:
         for which in ("source", "target"):
             pts = moved if which == "source" else target
@@ -167,7 +184,6 @@ def make_case(name: str, clutter: float, overlap: float | None, seed: int, noise
                 moved = pts
             else:
                 target = pts
-    centroid = moved[: len(source)].mean(axis=0)
     return dataset, moved, target, R_true, t_true, centroid, mm, share, sigma
 
 
@@ -251,6 +267,22 @@ def run_kiss(source, target, voxel):
 
 
 _WARM = []
+_UPSAMPLE_NOISE = [0.5]
+
+
+def _row_with_noise(task_noise):
+    task, noise_mm = task_noise
+    _UPSAMPLE_NOISE[0] = noise_mm
+    return run_row(task)
+
+
+def _fresh_process(task, noise_mm):
+    """``run_row(task)`` in a new process, so that its peak memory is the row's own."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_row_with_noise, (task, noise_mm)).result()
 
 
 def warm_up() -> None:
@@ -268,11 +300,12 @@ def warm_up() -> None:
 
 def run_row(task: tuple) -> dict:
     """One (pair, clutter, method) row: the motion found and its errors."""
-    name, clutter, overlap, noise, method, seed, voxel_share = task
+    name, clutter, overlap, noise, method, seed, voxel_share, upsample = task
     row = {"pair": name, "clutter": clutter, "overlap": overlap, "noise": noise, "method": method}
     try:
         dataset, source, target, R_true, t_true, c, mm, share, sigma = make_case(name, clutter, overlap, seed,
-                                                                                 noise)
+                                                                                 noise, upsample,
+                                                                                 _UPSAMPLE_NOISE[0])
     except DataNotFoundError as exc:
         return dict(row, error=f"no data ({exc})")
     row.update(dataset=dataset, overlap=share)
@@ -305,7 +338,9 @@ def run_row(task: tuple) -> dict:
     estimate = extra.get("noise")
     if sigma > 0 and estimate is not None:
         row["noise_ratio"] = float(estimate) / sigma
-    return dict(row, rotation_error_deg=rot, centroid_error_mm=centre, time_s=seconds, cpu_s=cpu,
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    return dict(row, rotation_error_deg=rot, centroid_error_mm=centre, time_s=seconds, cpu_s=cpu, peak_mib=peak,
+                points=(len(source), len(target)),
                 success=bool(extra.get("ok", True)) and rot <= tol_deg and centre <= tol_mm,
                 ambiguous=bool(extra.get("ambiguous", False)), pipeline=extra.get("pipeline", ""),
                 **{k: v for k, v in extra.items() if k.startswith("cpu_")})
@@ -325,6 +360,10 @@ def main(argv=None) -> int:
     parser.add_argument("--pairs", type=parse_list(str), default=None, metavar="P,P",
                         help="pairs to run: 'bun000<-bun045', 'chef', 'res4<-bun045' (a scan against the "
                              "decimated reconstruction), ... (default: the seven scan pairs)")
+    parser.add_argument("--upsample", type=int, default=None, metavar="N",
+                        help="resample each view to N points (Gaussian noise of --upsample-noise mm); each "
+                             "row then runs in a fresh process and reports its peak memory")
+    parser.add_argument("--upsample-noise", type=float, default=0.5, metavar="MM")
     parser.add_argument("--o3d-voxel-share", type=float, default=1 / 40,
                         help="Open3D's voxel as a share of the target's bounding-box diagonal")
     parser.add_argument("--stages", action="store_true",
@@ -340,33 +379,42 @@ def main(argv=None) -> int:
     except DataNotFoundError as exc:
         print(f"scans benchmark skipped: {exc}")
         return 0
-    if "gatv" in args.methods:
+    if "gatv" in args.methods and not args.upsample:
         warm_up()
-    tasks = [(name, clutter, args.overlap, noise, method, args.seed + k, args.o3d_voxel_share)
+    tasks = [(name, clutter, args.overlap, noise, method, args.seed + k, args.o3d_voxel_share, args.upsample)
              for noise in args.noise for clutter in args.clutter for k, name in enumerate(names)
              for method in args.methods]
-    rows = map_trials(run_row, tasks, scheduler=args.scheduler)
+    if args.upsample:
+        _UPSAMPLE_NOISE[0] = args.upsample_noise
+        rows = [_fresh_process(task, args.upsample_noise) for task in tasks]
+    else:
+        rows = map_trials(run_row, tasks, scheduler=args.scheduler)
     for r in rows:
         if "error" in r:
             print(f"  {r['pair']} clutter {r['clutter']:.0%} {r['method']}: {r['error']}", file=sys.stderr)
     noisy = any(n > 0 for n in args.noise)
+    big = bool(args.upsample)
     headers = ["pair", "overlap", *(["noise"] if noisy else []), "clutter", "method", "rotation error (deg)",
-               "centroid error (mm)", "time (s)", "CPU (s)", "success", *(["noise est"] if noisy else []), "note"]
+               "centroid error (mm)", "time (s)", "CPU (s)", *(["peak MiB"] if big else []), "success",
+               *(["noise est"] if noisy else []), "note"]
     table = []
     for r in rows:
         note = r.get("error", "") or ("ambiguous" if r.get("ambiguous") else "")
         share = f"{r['overlap']:.0%}" if isinstance(r.get("overlap"), float) else ""
         table.append([r["pair"], share, *([f"{r['noise']:g}%"] if noisy else []), f"{r['clutter']:.0%}",
                       r["method"], fmt(r.get("rotation_error_deg"), 3), fmt(r.get("centroid_error_mm"), 2),
-                      fmt(r.get("time_s"), 2), fmt(r.get("cpu_s"), 2), "yes" if r.get("success") else "NO",
+                      fmt(r.get("time_s"), 2), fmt(r.get("cpu_s"), 2),
+                      *([fmt(r.get("peak_mib"), 0)] if big else []), "yes" if r.get("success") else "NO",
                       *([fmt(r.get("noise_ratio"), 2)] if noisy else []), note])
-    overlap = "" if args.overlap is None else f", target cropped to {args.overlap:.0%} overlap"
+    overlap = ("" if args.overlap is None else f", target cropped to {args.overlap:.0%} overlap") + (
+        f", each view resampled to {args.upsample:,} points (noise {args.upsample_noise:g} mm), a process a row"
+        if big else "")
     print(f"Real scans re-posed by random motions, seed {args.seed}{overlap}; overlap: share of the source's "
           "points on the target (5 mm), before clutter; UWA rows against a pseudo ground truth made by Open3D's "
           "own pipeline" + ("; noise est: gatv's estimate over the true "
                                                           "deviation" if noisy else "") + "\n")
-    print(markdown_table(headers, table, align="lr" + ("r" if noisy else "") + "lllrrrl" + ("r" if noisy else "")
-                         + "l"))
+    print(markdown_table(headers, table, align="lr" + ("r" if noisy else "") + "lllrrr" + ("r" if big else "") + "l"
+                         + ("r" if noisy else "") + "l"))
     print()
     summary = [["method", *(["noise"] if noisy else []), "clutter", "successes", "median time (s)", "max time (s)",
                 "median CPU (s)"]]
@@ -389,10 +437,10 @@ def main(argv=None) -> int:
                 for r in staged]
         print(markdown_table(["pair", "clutter", *STAGES, "rest", "call"], body, align="ll" + "r" * (len(STAGES) + 2)))
     keys = ["pair", "dataset", "clutter", "overlap", "noise", "method", "rotation_error_deg", "centroid_error_mm",
-            "time_s", "cpu_s", "success", "ambiguous", "pipeline", "noise_ratio",
+            "time_s", "cpu_s", "peak_mib", "success", "ambiguous", "pipeline", "noise_ratio",
             *(f"cpu_{s}" for s in STAGES), "error"]
     suffix = ("" if args.overlap is None else f"_overlap{round(100 * args.overlap)}") + (
-        "_noise" if noisy else "")
+        "_noise" if noisy else "") + (f"_n{args.upsample}" if big else "")
     path = write_csv(args.out / f"scans{suffix}.csv", keys, [[r.get(k, "") for k in keys] for r in rows])
     print(f"\nwrote {path}")
     return 0

@@ -22,7 +22,11 @@ repeated until no more planes were found",
 * **accept**: the result's own verdict (:mod:`gatv.verdict`): a falsy
   result, or one whose ``info["verdict"]`` did not pass, ends the loop (on
   scans it sets its part aside and the next part is searched), so clutter
-  and partial copies that do not beat chance give nothing;
+  and partial copies that do not beat chance give nothing.  On scans the
+  motion's pairs must also sit at the scans' noise, as a scan
+  segmentation keeps a part's motion (their point-to-plane residual
+  deviation within :data:`gatv.motions.scans.NOISE_FACTOR` of the scans'
+  noise): another object laid onto a part can beat the wrong motions;
 * **remove**: the instance's scene points leave the scene, its
   correspondences and every remaining scene point within the final gate
   of the moved model, so that the points of a copy the one-to-one
@@ -52,6 +56,7 @@ from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..registration import TIME_LIMIT, checked_pipeline, register
 from ..scans import MIN_OVERLAP, VOTE_POINTS
 from ..stages import FINAL_GATE
+from .scans import NOISE_FACTOR, regions, scan_surfaces
 
 __all__ = ["LATER_SHARE", "MIN_MODEL_POINTS", "PART_LINK", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances",
            "model_size", "expected_share", "pose_distance", "scene_parts", "smallest_copy", "smallest_part",
@@ -236,8 +241,6 @@ class _Parts:
     """The scene's points on salient surfaces, once, for :func:`scene_parts` in every round."""
 
     def __init__(self, Y: np.ndarray, seed: int, memory_budget):
-        from .scans import scan_surfaces
-
         self.mask = scan_surfaces(Y, seed=seed, memory_budget=memory_budget).mask
         on = Y[self.mask]  # the spacing of the points the parts are made of (a sample of a large scene's)
         self.link = PART_LINK * median_spacing(on if on.shape[0] >= MIN_MODEL_POINTS else Y)
@@ -266,8 +269,6 @@ def scene_parts(Y: np.ndarray, rows: np.ndarray, mask: np.ndarray, link: float, 
     the copies of a model lying apart fall into parts of their own, uniform
     clutter (off the surfaces the tensor voting keeps) into none.
     """
-    from .scans import regions
-
     on = rows[mask[rows]]
     if on.size < least:
         return []
@@ -436,6 +437,15 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         if not verdict.get("passed", False):
             return Judgement(False, f"the best instance on what remains ({candidate.support} points) does not "
                                     "pass its verdict", verdict)
+        if parts is not None:
+            # As a scan segmentation keeps a part's motion (section 8): a right motion's pairs sit at the
+            # scans' own noise, a wrong one's (a surface laid across another) spread over the gate.
+            info = candidate.motion.info
+            res, noise = info.get("residual_noise"), info.get("noise")
+            if res is not None and noise is not None and noise > 0 and not res <= NOISE_FACTOR * noise:
+                return Judgement(False, f"its pairs' residual deviation {res:.3g} is {res / noise:.1f} times the "
+                                        f"scans' noise {noise:.3g}, more than {NOISE_FACTOR}", verdict,
+                                 detail="noise")
         least = smallest_copy(found)
         if candidate.support < least:
             return Judgement(False, f"a motion of {candidate.support} points, fewer than the {least} expected of "
@@ -443,6 +453,10 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         return Judgement(True, "kept", verdict)
 
     def reject(candidate: Candidate, judgement):
+        if judgement.detail == "noise":  # on scans: the part is set aside, the next one searched
+            aside[candidate.detail] = True
+            rounds[-1].update(kept=False, set_aside=int(candidate.detail.size), reason=judgement.reason)
+            return None
         if judgement.detail != "small":
             return Stop(judgement.reason, exhausted=True)
         rows = candidate.detail

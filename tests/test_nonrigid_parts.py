@@ -25,23 +25,31 @@ def _angle_between(R1, R2) -> float:
 
 
 # ------------------------------------------------------------ kernels against numpy references
-def test_local_gates_match_a_loop_over_rows():
-    rng = np.random.default_rng(0)
-    # a sparse half and a dense half: the local gate follows the local spacing
-    y = np.vstack([rng.uniform(0, 10, (300, 3)) * [1, 1, 0], rng.uniform(10, 12, (300, 3)) * [1, 1, 0]])
-    tree = cKDTree(y)
-    gate, floor = 0.1, 0.01
-    got = ms.local_gates(y, tree, gate, floor)
+def _local_gates_reference(y, gate, floor, k=8):
     d = np.linalg.norm(y[:, None] - y[None], axis=2)
     np.fill_diagonal(d, np.inf)
     d1 = d.min(axis=1)
     np.fill_diagonal(d, 0.0)
-    want = np.empty(len(y))
-    for j in range(len(y)):
-        near = np.argsort(d[j], kind="stable")[:8]
-        want[j] = max(ms.LOCAL_GATE_MIN * gate, 0.5 * np.median(d1[near]) + floor)
-    np.testing.assert_allclose(got, want, rtol=1e-12)
+    local = np.array([np.median(d1[np.argsort(d[j], kind="stable")[:k]]) for j in range(len(y))])
+    lo, hi = np.percentile(local, [10, 90])
+    if hi <= ms.SAMPLING_CONTRAST * lo:
+        return np.full(len(y), gate)
+    return np.maximum(ms.LOCAL_GATE_MIN * gate, 0.5 * local + floor)
+
+
+def test_local_gates_match_a_loop_over_rows():
+    rng = np.random.default_rng(0)
+    # a sparse part and a part 25 times denser: the local gate follows the local spacing
+    y = np.vstack([rng.uniform(0, 10, (300, 3)) * [1, 1, 0], rng.uniform(10, 12, (300, 3)) * [1, 1, 0]])
+    gate, floor = 0.1, 0.01
+    got = ms.local_gates(y, cKDTree(y), gate, floor)
+    np.testing.assert_allclose(got, _local_gates_reference(y, gate, floor), rtol=1e-12)
     assert np.median(got[:300]) > 2 * np.median(got[300:])
+    # sampled about uniformly: one gate, as before local gates
+    u = rng.uniform(0, 10, (600, 3)) * [1, 1, 0]
+    got = ms.local_gates(u, cKDTree(u), gate, floor)
+    np.testing.assert_array_equal(got, np.full(600, gate))
+    np.testing.assert_allclose(got, _local_gates_reference(u, gate, floor))
 
 
 def test_growth_never_takes_rows_another_part_holds():

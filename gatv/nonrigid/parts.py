@@ -373,6 +373,8 @@ def rigid_parts(source_points, target_points, *, tolerance: float, seed: int = 0
             if best is None or members.sum() > best[1].sum():
                 best = (h, members)
         members = best[1]
+        if members.sum() < 3:  # no hypothesis holds its own seed: nothing rigid left
+            return Candidate(None, int(members.sum()), members)
         for _ in range(2):  # refit on the inliers, count again
             Rf, tf = kabsch(xs[members], ys[members])
             inl = np.zeros(K, bool)
@@ -387,7 +389,7 @@ def rigid_parts(source_points, target_points, *, tolerance: float, seed: int = 0
         return Candidate((Rf, tf), int(members.sum()), members)
 
     def accept(candidate):
-        return Judgement(candidate.support >= min_size, "smaller than a part")
+        return Judgement(candidate.motion is not None and candidate.support >= min_size, "smaller than a part")
 
     def remove(candidate, judgement):
         members = candidate.detail

@@ -144,6 +144,16 @@ def _add_parts(info: dict, source_points, target_points, spacing: float, floor: 
     info.update(parts=parts, joints=joints, part_labels=labels, time_parts_s=time.perf_counter() - t0)
 
 
+def _on_surfaces(X, Y, pairs, gates, info) -> np.ndarray:
+    """``pairs`` less the matches off either surface (:func:`gatv.nonrigid.multiscale.on_surfaces`,
+    at each match's local gate); counted in ``info["n_off_surface"]``."""
+    ok = ms.on_surfaces(X, Y, pairs, gates[pairs[:, 1]])
+    if ok is None or ok.sum() < 4:
+        return pairs
+    info["n_off_surface"] = info.get("n_off_surface", 0) + int((~ok).sum())
+    return pairs[ok]
+
+
 def _check_points(points, name: str) -> np.ndarray:
     """``points`` as (N, 3), at least 4, neither all identical nor collinear (no local rigidity to find)."""
     p = as_points(points, name, min_points=4)
@@ -449,7 +459,9 @@ def _register_direct(X, Y, settings: Settings, report, t_start) -> NonRigidMotio
         matched = found.pairs
     fit = fit_local_motions(problem, matched, settings)
     info["verdict"] = _hypothesis_verdict(problem, verdict, int(fit.pairs.shape[0]))
-    _add_parts(info, fit.source_points, fit.target_points, problem.spacing, problem.noise_floor, settings.seed)
+    if settings.parts:  # not inside a window or the coarse solve
+        _add_parts(info, fit.source_points, fit.target_points, problem.spacing, problem.noise_floor,
+                   settings.seed)
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, "done")
     return NonRigidMotion(fit.pairs, fit.source_points, fit.target_points, fit.rotations,
@@ -589,7 +601,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     gate = 0.5 * spacing + floor
     # half the local spacing where the target is sampled more sparsely than the median (a body's
     # limbs against its face and hands)
-    gates = ms.local_gates(Y, tree_y, gate, floor)
+    gates = ms.local_gates(Y, tree_y, gate, floor, rows=dy)
     report(0.5, f"growth from {seeds.shape[0]} seeds")
     t0 = time.perf_counter()
     pairs = ms.grow(X, Y, tree_y, seeds, gates, spacing=median_spacing(X[dx]), tree_x=tree_x,
@@ -621,11 +633,13 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
                           spacing, spacing, floor, max_iter=2, local=gates)
         if again.pairs.shape[0] < 4:
             break
-        gain = again.pairs.shape[0] - pairs.shape[0]
-        pairs = again.pairs
+        kept = _on_surfaces(X, Y, again.pairs, gates, info)
+        gain = kept.shape[0] - pairs.shape[0]
+        pairs = kept
         if gain < REGROW_GAIN * pairs.shape[0]:
             break
     info["regrow_rounds"] = rounds
+    pairs = _on_surfaces(X, Y, pairs, gates, info)
     # matches no farther from the local affine trend than 8 median residuals (as the seeds on
     # exact data): a match shifted by one sample stands out by about a spacing
     res = ms.loo_affine_residuals(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])

@@ -21,6 +21,9 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
   (``prealign=True, model="similarity"``); outliers are not added to these.
 * ``two-motion``: a twisted plate and a bent bar, side by side, moving
   independently (``gatv.nonrigid.segment``; peers register the whole scene).
+* ``two-real`` (not in the default groups): the body and 6,000 rows of the face side by side
+  (the face scaled to the body's spacing), each with its own real deformation, each set an
+  independent 80%; run it with ``--fractions 0.3`` for the 30% outliers.
 * ``small``: the 400-point planes and the 600-row faces of the first
   non-rigid benchmark (twist 30/60/90°, bend, elastic, hinge).
 
@@ -116,7 +119,7 @@ TOLD = {"gatv+sim": ("bunny",)}
 #: (``--peer-info blind``, the default): CPD's own default in Myronenko's reference
 #: code (``opt.outliers = 0.1``), the same for every row, as gatv is told nothing.
 PEER_W = 0.1
-GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion", "small")
+GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion", "two-real", "small")
 DEFAULT_GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion")
 DEFAULT_SIZES = (2000, 10000, 25000)
 PEER_MODULE = {"cpd": "pycpd", "bcpd": "probreg", "filterreg": "probreg"}
@@ -211,6 +214,22 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         order = np.argsort(pairs[:, 0])  # row m of the truth is original row order[m]
         return Trial(x[ps], y[pt], pairs[order], pairs[order, 0], y[order], np.arange(n_true),
                      median_spacing(y))
+    elif case.kind == "two-real":
+        # the body (two poses) and a face (two expressions) side by side, each with its own
+        # deformation: the face's rows subsampled to case.n, scaled to the body's spacing
+        from gatv.candidates import median_spacing as _spacing
+
+        bx, by = _load("nonrigid_bcpd_human/female-x.txt"), _load("nonrigid_bcpd_human/female-y.txt")
+        fx, fy = _load("nonrigid_bcpd_face/face-x.txt"), _load("nonrigid_bcpd_face/face-y.txt")
+        rows = np.sort(rng.choice(fx.shape[0], case.n, replace=False))
+        fx, fy = fx[rows], fy[rows]
+        scale = _spacing(bx) / _spacing(fx)
+        c = fx.mean(axis=0)
+        shift = np.array([bx[:, 0].max() + 0.5 * np.ptp(bx[:, 0]), bx[:, 1].mean(), bx[:, 2].mean()])
+        shift[0] += scale * (c[0] - fx[:, 0].min())
+        fx, fy = (fx - c) * scale + shift, (fy - c) * scale + shift
+        x, y = np.vstack([bx, fx]), np.vstack([by, fy])
+        labels = np.r_[np.zeros(len(bx), np.int64), np.ones(len(fx), np.int64)]
     elif case.kind == "two":
         n = case.n
         plate = D.sample_plane(n, 10.0, seed=rng)
@@ -268,7 +287,7 @@ def run_gatv_sim(src, tgt, f, spacing, kind):
 
 
 def run_gatv(src, tgt, f, spacing, kind):
-    if kind == "two":
+    if kind in ("two", "two-real"):
         from gatv.nonrigid import segment
 
         seg = segment(src, tgt)
@@ -322,9 +341,9 @@ def warm_up(method, kind, w):
     from gatv.nonrigid import deformations as D
 
     t0 = time.perf_counter()
-    a = D.sample_plane(400 if kind != "two" else 200, 10.0, seed=0)
+    a = D.sample_plane(400 if kind not in ("two", "two-real") else 200, 10.0, seed=0)
     src, tgt = a, D.twist(a, 30.0)
-    if kind == "two":
+    if kind in ("two", "two-real"):
         src, tgt = np.vstack([a, a + [14.0, 0, 0]]), np.vstack([D.twist(a, 30.0), D.bend(a, 30.0) + [14.0, 0, 3.0]])
     try:
         RUNNERS[method](src, tgt, w, 10.0 / 20.0, kind)
@@ -477,7 +496,7 @@ def run_task(task) -> list:
                 continue
         pairs, moved, seconds, cpu, rss, error, info = run_isolated(method, trial, f, case.kind, timeout, peer_info)
         p, r, w, rw, we = score(trial, pairs, moved)
-        note = two_motion_scores(trial, info) if case.kind == "two" and method == "gatv" else ""
+        note = two_motion_scores(trial, info) if case.kind in ("two", "two-real") and method == "gatv" else ""
         if info:
             extra = {kk: v for kk, v in info.items() if kk != "motions"}
             note = (note + " " + json.dumps(extra)).strip() if extra else note
@@ -506,6 +525,9 @@ def cases(groups, sizes):
                 Case("bunny x-co→y (+1,600 blob)", "bunny", warp="bunny-x-co", outliers_ok=False)]
     if "two-motion" in groups:
         out += [Case("two motions: twisted plate + bent bar (2×400)", "two", 400)]
+    if "two-real" in groups:
+        out += [Case("two real shapes: body + face (6,890 + 6,000), sampled 80%/80%", "two-real", 6000,
+                     sampled=True)]
     if "small" in groups:
         out += [Case(f"small plane {w} (400)", "small-plane", 400, w)
                 for w in ("twist30", "twist60", "twist90", "bend90", "elastic1", "hinge30")]
@@ -585,10 +607,10 @@ def main(argv=None) -> int:
         chosen = [c for c in chosen if args.only in c.name]
     if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
         print(f"data not found in {DATA}: face and bunny rows left out")
-        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny", "body")]
+        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny", "body", "two-real")]
     elif not (DATA / "nonrigid_bcpd_human" / "female-x.txt").is_file():
         print(f"body data not found in {DATA}: body rows left out")
-        chosen = [c for c in chosen if c.kind != "body"]
+        chosen = [c for c in chosen if c.kind not in ("body", "two-real")]
     tasks = []
     for c in chosen:
         for f in fractions:

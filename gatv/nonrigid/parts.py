@@ -101,6 +101,9 @@ PART_MAX_POINTS = 3000
 PART_HYPOTHESES = 200
 #: Matches of a part's growth that must meet the earlier matches continuously (:func:`contacts`).
 MIN_CONTACTS = 3
+#: Hypotheses of a round of :func:`rigid_parts` (most inliers first) whose connected inliers are
+#: counted: after the torso, the near-identity hypotheses still count many scattered inliers.
+PART_CONNECTED = 32
 #: Seconds the part windows may take in all (each rigid search is bounded by triples as well).
 PART_TIME = 30.0
 
@@ -366,7 +369,7 @@ def rigid_parts(source_points, target_points, *, tolerance: float, seed: int = 0
         res = np.linalg.norm(np.einsum("hij,kj->hki", R, xs[rows]) + t[:, None, :] - ys[rows][None], axis=2)
         counts = (res <= tolerance).sum(axis=1)
         best = None
-        for h in np.argsort(-counts, kind="stable")[:8]:  # the connected count of the best few
+        for h in np.argsort(-counts, kind="stable")[:PART_CONNECTED]:  # the connected count of the best
             inl = np.zeros(K, bool)
             inl[rows[res[h] <= tolerance]] = True
             members = component(inl, starts[h])

@@ -140,6 +140,8 @@ def _add_parts(info: dict, source_points, target_points, spacing: float, floor: 
     """``info["parts"]``, ``info["joints"]``, ``info["part_labels"]`` (per correspondence) of the
     reported matches (:func:`gatv.nonrigid.parts.parts_info`)."""
     t0 = time.perf_counter()
+    # the matched targets' own spacing: the dense rows' median is a face's or a hand's on a body
+    spacing = median_spacing(target_points) if len(target_points) >= 2 else spacing
     parts, joints, labels = parts_info(source_points, target_points, spacing=spacing, floor=floor, seed=seed)
     info.update(parts=parts, joints=joints, part_labels=labels, time_parts_s=time.perf_counter() - t0)
 

@@ -33,6 +33,7 @@ __all__ = [
     "summarise",
     "add_scheduler_argument",
     "map_trials",
+    "o3d_polish",
 ]
 
 #: Default output folder: ``benchmarks/results`` beside this file.
@@ -242,3 +243,21 @@ def map_trials(fn: Callable, tasks: Sequence, *, scheduler: str | None = None) -
     from gatv.batch import map_tasks
 
     return map_tasks(fn, list(tasks), scheduler=scheduler)
+
+
+def o3d_polish(source, target, R, t, voxel):
+    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel: every Open3D or KISS-Matcher peer's polish.
+
+    Returns the polished ``(R, t)``.  Needs the ``[peers]`` extra (Open3D).
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    start = np.eye(4)
+    start[:3, :3], start[:3, 3] = R, t
+    T = np.asarray(reg.registration_icp(src, tgt, 0.4 * voxel, start,
+                                        reg.TransformationEstimationPointToPlane()).transformation)
+    return T[:3, :3], T[:3, 3]

@@ -73,7 +73,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from _common import DEFAULT_OUT, markdown_table, parse_list, write_csv
+from _common import DEFAULT_OUT, markdown_table, o3d_polish, parse_list, write_csv
 from gatv.io import read_points
 from gatv.motions import instances, track
 from gatv.motions.instance_search import model_size
@@ -189,21 +189,6 @@ def _installed(module: str) -> bool:
 DENSE_POINTS = 5000
 
 
-def _o3d_polish(source, target, R, t, voxel):
-    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel (``benchmarks/scans.py``'s polish)."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-    start = np.eye(4)
-    start[:3, :3], start[:3, 3] = R, t
-    T = np.asarray(reg.registration_icp(src, tgt, 0.4 * voxel, start,
-                                        reg.TransformationEstimationPointToPlane()).transformation)
-    return T[:3, :3], T[:3, 3]
-
-
 def _sequential(model, scene, estimate, voxel):
     """Register with ``estimate(left) -> (R, t)`` (``None``: none), remove the scene points within the gate, repeat.
 
@@ -220,7 +205,7 @@ def _sequential(model, scene, estimate, voxel):
             break
         R, t = pose
         if dense:
-            R, t = _o3d_polish(model, left, R, t, voxel)
+            R, t = o3d_polish(model, left, R, t, voxel)
         moved = model @ R.T + t
         near = np.isfinite(cKDTree(moved).query(left, distance_upper_bound=1.5 * voxel)[0])
         if near.sum() < 0.1 * model.shape[0]:

@@ -90,6 +90,7 @@ from _common import (  # noqa: E402
     map_trials,
     markdown_table,
     median,
+    o3d_polish,
     parse_list,
     write_csv,
 )
@@ -229,23 +230,8 @@ def run_open3d(source, target, seed, method, voxel):
             src_down, tgt_down, src_f, tgt_f,
             reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * voxel))
     T = np.asarray(coarse.transformation)
-    R, t = _o3d_polish(source, target, T[:3, :3], T[:3, 3], voxel)
+    R, t = o3d_polish(source, target, T[:3, :3], T[:3, 3], voxel)
     return R, t, {"ok": True}
-
-
-def _o3d_polish(source, target, R, t, voxel):
-    """Open3D's point-to-plane ICP from ``(R, t)`` within 0.4 voxel: every peer row's polish."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-    start = np.eye(4)
-    start[:3, :3], start[:3, 3] = R, t
-    T = np.asarray(reg.registration_icp(src, tgt, 0.4 * voxel, start,
-                                        reg.TransformationEstimationPointToPlane()).transformation)
-    return T[:3, :3], T[:3, 3]
 
 
 def run_kiss(source, target, voxel):
@@ -262,7 +248,7 @@ def run_kiss(source, target, voxel):
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel * scale))
     sol = matcher.estimate(np.ascontiguousarray(source * scale), np.ascontiguousarray(target * scale))
     R, t = np.asarray(sol.rotation, dtype=np.float64), np.asarray(sol.translation, dtype=np.float64).ravel() / scale
-    R, t = _o3d_polish(source, target, R, t, voxel)
+    R, t = o3d_polish(source, target, R, t, voxel)
     return R, t, {"ok": bool(getattr(sol, "valid", True))}
 
 

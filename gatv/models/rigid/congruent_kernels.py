@@ -575,9 +575,9 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
     ``eps``.  A true match's side errors are Gaussian and a chance match's
     uniform, so the tightest matches of a box holding about as many as are
     scored keep a true match about as often as the tightest of all (a cube
-    instead of the ball of its volume), for a fraction of the listing.
-    ``first_box = 0`` lists the full box at once, for a triple whose full
-    box holds too few matches for a smaller one to answer.
+    instead of the ball of its volume), for a fraction of the listing.  ``first_box = 0`` lists the full box at once, for a
+    triple whose full box holds too few matches for a smaller one to
+    answer.
     """
     listed = 0
     probes = 0

@@ -243,20 +243,20 @@ def predicted_matches(source: np.ndarray, triples: np.ndarray, index: TargetInde
 #: first (:func:`first_boxes`).
 HALF_BOX_FROM = 4.0
 #: Matches, in units of the matches scored, that the first box is sized to
-#: hold: its tightest are scored once it holds as many as are scored (the
-#: prediction is good to a factor ~2.5; a box that holds too few doubles).
-FIRST_BOX_MATCHES = 1.0
+#: hold: the scored tightest must all lie within its inscribed ball (~half
+#: of it), and the prediction is good to a factor ~2.5.
+FIRST_BOX_MATCHES = 4.0
 
 
 def first_boxes(predicted: np.ndarray, max_matches: int) -> np.ndarray:
     """Share of ``eps`` of the box each triple's listing tries first (0: the full box at once).
 
-    A box ``f`` times as wide as the listing's holds about ``f³`` of a
-    triple's matches: a triple predicted to have ``P`` matches lists the
-    box holding :data:`FIRST_BOX_MATCHES` × ``max_matches`` (``f = (that /
-    P)^(1/3)``, at most 1/2), at about ``f²`` of the listing's work, and
-    doubles it until it holds the matches scored, whose tightest are
-    scored (:func:`gatv.models.rigid.congruent_kernels.scored_matches`).
+    The tightest ``max_matches`` of a triple's matches lie in a box ``f``
+    times as wide as the listing's that holds about ``f³`` of them: a
+    triple predicted to have ``P`` matches lists the box holding
+    :data:`FIRST_BOX_MATCHES` × ``max_matches`` (``f = (that / P)^(1/3)``,
+    at most 1/2), at about ``f²`` of the listing's work, and doubles it
+    until it answers (:func:`gatv.models.rigid.congruent_kernels.scored_matches`).
     Below :data:`HALF_BOX_FROM` × ``max_matches`` no smaller box answers
     and the full one is listed at once.
     """

@@ -562,22 +562,19 @@ def _congruent_matches_by_point(source, target, a, b, c, dab, dac, dbc, offset, 
 @njit(cache=True)
 def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps, max_enumerated, max_matches,
                    src_normals, tgt_normals, feature_tol, use_normals, first_box=0.5):
-    """The ``max_matches`` tightest congruent matches of ``(a, b, c)`` in the smallest box that holds them.
+    """The ``max_matches`` tightest of at most ``max_enumerated`` congruent matches of ``(a, b, c)``.
 
     Returns ``(k, l, m, n_listed, n_probes)`` (``n_probes``: the listing's
     cost, see :func:`_congruent_matches`).  When more are listed than
     scored, the matches within ``e = first_box eps`` of every side are
-    listed first (``0 < first_box < 1``); once a box holds at least
-    ``max_matches`` (or ``max_enumerated`` caps it), its ``max_matches``
-    tightest (smallest sum of squared side errors) are scored, at about
-    ``first_box²`` of the full listing's work (the listing's inner loop
-    grows like ``eps²``); otherwise the box doubles, up to the full
-    ``eps``.  A true match's side errors are Gaussian and a chance match's
-    uniform, so the tightest matches of a box holding about as many as are
-    scored keep a true match about as often as the tightest of all (a cube
-    instead of the ball of its volume), for a fraction of the listing.  ``first_box = 0`` lists the full box at once, for a
-    triple whose full box holds too few matches for a smaller one to
-    answer.
+    listed first (``0 < first_box < 1``): if the last of their
+    ``max_matches`` tightest has a discrepancy (sum of squared side
+    errors) of at most ``e²``, no match outside that box can be tighter,
+    and these are the tightest of all for about ``first_box²`` of the
+    listing work (the listing's inner loop grows like ``eps²``); otherwise
+    the box doubles, up to the full ``eps``.  ``first_box = 0`` lists the
+    full box at once, for a triple whose full box holds too few matches
+    for a smaller one to answer.
     """
     listed = 0
     probes = 0
@@ -590,9 +587,10 @@ def scored_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, e
                                                   use_normals, auto)
         listed += ks.shape[0]
         probes += pr
-        if ks.shape[0] >= max_matches:
+        if ks.shape[0] > max_matches:
             pick = np.argsort(disc, kind="mergesort")[:max_matches]
-            return ks[pick], ls[pick], ms[pick], listed, probes
+            if ks.shape[0] >= max_enumerated or disc[pick[-1]] <= e * e:
+                return ks[pick], ls[pick], ms[pick], listed, probes
         frac *= 2.0
     ks, ls, ms, disc, pr = _congruent_matches(source, target, a, b, c, offset, plen, pi, pj, ndist, nidx, eps,
                                               max(max_enumerated, max_matches), src_normals, tgt_normals,

@@ -407,13 +407,12 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         return Candidate(result, int(result.support), rows)
 
     def search_parts(rows):
-        """The scans rounds: the largest part first; a part where no copy passes is set aside."""
-        while True:
-            found_parts = scene_parts(Y, rows, parts.mask, parts.link, least_part)
-            if not found_parts:
-                return Stop(f"no part of the scene's surfaces left holds the {least_part} points a copy needs",
-                            exhausted=True)
-            part = found_parts[0]
+        """The scans rounds: the largest part first; a part where no copy passes is set aside.
+
+        Setting a part aside leaves the other parts as they are (each is a
+        connected component of the rows), so they are found once a round.
+        """
+        for part in scene_parts(Y, rows, parts.mask, parts.link, least_part):
             try:
                 result = register_on(part, None)
             except InputError as exc:
@@ -428,9 +427,10 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
                 rounds[-1]["reason"] = result.info.get("reason", "the part's motion did not pass its verdict")
             rounds[-1]["set_aside"] = int(part.size)
             aside[part] = True
-            rows = remaining()
             if deadline is not None and time.perf_counter() > deadline:
                 return Stop("the time limit ran out before the next search", exhausted=False)
+        return Stop(f"no part of the scene's surfaces left holds the {least_part} points a copy needs",
+                    exhausted=True)
 
     def accept(candidate: Candidate) -> Judgement:
         verdict = candidate.motion.info.get("verdict") or {}

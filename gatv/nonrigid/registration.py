@@ -604,9 +604,10 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # half the local spacing where the target is sampled more sparsely than the median (a body's
     # limbs against its face and hands)
     gates = ms.local_gates(Y, tree_y, gate, floor, rows=dy)
+    spacing_x = median_spacing(X[dx])  # the growth's step, the same in every round
     report(0.5, f"growth from {seeds.shape[0]} seeds")
     t0 = time.perf_counter()
-    pairs = ms.grow(X, Y, tree_y, seeds, gates, spacing=median_spacing(X[dx]), tree_x=tree_x,
+    pairs = ms.grow(X, Y, tree_y, seeds, gates, spacing=spacing_x, tree_x=tree_x,
                     report=lambda f, m: report(0.5 + 0.3 * f, m))
     info.update(n_seeds=int(seeds.shape[0]), n_grown=int(pairs.shape[0]),
                 time_growth_s=time.perf_counter() - t0)
@@ -615,7 +616,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     t0 = time.perf_counter()
     report(0.8, "part windows")
     found = seed_parts(X, Y, tree_x, tree_y, dx, dy, pairs, gate=gates, spacing=spacing,
-                       spacing_x=median_spacing(X[dx]), least=max(4.0, MIN_SHARE * min(dx.size, dy.size)),
+                       spacing_x=spacing_x, least=max(4.0, MIN_SHARE * min(dx.size, dy.size)),
                        strain=settings.strain, seed=settings.seed, noise=settings.noise)
     pairs = found.pairs[np.argsort(found.pairs[:, 0], kind="stable")]
     info.update(part_windows=list(found.windows), n_part_growths=int(found.growth.max()),
@@ -630,7 +631,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     rounds = 0
     while rounds < REGROW_ROUNDS and pairs.shape[0] >= 4:
         rounds += 1
-        grown = ms.grow(X, Y, tree_y, pairs, gates, spacing=median_spacing(X[dx]), tree_x=tree_x)
+        grown = ms.grow(X, Y, tree_y, pairs, gates, spacing=spacing_x, tree_x=tree_x)
         again = ms.refine(X, Y, tree_y, ms.LocalAffineWarp(X[grown[:, 0]], Y[grown[:, 1]] - X[grown[:, 0]]),
                           spacing, spacing, floor, max_iter=2, local=gates)
         if again.pairs.shape[0] < 4:

@@ -67,18 +67,18 @@ def _gatv(args, cache, timeout=900):
 
 @pytest.mark.slow
 def test_first_demo_after_warmup_starts_at_full_speed(tmp_path):
-    """Empty numba cache: `gatv warmup`, then `gatv demo` takes under 30 s and compiles nothing.
+    """Empty numba cache: `gatv warmup`, then `gatv demo` compiles nothing.
 
-    (Without the warmup, the first demo says it compiles.)"""
+    (Without the warmup, the first demo says it compiles; its time is
+    measured by benchmarks/batch.py.)"""
     cache = tmp_path / "numba-cache"
     cache.mkdir()
     proc, _ = _gatv(["warmup"], cache)
     assert proc.returncode == 0, proc.stderr
     assert "done in" in proc.stdout
-    proc, seconds = _gatv(["demo", "--progress", "--out", str(tmp_path / "r.json")], cache)
+    proc, _ = _gatv(["demo", "--progress", "--out", str(tmp_path / "r.json")], cache)
     assert proc.returncode == 0, proc.stderr
     assert COMPILING not in proc.stderr
-    assert seconds < 30.0
 
 
 @pytest.mark.slow
@@ -94,6 +94,50 @@ def test_first_register_says_it_compiles(tmp_path):
     proc, _ = _gatv(["register", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"), "--progress"], cache)
     assert proc.returncode == 0, proc.stderr
     assert f"] {COMPILING}: " in proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="compiles ahead only with two cores")
+def test_first_demo_compiles_ahead_then_never_again(tmp_path):
+    """A fresh install's first demo compiles in two processes before it runs; the next compiles nothing."""
+    cache = tmp_path / "numba-cache"
+    cache.mkdir()
+    proc, _ = _gatv(["demo", "--progress", "--out", str(tmp_path / "r.json")], cache)
+    assert proc.returncode == 0, proc.stderr
+    assert f"] {COMPILING}, 2 processes" in proc.stderr
+    assert "precision 1.000, recall 1.000" in proc.stdout
+    proc, _ = _gatv(["demo", "--progress", "--out", str(tmp_path / "r2.json")], cache)
+    assert proc.returncode == 0, proc.stderr
+    assert COMPILING not in proc.stderr
+
+
+def test_compile_ahead_only_on_a_cold_cache_and_two_cores(monkeypatch):
+    """Nothing is spawned when the cache holds the kernels, or on one core."""
+    from gatv.cli import warmup
+
+    said = []
+    monkeypatch.setattr(warmup, "kernels_cached", lambda: True)
+    assert warmup.compile_ahead(lambda f, m="": said.append(m)) is False
+    monkeypatch.setattr(warmup, "kernels_cached", lambda: False)
+    monkeypatch.setattr(warmup, "_cores", lambda: 1)
+    assert warmup.compile_ahead(lambda f, m="": said.append(m)) is False
+    assert said == []
+
+
+def test_kernels_cached_is_false_on_an_empty_cache_and_true_after_a_search(tmp_path):
+    """An empty NUMBA_CACHE_DIR reads as a fresh install; this process's cache, after a search, does not."""
+    from gatv.cli.warmup import kernels_cached
+    from gatv.datasets import table2_trial
+    from gatv.registration import register
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    proc = subprocess.run([sys.executable, "-c", "from gatv.cli.warmup import kernels_cached; print(kernels_cached())"],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["False"]
+    trial = table2_trial(0.5, seed=1)
+    assert register(trial.source, trial.target, seed=0)
+    assert kernels_cached() is True
 
 
 def test_progress_bar_shows_no_time_left_while_compiling(monkeypatch):

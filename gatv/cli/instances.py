@@ -140,7 +140,7 @@ def run(args) -> int:
     instances = load_instances()
     progress = progress_printer(args)
     start = time.perf_counter()
-    with compile_notes(progress, quiet=args.quiet) as notes:
+    with compile_notes(progress, quiet=args.quiet, ahead=True) as notes:
         found = instances(model, scene, seed=args.seed, progress=notes.progress, **options)
     seconds = time.perf_counter() - start
     ok = bool(found)

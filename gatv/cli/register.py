@@ -159,7 +159,7 @@ def register_and_write(args, source, target, inputs: dict, extra: dict | None = 
     if pipeline != "auto":
         call["pipeline"] = pipeline
     start = time.perf_counter()
-    with compile_notes(progress, quiet=args.quiet) as notes:
+    with compile_notes(progress, quiet=args.quiet, ahead=True) as notes:
         if notes.progress is not None:
             call["progress"] = notes.progress
         motion = register(source, target, seed=args.seed, **call)

@@ -194,7 +194,7 @@ def run(args) -> int:
         options["pipeline"] = args.pipeline
     progress = progress_printer(args)
     start = time.perf_counter()
-    with compile_notes(progress, quiet=args.quiet) as notes:
+    with compile_notes(progress, quiet=args.quiet, ahead=True) as notes:
         result = segment(source, target, seed=args.seed, progress=notes.progress, **options)
     seconds = time.perf_counter() - start
     ok = bool(result)

@@ -71,7 +71,7 @@ def run(args) -> int:
     track = load_track()
     progress = progress_printer(args)
     start = time.perf_counter()
-    with compile_notes(progress, quiet=args.quiet) as notes:
+    with compile_notes(progress, quiet=args.quiet, ahead=True) as notes:
         result = track(model, frames, seed=args.seed, progress=notes.progress, **options)
     seconds = time.perf_counter() - start
     ok = bool(result)

@@ -9,7 +9,10 @@ pipelines, in parallel processes, so that the first ``gatv demo`` or
 installing.
 
 While a command compiles, its progress output says ``compiling kernels
-(first run only)`` (:func:`compile_notes`).
+(first run only)`` (:func:`compile_notes`).  On a fresh install's first
+run, the commands that register (``demo``, ``register``, ``segment``,
+``instances``, ``track``) compile ahead as ``gatv warmup`` does, on two
+cores at once, before they start (:func:`compile_ahead`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,10 @@ import numpy as np
 
 from ._common import EXIT_OK, PROG, add_verbosity, guarded
 
-__all__ = ["COMPILING", "NAME", "PARTS", "add_parser", "compile_notes", "run", "run_part"]
+__all__ = [
+    "COMPILING", "NAME", "PARTS", "add_parser", "compile_ahead", "compile_notes", "kernels_cached", "run",
+    "run_part",
+]
 
 NAME = "warmup"
 #: What the progress output says while numba compiles.
@@ -56,7 +62,7 @@ class _Listener:
 
 
 @contextlib.contextmanager
-def compile_notes(progress=None, *, quiet: bool = False):
+def compile_notes(progress=None, *, quiet: bool = False, ahead: bool = False):
     """While the block runs, say ``compiling kernels (first run only)`` when numba compiles.
 
     Yields a listener: ``progress``, the callback to hand to the work (it
@@ -66,6 +72,10 @@ def compile_notes(progress=None, *, quiet: bool = False):
     the kernel's name at the last fraction reported; without ``progress``
     one line goes to stderr the first time (none with ``quiet``).  Nothing
     is said when every kernel comes from the cache.
+
+    With ``ahead``, a fresh install's kernels are first compiled on two
+    cores at once (:func:`compile_ahead`), and the block then runs at full
+    speed.
     """
     from numba.core import event
 
@@ -97,18 +107,32 @@ def compile_notes(progress=None, *, quiet: bool = False):
             listener.on_end(ev)
 
     with event.install_listener("numba:compile", _Relay()):
+        if ahead:
+            compile_ahead(listener.progress)
         yield listener
 
 
 # ---------------------------------------------------------------- the parts
+def _torus(n=3000, clutter=300):
+    """Points on a torus and uniform clutter about it."""
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0, 2 * np.pi, (2, n))
+    pts = np.c_[(2 + np.cos(v)) * np.cos(u), (2 + np.cos(v)) * np.sin(u), np.sin(v)]
+    return np.r_[pts, rng.uniform(-3, 3, (clutter, 3))]
+
+
+def _ball():
+    """One sparse ball pass (gatv.voting.vote), the only voting the exact pipeline does."""
+    from ..voting import vote
+
+    vote(_torus())
+
+
 def _voting():
     """Ball and stick passes on a dense sampled surface (gatv.voting)."""
     from ..voting import extract_surfaces
 
-    rng = np.random.default_rng(0)
-    u, v = rng.uniform(0, 2 * np.pi, (2, 3000))
-    pts = np.c_[(2 + np.cos(v)) * np.cos(u), (2 + np.cos(v)) * np.sin(u), np.sin(v)]
-    extract_surfaces(np.r_[pts, rng.uniform(-3, 3, (300, 3))])
+    extract_surfaces(_torus())
 
 
 def _exact():
@@ -135,11 +159,59 @@ def _scans():
 
 
 #: The parts of a warmup, in the order one process would run them.
-PARTS = {"voting": _voting, "exact": _exact, "scans": _scans}
+PARTS = {"ball": _ball, "voting": _voting, "exact": _exact, "scans": _scans}
 #: How the parts are shared out among processes: the exact pipeline spends its
 #: first tens of seconds on the congruent kernels, by when the voting part has
 #: put the voting kernels in the cache.
 _JOBS = (("exact",), ("voting", "scans"))
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def kernels_cached() -> bool:
+    """Whether numba's cache holds the congruent-triple kernels of this source (False on a fresh install).
+
+    Reads the cache index of
+    :func:`gatv.models.rigid.congruent_kernels.triple_hypotheses`, the
+    kernel that takes longest to compile; an index written for other
+    sources counts as empty.  True when it cannot tell.
+    """
+    try:
+        from ..models.rigid.congruent_kernels import triple_hypotheses
+
+        return bool(triple_hypotheses._cache._cache_file._load_index())
+    except Exception:  # numba's cache layout is not public: compile as the run goes
+        return True
+
+
+def compile_ahead(progress=None) -> bool:
+    """On a fresh install, compile the registration kernels on two cores at once; True if it did.
+
+    The first run of a command otherwise compiles its kernels one after
+    another as the pipeline reaches them (about 30 s of CPU for the exact
+    pipeline, all on one core).  When :func:`kernels_cached` says the cache
+    is empty and the machine has two cores or more, the ``exact`` part runs
+    in a second process (congruent triples first, about two thirds of the
+    CPU) while this one runs ``ball``, the voting kernels, which the second
+    process then finds in numba's cache.  The command then loads every
+    kernel the exact pipeline needs (the scans pipeline compiles its stick
+    pass as it goes).  A part that fails is left to the command to compile.
+    """
+    if _cores() < 2 or kernels_cached():
+        return False
+    import multiprocessing
+
+    if progress is not None:
+        progress(0.0, f"{COMPILING}, 2 processes")
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        other = pool.submit(run_part, ("exact",))
+        with contextlib.suppress(Exception):
+            run_part(("ball",))
+        with contextlib.suppress(Exception):
+            other.result()
+    return True
 
 
 def run_part(names) -> list[tuple[str, float, int]]:
@@ -177,8 +249,7 @@ def run(args) -> int:
     """Run ``gatv warmup`` on parsed ``args``; return the exit status."""
     from ._common import UsageError
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    jobs = args.jobs if args.jobs is not None else min(2, cores)
+    jobs = args.jobs if args.jobs is not None else min(2, _cores())
     if jobs < 1:
         raise UsageError(f"expected --jobs >= 1, got {jobs}.")
     groups = [tuple(n for g in _JOBS for n in g)] if jobs == 1 else list(_JOBS)

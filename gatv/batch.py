@@ -79,6 +79,7 @@ __all__ = [
     "COMMANDS",
     "LOCAL_CLUSTER_CONFIG",
     "LOCAL_START_SECONDS",
+    "MEASURED_ROWS",
     "ROW_OPTIONS",
     "SUMMARY_HEADERS",
     "TASK_SECONDS",
@@ -692,6 +693,9 @@ LOCAL_START_SECONDS = 4.0
 LOCAL_MARGIN = 0.8
 #: Dask's own cost on a row's CPU time (scheduler, worker, serialisation).
 LOCAL_OVERHEAD = 1.1
+#: Rows that ``scheduler="auto"`` times on one numba thread (after the first,
+#: which loads the kernels) before it settles on this process or a cluster.
+MEASURED_ROWS = 3
 
 
 @dataclass(frozen=True)
@@ -707,11 +711,11 @@ class StartDecision:
 def local_cluster_pays(timed: Sequence[tuple[float, float]], rows_left: int, workers: int) -> StartDecision:
     """Whether ``workers`` local single-threaded workers would finish the rows left sooner than this process.
 
-    ``timed`` holds the ``(wall, CPU)`` seconds of rows run here.  Serially
-    the rows left take their mean wall time each; on a cluster
-    :data:`LOCAL_START_SECONDS`, then each worker's share of rows at their
-    mean CPU time (this process's CPU time covers numba's threads, so a
-    row's single-thread cost is at most that) times
+    ``timed`` holds the ``(wall, CPU)`` seconds of rows run here on one
+    numba thread, as a worker runs them.  Serially the rows left take their
+    mean wall time each (at most that: this process runs them on every
+    core's thread); on a cluster :data:`LOCAL_START_SECONDS`, then each
+    worker's share of rows at their mean CPU time times
     :data:`LOCAL_OVERHEAD`.  The cluster must take at most
     :data:`LOCAL_MARGIN` of the serial time.
     """
@@ -846,9 +850,11 @@ def run(pairs, out, *, command: str = "register", scheduler="auto", workers: int
     command : {"register", "segment", "instances", "nonrigid"}, default: "register"
     scheduler : "auto", "local", "serial", str or Client, default: "auto"
         Where the rows run (see the module docstring and :func:`connect`).
-        ``"auto"``: here, one after the other, until the rows' measured
-        cost says that a local cluster would finish the rest sooner
-        including its start (:func:`local_cluster_pays`), then on one;
+        ``"auto"``: here, one after the other; the second to
+        :data:`MEASURED_ROWS` + 1-th rows on one numba thread, and when
+        their cost says that a local cluster would finish the rest sooner
+        including its start (:func:`local_cluster_pays`), the rest on one,
+        else here on every thread;
         ``"local"`` starts one at once.  The result's ``where`` says which.
     workers : int, optional
         Worker processes of a local cluster; default one per core.
@@ -949,14 +955,23 @@ def run(pairs, out, *, command: str = "register", scheduler="auto", workers: int
             report(done / len(tasks), f"{done}/{len(tasks)} rows (already done)")
         pending = collections.deque(todo)
         if auto and pending:
-            # rows run here until their measured cost says that a local cluster pays for its start
+            # rows run here until their measured cost says that a local cluster pays for its start;
+            # the measured rows run on one numba thread, as a worker's would
             timed = []  # (wall, CPU) seconds of the rows run here, the first (numba's cache) left out
+            import numba
+
+            threads_here = numba.get_num_threads()
             while pending:
                 k = pending.popleft()
-                w0, c0 = time.perf_counter(), time.process_time()
-                finish(k, compute(tasks[k]))
-                timed.append((time.perf_counter() - w0, time.process_time() - c0))
-                if len(timed) < 2:  # the first row also loads the numba kernels: not a measure
+                measuring = n_workers > 1 and 1 <= len(timed) <= MEASURED_ROWS
+                numba.set_num_threads(1 if measuring else threads_here)
+                try:
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    finish(k, compute(tasks[k]))
+                    timed.append((time.perf_counter() - w0, time.process_time() - c0))
+                finally:
+                    numba.set_num_threads(threads_here)
+                if not measuring:  # the first row also loads the numba kernels: not a measure
                     continue
                 decision = local_cluster_pays(timed[1:], len(pending), n_workers)
                 if pending and decision.start:
@@ -965,9 +980,12 @@ def run(pairs, out, *, command: str = "register", scheduler="auto", workers: int
                     where_ran = (f"{len(timed)} rows here, then a local cluster of {n_workers} workers "
                                  f"({decision.why})")
                     break
-            else:
-                whole = local_cluster_pays(timed[1:] or timed, max(len(timed) - 1, 1), n_workers)
-                where_ran = f"serial, in this process: a local cluster would not have paid (after the first row, {whole.why})"
+                if len(timed) > MEASURED_ROWS:  # settled: the rest here, on every thread
+                    break
+            if client is None:
+                whole = local_cluster_pays(timed[1:] or timed, max(len(todo) - 1, 1), n_workers)
+                where_ran = ("serial, in this process: a local cluster would not have paid "
+                             f"(after the first row, {whole.why})")
         if client is None:
             for k in pending:
                 finish(k, compute(tasks[k]))

@@ -466,6 +466,31 @@ def test_short_batch_runs_serially_and_says_so(tmp_path, pair_files, capsys):
     assert result.where.startswith("serial") and result.counts()["found"] == N_ROWS
 
 
+def test_auto_times_rows_on_one_numba_thread_then_runs_the_rest_on_every_thread(tmp_path, pair_files,
+                                                                                 monkeypatch):
+    """The rows that decide (second to MEASURED_ROWS + 1-th) run as a worker would, on one thread;
+    a batch that stays here runs the others on all of this process's threads, and restores them."""
+    import numba
+
+    seen = []
+    real = batch.compute
+
+    def spy(task):
+        seen.append(numba.get_num_threads())
+        return real(task)
+
+    monkeypatch.setattr(batch, "compute", spy)
+    folder, _, rows = pair_files
+    many = [{**rows[k % N_ROWS], "name": f"m{k}", "seed": str(k)} for k in range(7)]
+    table = _write_csv(folder / "measured.csv", many, columns=("name", "source", "target", "seed"))
+    before = numba.get_num_threads()
+    result = batch.run(table, tmp_path / "m", workers=2)
+    assert result.where.startswith("serial")
+    m = batch.MEASURED_ROWS
+    assert seen == [before] + [1] * m + [before] * (7 - 1 - m)
+    assert numba.get_num_threads() == before
+
+
 def test_auto_starts_a_local_cluster_for_long_rows_and_equals_serial(tmp_path, pair_files, monkeypatch):
     """Rows made to look long (a cluster costs nothing to start, Dask nothing per row): the rest
     runs on 2 workers."""

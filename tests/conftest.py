@@ -60,6 +60,9 @@ vote(x, 0.3)
 
 #: Fewer collected tests than this (a file or a few) start no compilation ahead.
 COMPILE_AHEAD_FROM = 200
+# the commands' own compile-ahead (gatv.cli.warmup.compile_ahead) stays off in the suite, which
+# compiles ahead its own way; tests of it set the variable themselves
+os.environ.setdefault("GATV_COMPILE_AHEAD", "0")
 
 _ahead: list = []
 

@@ -58,7 +58,7 @@ def test_warmup_is_a_command_with_bad_input_exit_2(capsys):
 
 
 def _gatv(args, cache, timeout=900):
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYVISTA_OFF_SCREEN="true")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYVISTA_OFF_SCREEN="true", GATV_COMPILE_AHEAD="1")
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "gatv", *args], env=env, capture_output=True, text=True,
                           timeout=timeout)
@@ -112,10 +112,14 @@ def test_first_demo_compiles_ahead_then_never_again(tmp_path):
 
 
 def test_compile_ahead_only_on_a_cold_cache_and_two_cores(monkeypatch):
-    """Nothing is spawned when the cache holds the kernels, or on one core."""
+    """Nothing is spawned when the cache holds the kernels, on one core, or when turned off."""
     from gatv.cli import warmup
 
     said = []
+    monkeypatch.setenv("GATV_COMPILE_AHEAD", "0")
+    monkeypatch.setattr(warmup, "kernels_cached", lambda: False)
+    assert warmup.compile_ahead(lambda f, m="": said.append(m)) is False
+    monkeypatch.setenv("GATV_COMPILE_AHEAD", "1")
     monkeypatch.setattr(warmup, "kernels_cached", lambda: True)
     assert warmup.compile_ahead(lambda f, m="": said.append(m)) is False
     monkeypatch.setattr(warmup, "kernels_cached", lambda: False)

@@ -198,8 +198,10 @@ def compile_ahead(progress=None) -> bool:
     process then finds in numba's cache.  The command then loads every
     kernel the exact pipeline needs (the scans pipeline compiles its stick
     pass as it goes).  A part that fails is left to the command to compile.
+    ``GATV_COMPILE_AHEAD=0`` in the environment turns it off (the test
+    suite compiles ahead its own way).
     """
-    if _cores() < 2 or kernels_cached():
+    if os.environ.get("GATV_COMPILE_AHEAD", "1") == "0" or _cores() < 2 or kernels_cached():
         return False
     import multiprocessing
 

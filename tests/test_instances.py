@@ -365,6 +365,63 @@ def test_scene_parts_split_apart_copies_and_drop_clutter():
     assert smallest_part(grid, grid / 2.0) == int(np.ceil(0.2 * 400 * 4))
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), reach=st.floats(0.1, 0.8), stretch=st.tuples(*[st.floats(0.2, 3.0)] * 3))
+def test_scene_blocks_hold_every_set_of_a_reach_whole(seed, reach, stretch):
+    """Whatever the scene's shape, any set spanning at most ``reach`` along each axis lies whole in a block."""
+    from gatv.motions.instance_search import BLOCK_SIDE, scene_blocks
+
+    rng = np.random.default_rng(seed)
+    scene = rng.uniform(0.0, 1.0, (400, 3)) * np.asarray(stretch)
+    blocks = scene_blocks(scene, reach)
+    extent = scene.max(0) - scene.min(0)
+    if blocks is None:
+        assert np.all(extent <= BLOCK_SIDE * reach)
+        return
+    rows = np.arange(len(scene))
+    member = np.zeros((len(blocks), len(scene)), bool)
+    for b in range(len(blocks)):
+        member[b, blocks.rows(b, rows)] = True
+    assert member.any(axis=0).all()  # every point in some block
+    for _ in range(20):
+        corner = scene.min(0) + rng.uniform(-0.2, 1.0, 3) * extent
+        box = np.all((scene >= corner) & (scene <= corner + reach * rng.uniform(0.3, 1.0, 3)), axis=1)
+        assert member[:, box].all(axis=1).any()
+    blocks.set_aside(0, rows[:5], len(scene))  # set aside for one block only
+    assert not np.isin(rows[:5], blocks.rows(0, rows)).any()
+    assert all(np.array_equal(blocks.rows(b, rows), np.flatnonzero(member[b])) for b in range(1, len(blocks)))
+
+
+def test_model_diameter_is_the_largest_distance():
+    from scipy.spatial.distance import pdist
+
+    from gatv.motions.instance_search import model_diameter
+
+    pts = _model(4, 300)
+    assert model_diameter(pts) == pytest.approx(pdist(pts).max(), rel=1e-12)
+    assert model_diameter(pts[:10]) == pytest.approx(pdist(pts[:10]).max(), rel=1e-12)
+
+
+def test_many_copies_are_searched_block_by_block_with_their_whole_correspondences():
+    """Twelve exact copies on a grid among outliers: after the first copy the rounds search blocks of the scene,
+    and every copy is found once, with all its points, even where a block's side cuts it."""
+    model = _model(2, 50)
+    rng = np.random.default_rng(8)
+    rots = Rotation.random(12, random_state=9).as_matrix()
+    grid = np.stack(np.meshgrid(np.arange(3), np.arange(2), np.arange(2), indexing="ij"), -1).reshape(-1, 3)
+    poses = [(R, 4.0 * g + rng.uniform(-0.4, 0.4, 3)) for R, g in zip(rots, grid)]
+    scene, owner = _scene(model, poses, n_outliers=300, seed=10)
+    found = instances(model, scene, seed=0)
+    assert len(found) == 12 and sorted(_match(found, poses, model)) == list(range(12))
+    assert any("block" in r for r in found.info["rounds"])  # the blocks were searched
+    assert any(r.get("whole_copy") for r in found.info["rounds"])  # a block's side cut a copy
+    for k, m in enumerate(found):
+        assert m.support == len(model)  # the whole copy's correspondences
+        assert np.unique(owner[found.scene_rows(k)]).size == 1
+    rows = np.concatenate([m.correspondences[:, 1] for m in found])
+    assert np.unique(rows).size == rows.size
+
+
 def _noisy_frames(model, k, n_frames, noise, seed, clutter=0.3):
     """Frames of ``k`` whole copies moving independently, Gaussian ``noise`` on every point, uniform clutter."""
     rng = np.random.default_rng(seed)

@@ -18,7 +18,14 @@ repeated until no more planes were found",
   at a time (:func:`scene_parts`, largest first): the scans verdict judges
   a motion against wrong motions polished on the data, and on a scene of
   several copies those polish onto the *other* copies, whose support is as
-  high, so that no copy passes against the whole scene;
+  high, so that no copy passes against the whole scene.  In the exact
+  pipeline, once a copy is found, the rounds search one block of the
+  scene at a time (:func:`scene_blocks`: overlapping boxes of a few copy
+  extents, so that every copy lies whole in one) at the copies' measured
+  noise: a search indexes every pair of its scene points, and a block's
+  index is a small share of the whole scene's.  When every block is
+  searched in vain, the whole scene is searched once more at the
+  schedule's tolerances (a copy of another noise, or one a block missed);
 * **accept**: the result's own verdict (:mod:`gatv.verdict`): a falsy
   result, or one whose ``info["verdict"]`` did not pass, ends the loop (on
   scans it sets its part aside and the next part is searched), so clutter
@@ -58,9 +65,9 @@ from ..scans import MIN_OVERLAP, VOTE_POINTS
 from ..stages import FINAL_GATE
 from .scans import NOISE_FACTOR, regions, scan_surfaces
 
-__all__ = ["LATER_SHARE", "MIN_MODEL_POINTS", "PART_LINK", "TIME_LIMIT_ROUNDS", "Instances", "final_gate", "instances",
-           "model_size", "expected_share", "pose_distance", "scene_parts", "smallest_copy", "smallest_part",
-           "validate_model"]
+__all__ = ["BLOCK_SIDE", "LATER_SHARE", "MIN_MODEL_POINTS", "PART_LINK", "TIME_LIMIT_ROUNDS", "Blocks", "Instances",
+           "final_gate", "instances", "model_diameter", "model_size", "expected_share", "pose_distance",
+           "scene_blocks", "scene_parts", "smallest_copy", "smallest_part", "validate_model"]
 
 #: Fewest model points: a rigid motion needs three, and a fourth is the
 #: least support that says more than the sample that made the motion.
@@ -275,6 +282,101 @@ def scene_parts(Y: np.ndarray, rows: np.ndarray, mask: np.ndarray, link: float, 
     return [on[r] for r in regions(Y[on], link, min_points=least)]
 
 
+def model_diameter(points: np.ndarray) -> float:
+    """The largest distance between two of the model's points (over its convex hull's vertices when it has one).
+
+    A copy of the model, at any pose, spans at most this along any direction.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] > 64:
+        try:
+            from scipy.spatial import ConvexHull
+
+            pts = pts[ConvexHull(pts).vertices]
+        except Exception:  # flat or degenerate: all the points
+            pass
+    if pts.shape[0] < 2:
+        return 0.0
+    d = 0.0
+    for k in range(0, pts.shape[0], 512):  # row blocks: memory linear in the points
+        d = max(d, float(np.max(np.linalg.norm(pts[k:k + 512, None, :] - pts[None, :, :], axis=-1))))
+    return d
+
+
+#: Side of a block of :func:`scene_blocks`, in copy reaches (the model's diameter plus the final gate's
+#: margin on each side): blocks overlap by one reach, so that a copy lies whole in one of them.
+BLOCK_SIDE = 3.0
+
+
+class Blocks:
+    """Overlapping axis-aligned boxes covering a scene, such that any set of extent at most ``reach`` along
+    each axis lies whole in at least one of them (:func:`scene_blocks`).
+
+    Along each axis the boxes are ``side`` long and start at most ``side -
+    reach`` apart, the first at the scene's least coordinate and the last
+    ending at its largest (the outer boxes reach on to infinity, so that
+    rounding leaves no point out).  Box ``b`` is the product of one
+    interval per axis (``index[b]``); ``aside[b]`` holds the rows set aside
+    for that box only, ``exhausted[b]`` whether it was searched in vain.
+    """
+
+    def __init__(self, Y: np.ndarray, reach: float, side: float):
+        lo, hi = Y.min(axis=0), Y.max(axis=0)
+        extent = hi - lo
+        self.side, self.reach = float(side), float(reach)
+        #: Per axis, (intervals, points) membership of each point in each interval.
+        self.inside = []
+        for a in range(Y.shape[1]):
+            m = 1 if extent[a] <= side else int(np.ceil((extent[a] - side) / max(side - reach, 1e-300))) + 1
+            start = lo[a] + np.linspace(0.0, max(extent[a] - side, 0.0), m)
+            low, high = start.copy(), start + side
+            low[0], high[-1] = -np.inf, np.inf
+            self.inside.append((Y[:, a][None, :] >= low[:, None]) & (Y[:, a][None, :] <= high[:, None]))
+        counts = [ins.shape[0] for ins in self.inside]
+        self.index = np.stack([g.ravel() for g in np.meshgrid(*[np.arange(c) for c in counts], indexing="ij")],
+                              axis=1)
+        self.aside: dict = {}
+        self.exhausted = np.zeros(len(self.index), bool)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def rows(self, b: int, rows: np.ndarray) -> np.ndarray:
+        """The ``rows`` in box ``b``, less those set aside for it."""
+        keep = np.ones(rows.size, bool)
+        for ins, i in zip(self.inside, self.index[b]):
+            keep &= ins[i, rows]
+        if b in self.aside:
+            keep &= ~self.aside[b][rows]
+        return rows[keep]
+
+    def set_aside(self, b: int, rows: np.ndarray, n: int) -> None:
+        """Set ``rows`` (of a scene of ``n`` points) aside for box ``b`` only."""
+        self.aside.setdefault(b, np.zeros(n, bool))[rows] = True
+
+
+def scene_blocks(Y: np.ndarray, reach: float) -> Blocks | None:
+    """The scene's blocks for copies of extent ``reach``, or ``None`` when one block would cover the scene.
+
+    Each round of the exact pipeline indexes its scene for congruent
+    triples in time and memory quadratic in the scene's points (every pair
+    of points); a copy of the model spans at most ``reach``, so a search
+    for it needs only a box around it.  Boxes of :data:`BLOCK_SIDE` reaches
+    a side, overlapping by one reach, cover the scene so that every copy
+    lies whole in one box.
+    """
+    side = BLOCK_SIDE * reach
+    extent = Y.max(axis=0) - Y.min(axis=0)
+    if reach <= 0 or np.all(extent <= side):
+        return None
+    return Blocks(Y, reach, side)
+
+
+def _best_trial(result) -> int:
+    """The best trial support a failed exact search saw (its verdict's support; 0 when none)."""
+    return int((result.info.get("verdict") or {}).get("support", 0) or 0)
+
+
 def _stopped_at_limit(result) -> bool:
     """Whether a falsy registration stopped at its time or work bound rather than for want of a motion."""
     return any("stopped" in rec for rec in result.info.get("trials", ()) if isinstance(rec, dict))
@@ -371,18 +473,22 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         return np.flatnonzero((labels < 0) & ~aside)
 
     parts = _Parts(Y, int(rng.integers(0, 2**31 - 1)), memory_budget) if chosen == "scans" else None
+    blocks: list = [None]  # the exact pipeline's blocks once a copy is found (scene_blocks)
+    current = [-1]  # the block of the last candidate
     least_part = max(MIN_MODEL_POINTS, int(np.ceil(smallest_part(X, Y) * parts.voted))) if parts is not None else 0
 
-    def register_on(rows, share):
+    def register_on(rows, share, noise=None):
         """One registration of the model on the scene ``rows`` (its record appended to ``rounds``)."""
         round_seed = int(rng.integers(0, 2**63 - 1))
         left = None if deadline is None else max(deadline - time.perf_counter(), 1e-3)
         t0 = time.perf_counter()
         options = {} if share is None else {"min_inlier_share": share}
+        if noise is not None:
+            options["noise"] = noise
         result = register(X, Y[rows], pipeline=chosen, seed=round_seed, memory_budget=memory_budget,
                           time_limit=TIME_LIMIT if left is None else min(TIME_LIMIT, left), **options)
         rounds.append({"round": len(rounds), "scene_points": int(rows.size), "min_inlier_share": share,
-                       "support": int(result.support), "time_s": time.perf_counter() - t0,
+                       "noise": noise, "support": int(result.support), "time_s": time.perf_counter() - t0,
                        "verdict": result.info.get("verdict")})
         return result
 
@@ -394,6 +500,13 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         if parts is not None:
             return search_parts(rows)
         share = expected_share(found, X.shape[0]) if chosen == "exact" else None
+        current[0] = -1
+        if blocks[0] is not None and not blocks[0].exhausted.all():
+            in_block = search_blocks(rows, share)
+            if in_block is not None:
+                return in_block
+        # The whole scene at the schedule's tolerances: the first round, and once every block was searched in
+        # vain at the copies' noise (a copy of another noise, or one the blocks' searches missed).
         try:
             result = register_on(rows, share)
         except InputError as exc:
@@ -405,6 +518,81 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
             rounds[-1]["reason"] = reason
             return Stop(reason, exhausted=not _stopped_at_limit(result))
         return Candidate(result, int(result.support), rows)
+
+    def search_blocks(rows, share):
+        """The exact pipeline's rounds once a copy is found: one block at a time, at the copies' noise.
+
+        The block with the most points left first; a block searched in vain
+        holds no whole copy at that noise and is not searched again (until a
+        copy found on the whole scene resets them).  ``None`` once every
+        block is searched in vain.
+        """
+        b_all = blocks[0]
+        least = smallest_copy(found)
+        noise = block_noise()
+        while True:
+            live = np.flatnonzero(~b_all.exhausted)
+            if live.size == 0:
+                return None
+            inside = [b_all.rows(b, rows) for b in live]
+            pick = int(np.argmax([w.size for w in inside]))
+            b, here = int(live[pick]), inside[pick]
+            if here.size < max(least, MIN_MODEL_POINTS):
+                b_all.exhausted[b] = True
+                continue
+            try:
+                result = register_at_noise(here, share, noise, least)
+            except InputError as exc:
+                rounds.append({"round": len(rounds), "scene_points": int(here.size), "reason": str(exc)})
+                result = None
+            rounds[-1]["block"] = b
+            if result and (result.info.get("verdict") or {}).get("passed", False):
+                current[0] = b
+                return whole_copy(Candidate(result, int(result.support), here), rows, share, noise)
+            if result is not None:
+                rounds[-1]["reason"] = result.info.get("reason", "no motion beats the wrong motions in the block")
+            b_all.exhausted[b] = True
+            if deadline is not None and time.perf_counter() > deadline:
+                return Stop("the time limit ran out before the next search", exhausted=False)
+
+    def register_at_noise(rows, share, noise, least):
+        """:func:`register_on` at the copies' ``noise``; at the schedule's tolerances when a trial as large as
+        a copy (``least`` points) beat the density screen there and the judge refused it at this tolerance
+        (at a millionth of the spacing it may, where the schedule's next level finds the copy)."""
+        result = register_on(rows, share, noise=noise)
+        if not result and noise is not None and _best_trial(result) >= least:
+            rounds[-1]["reason"] = result.info.get("reason", "")
+            result = register_on(rows, share)
+        return result
+
+    def whole_copy(candidate, rows, share, noise):
+        """The candidate again on every point left around its copy, when its block cut the copy.
+
+        A block holds a copy cut by its side as well as whole ones; the
+        pose is the copy's, but its correspondences would miss the points
+        beyond the side.  The model moved by the pose, grown by its gate,
+        bounds the copy: registered on the points left in that box, the
+        copy gives all its correspondences.
+        """
+        moved = X @ np.asarray(candidate.motion.rotation).T + np.asarray(candidate.motion.translation)
+        margin = final_gate(candidate.motion)
+        lo, hi = moved.min(axis=0) - margin, moved.max(axis=0) + margin
+        box = rows[np.all((Y[rows] >= lo) & (Y[rows] <= hi), axis=1)]
+        if np.setdiff1d(box, candidate.detail, assume_unique=True).size == 0:
+            return candidate  # the block holds every point around the copy
+        try:
+            again = register_at_noise(box, share, noise, candidate.support)
+        except InputError:
+            return candidate
+        rounds[-1].update(block=current[0], whole_copy=True)
+        if again and (again.info.get("verdict") or {}).get("passed", False) and again.support >= candidate.support:
+            return Candidate(again, int(again.support), box)
+        return candidate
+
+    def block_noise():
+        """The tolerance of the blocks' searches: the largest the copies found measured (``None``: the schedule)."""
+        tol = [float(m.info["tolerance"]) for m in found if np.isscalar(m.info.get("tolerance"))]
+        return max(tol) if tol and max(tol) > 0 else None
 
     def search_parts(rows):
         """The scans rounds: the largest part first; a part where no copy passes is set aside.
@@ -460,7 +648,11 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         if judgement.detail != "small":
             return Stop(judgement.reason, exhausted=True)
         rows = candidate.detail
-        aside[rows[np.asarray(candidate.motion.correspondences, dtype=np.int64)[:, 1]]] = True
+        small = rows[np.asarray(candidate.motion.correspondences, dtype=np.int64)[:, 1]]
+        if blocks[0] is not None:  # a copy cut by the block's side: its points stay in the other blocks
+            blocks[0].set_aside(current[0], small, m)
+        else:
+            aside[small] = True
         rounds[-1].update(kept=False, set_aside=int(candidate.support), reason=judgement.reason)
         return None
 
@@ -482,6 +674,11 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         motion = dataclasses.replace(result, correspondences=pairs, info=info)
         found.append(motion)
         rounds[-1].update(kept=True, scene_points_taken=int(taken.size))
+        if chosen == "exact" and not found[:-1]:
+            # once the first copy says how far a copy reaches (the model's extent and its gate's margin)
+            blocks[0] = scene_blocks(Y, model_diameter(X) + 2.0 * g)
+        elif blocks[0] is not None and current[0] < 0:
+            blocks[0].exhausted[:] = False  # found on the whole scene: the blocks again, at the copies' noise now
         report(float(np.mean(labels >= 0)), f"instance {k}: {motion.support} correspondences")
         return (motion,)
 

@@ -168,10 +168,13 @@ def test_multiscale_falls_back_to_the_coarse_placement_when_the_identity_window_
     assert [w["placement"] for w in m.info["windows"]][:2] == ["identity", "identity"]
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.98 and recall >= 0.9
-    # by default the bounded rigid pre-alignment places them first (a shift is a rigid motion)
+    # by default the bounded rigid pre-alignment places them (a shift is a rigid motion), before the
+    # identity's second window, as it explains more of the coarse sets than the identity does
     m = register(trial.source, trial.target, multiscale=True, coarse_points=80, window_points=80)
     assert m.info["placement"] == "rigid" and "time_coarse_s" not in m.info
-    assert [w["placement"] for w in m.info["windows"]] == ["identity", "identity", "rigid"]
+    assert [w["placement"] for w in m.info["windows"]] == ["identity", "rigid"]
+    explained = m.info["auto_prealign"]["explained"]
+    assert explained[1] > explained[0]
     precision, recall = correspondence_stats(m.correspondences, trial.true_pairs)
     assert precision >= 0.98 and recall >= 0.9
 
@@ -446,6 +449,60 @@ def test_motion_parts_splits_disconnected_and_discontinuous_matches():
     small = ys[:100].copy()
     small[a[:, 0] > 0] += [0, 0, 0.04]
     assert np.all(motion_parts(xs[:100], small, 0.35, 0.05) == 0)
+
+
+def _two_densities():
+    """A strip sampled at 0.1 for x < 3 (630 rows) and at 0.5 beyond (175 rows, 22%): the median
+    spacing is the dense one's, five times under the sparse one's (as a body's limbs)."""
+    g = np.mgrid[0:3:0.1, 0:2.05:0.1].reshape(2, -1).T
+    h = np.mgrid[3:20:0.5, 0:2.05:0.5].reshape(2, -1).T
+    xy = np.vstack([g, h])
+    return np.column_stack([xy, np.zeros(len(xy))]), len(g)
+
+
+def test_motion_parts_follow_a_non_uniform_sampling():
+    xs, n_dense = _two_densities()
+    R = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])
+    ys = xs @ R.T + [1.0, 2.0, 0.5]
+    # one rigid motion: one part, the sparse rows (spacing 5x the median) included
+    assert np.all(ms.motion_parts(xs, ys, 0.35, 0.05) == 0)
+    # the sparse end jumps by 3 units: two parts, exactly the two densities
+    jumped = ys.copy()
+    jumped[n_dense:] += [0.0, 0.0, 3.0]
+    parts = ms.motion_parts(xs, jumped, 0.35, 0.05)
+    assert np.all(parts[:n_dense] == 0) and np.all(parts[n_dense:] == 1)
+    # one gate per match equal to the float gate: the same labels
+    assert np.array_equal(ms.motion_parts(xs, jumped, 0.35, np.full(len(xs), 0.05)), parts)
+
+
+@given(st.floats(0.01, 0.2), st.integers(0, 3))
+@settings(max_examples=10, deadline=None)
+def test_motion_parts_per_match_gates_widen_never_split(gate, seed):
+    a = deform.sample_plane(150, 10.0, seed=seed)
+    b = deform.twist(a, 40.0)
+    base = ms.motion_parts(a, b, 0.35, gate)
+    wider = ms.motion_parts(a, b, 0.35, np.full(len(a), gate) * np.linspace(1.0, 2.0, len(a)))
+    # a wider gate only joins: every part with the wider gates is a union of the float gate's parts
+    for p in np.unique(base):
+        assert np.unique(wider[base == p]).size == 1
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.01, 250.0])
+def test_on_surfaces_drops_matches_beside_a_coarsely_sampled_surface(scale):
+    # a cylinder of radius 2 sampled at 0.5: its median plane height (0.07) is over a quarter of the
+    # gate (0.25), as on a body's limbs; 20 points 1.2 off it, among its rows
+    t = np.linspace(0, 2 * np.pi, 25, endpoint=False)
+    T, Z = np.meshgrid(t, np.arange(0, 10, 0.5))
+    cyl = np.column_stack([2 * np.cos(T.ravel()), 2 * np.sin(T.ravel()), Z.ravel()])
+    pick = np.random.default_rng(0).choice(len(cyl), 20, replace=False)
+    P = scale * np.vstack([cyl, cyl[pick] * [1.6, 1.6, 1.0] + [0, 0, 0.25]])
+    pairs = np.column_stack([np.arange(len(P))] * 2)
+    ok = ms.on_surfaces(P, P, pairs, 0.25 * scale)
+    assert ok is not None and ok[:500].all() and not ok[500:].any()
+    # one side off is enough: the target rows on the surface, the source rows beside it
+    Q = P.copy()
+    Q[500:] = scale * cyl[pick]
+    assert not ms.on_surfaces(P, Q, pairs, 0.25 * scale)[500:].any()
 
 
 # ------------------------------------------------------------------ command line

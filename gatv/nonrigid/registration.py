@@ -538,11 +538,17 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     by_identity = _window_order(X, None, core, MAX_WINDOWS)
     # the local hypothesis (16 rigid searches) only when the window's other hypotheses fail in
     # every identity window: then the same windows again with it
-    seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity, margin,
-                                 replace(settings, local=False), window_points, report, tried, "identity")
+    quick = replace(settings, local=False)
+    seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:1], identity, margin, quick,
+                                 window_points, report, tried, "identity")
+    rigid = None  # (matrix, moved source, its tree) of the bounded rigid pre-alignment
+    rigid_tried = False
     if seeds is None and settings.prealign == "auto" and prior is None:
         # a large rigid motion on top of the warp (a body turned by 60° or 180°): the dominant rigid
-        # motion of the coarse sets (bounded search) places the same windows; kept only when one counts
+        # motion of the coarse sets (bounded search) places the same windows; kept only when one
+        # counts.  It goes before the identity's second window when it explains more of the coarse
+        # sets than the identity does (an identity-placed window on a turned body holds thousands
+        # of targets and fails after 15–27 s)
         report(0.06, "rigid pre-alignment (bounded)")
         t0 = time.perf_counter()
         found = rigid_register(X[si], Y[ti], model="rigid", seed=settings.seed,
@@ -553,14 +559,23 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         if found:
             A = np.asarray(found.matrix, dtype=float)
             Xp = X @ A[:3, :3].T + A[:3, 3]
-            tree_xp = cKDTree(Xp[dx])
-            seeds, local = _seed_windows(Xp, Y, tree_xp, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
-                                         margin, replace(settings, local=False), window_points, report, tried,
-                                         "rigid")
-            info["auto_prealign"]["angle_deg"] = float(found.angle_deg)
-            if seeds is not None:
-                prior, X, tree_xd = A, Xp, tree_xp
-                tree_x = cKDTree(X)
+            rigid = (A, Xp, cKDTree(Xp[dx]))
+            tree_ti = cKDTree(Y[ti])
+            explained = (_explained(X[si], tree_ti, coarse_spacing), _explained(Xp[si], tree_ti, coarse_spacing))
+            info["auto_prealign"].update(angle_deg=float(found.angle_deg), explained=explained)
+            if explained[1] > explained[0]:
+                rigid_tried = True
+                seeds, local = _seed_windows(Xp, Y, rigid[2], dx, tree_y, by_identity[:IDENTITY_WINDOWS],
+                                             identity, margin, quick, window_points, report, tried, "rigid")
+    if seeds is None:
+        seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[1:IDENTITY_WINDOWS], identity,
+                                     margin, quick, window_points, report, tried, "identity")
+    if seeds is None and rigid is not None and not rigid_tried:
+        seeds, local = _seed_windows(rigid[1], Y, rigid[2], dx, tree_y, by_identity[:IDENTITY_WINDOWS],
+                                     identity, margin, quick, window_points, report, tried, "rigid")
+    if seeds is not None and tried[-1]["placement"] == "rigid":
+        prior, X, tree_xd = rigid
+        tree_x = cKDTree(X)
     if seeds is None and settings.local:
         seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
                                      margin, settings, window_points, report, tried, "identity")
@@ -594,16 +609,16 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # one non-rigid motion is continuous: grow from the seeds' largest part that is connected in
     # the source and moves continuously (segment.motion_parts); a few wrong seeds apart from it
     # would otherwise grow a locally consistent wrong region (a slide along the surface)
-    if seeds.shape[0] >= 4:
-        parts = ms.motion_parts(X[seeds[:, 0]], Y[seeds[:, 1]], settings.strain, 0.5 * spacing + floor)
-        info["n_seeds_off_part"] = int(np.sum(parts != 0))
-        seeds = seeds[parts == 0]
-
-    # 4. growth, polish, final local matching within the sampling gate, local eq. 41
     gate = 0.5 * spacing + floor
     # half the local spacing where the target is sampled more sparsely than the median (a body's
     # limbs against its face and hands)
     gates = ms.local_gates(Y, tree_y, gate, floor, rows=dy)
+    if seeds.shape[0] >= 4:
+        parts = ms.motion_parts(X[seeds[:, 0]], Y[seeds[:, 1]], settings.strain, gates[seeds[:, 1]])
+        info["n_seeds_off_part"] = int(np.sum(parts != 0))
+        seeds = seeds[parts == 0]
+
+    # 4. growth, polish, final local matching within the sampling gate, local eq. 41
     spacing_x = median_spacing(X[dx])  # the growth's step, the same in every round
     report(0.5, f"growth from {seeds.shape[0]} seeds")
     t0 = time.perf_counter()
@@ -683,6 +698,13 @@ MIN_WINDOW_SHARE = 0.15
 
 def _identity(p):
     return np.array(p, dtype=float)
+
+
+def _explained(points, tree, gate: float) -> int:
+    """How many of ``points`` have a row of ``tree`` within ``gate``: the share of the coarse sets
+    that a placement (the identity, a rigid motion) already explains."""
+    d = tree.query(points, k=1, distance_upper_bound=gate)[0]
+    return int(np.isfinite(d).sum())
 
 
 def _core(X, dx, tree_xd, si) -> np.ndarray:

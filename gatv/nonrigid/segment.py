@@ -29,7 +29,8 @@ from ..candidates import median_spacing
 from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..verdict import chance_verdict
 from .motion import NonRigidMotion
-from .multiscale import motion_parts
+from .multiscale import GROW_NEIGHBOURS, _local_spacing, dense_rows, local_gates, motion_parts
+from .parts import MIN_CONTACTS
 from .registration import VERDICT_METHOD, register
 
 __all__ = ["NonRigidSegmentation", "motion_parts", "segment"]
@@ -155,11 +156,21 @@ def segment(
     motions: list[NonRigidMotion] = []
     rounds: list[dict] = []
 
+    # the structure's rows (multiscale.dense_rows of each whole set: not the outliers scattered
+    # through the volume); a round needs ``least`` of them unexplained on either side
+    structure_s = np.zeros(X.shape[0], bool)
+    structure_t = np.zeros(Y.shape[0], bool)
+    structure_s[dense_rows(X)] = True
+    structure_t[dense_rows(Y)] = True
+
     def search():
         """:func:`register` on the rows no motion explains yet; or why there is nothing to register."""
         rs, rt = np.flatnonzero(src_lab < 0), np.flatnonzero(tgt_lab < 0)
         if min(rs.size, rt.size) < least:
             return Stop("fewer unexplained points than a motion needs", exhausted=True)
+        left = (int(structure_s[rs].sum()), int(structure_t[rt].sum()))
+        if min(left) < least:
+            return Stop("fewer unexplained rows on the structure than a motion needs", exhausted=True)
         report(len(motions) / max_motions, f"round {len(rounds) + 1}: {rs.size} x {rt.size} points")
         t0 = time.perf_counter()
         try:
@@ -172,7 +183,7 @@ def segment(
                   "hypotheses": m.info.get("hypotheses"), "prealign": m.info.get("prealign"),
                   "windows": m.info.get("windows"), "coarse": m.info.get("coarse_hypothesis"),
                   "local_windows": m.info.get("local_windows"), "time_s": time.perf_counter() - t0,
-                  "verdict": _round_verdict(m, m.support, least)}
+                  "verdict": _round_verdict(m, m.support, least), "structure_rows": left}
         rounds.append(record)
         return Candidate(m, m.support, _Registered(rs, rt, record))
 
@@ -182,19 +193,24 @@ def segment(
         if m.support < least:
             return Judgement(False, m.info.get("reason", "no motion beats chance among the remaining points"))
         pairs = np.column_stack([d.rs[m.correspondences[:, 0]], d.rt[m.correspondences[:, 1]]])
-        gate = float(m.info.get("gate", 0.5 * median_spacing(Y[d.rt])))
-        parts = motion_parts(X[pairs[:, 0]], Y[pairs[:, 1]], strain, gate)
+        parts = motion_parts(X[pairs[:, 0]], Y[pairs[:, 1]], strain, _match_gates(Y, d.rt, m))
         sizes = np.bincount(parts)
         d.record["parts"] = sizes.tolist()
-        if not np.any(sizes >= least):
+        if sizes[0] < least:
             return Judgement(False, "the registration's matches split into parts too small to count")
-        return Judgement(True, "kept", detail=_Parts(pairs, parts, sizes))
+        return Judgement(True, "kept", detail=_Parts(pairs, _beside(X, pairs, parts), sizes, parts))
 
     def remove(candidate: Candidate, judgement: Judgement) -> list[NonRigidMotion]:
-        """Each part with enough support a motion, up to ``max_motions``; its rows leave the pool."""
+        """Each part with enough support that meets the round's largest part a motion (up to
+        ``max_motions``); its rows leave the pool.  A part apart from the largest goes back to the
+        pool: the registration vouches for what its seeds grew continuously, and a second body
+        reached across a gap (by outliers between two shapes, 30% outliers: a face's growth crossed
+        to the body and matched 1,017 of its rows at precision 0.40) is searched again from its own
+        seeds in a later round.  A part that meets it (a limb past a joint, split off where the
+        displacement turns faster than the strain allows) is its own motion, as before."""
         m, d = candidate.motion, judgement.detail
         added = []
-        for p in np.flatnonzero(d.sizes >= least):
+        for p in np.flatnonzero((d.sizes >= least) & d.beside):
             if len(motions) >= max_motions:
                 break
             sel = d.pairs[d.parts == p]
@@ -203,6 +219,9 @@ def segment(
             label = len(motions) - 1
             src_lab[sel[:, 0]] = label
             tgt_lab[sel[:, 1]] = label
+            # unmatched rows lying among its matches (a row whose partner the other set lacks)
+            _absorb(X, src_lab, sel[:, 0], label)
+            _absorb(Y, tgt_lab, sel[:, 1], label)
             added.append(motions[-1])
         return added
 
@@ -244,8 +263,9 @@ class _Parts:
     """The matches of an accepted registration split into continuously moving parts."""
 
     pairs: np.ndarray  # the matches, in input rows
-    parts: np.ndarray  # each match's part
+    beside: np.ndarray  # each part: it is the largest or meets it (:func:`_beside`)
     sizes: np.ndarray  # matches per part
+    parts: np.ndarray  # each match's part
 
 
 def _round_verdict(m: NonRigidMotion, support: int, least: float) -> dict:
@@ -263,11 +283,55 @@ def _sub_motion(m: NonRigidMotion, rows, pairs) -> NonRigidMotion:
                           m.translations[rows], smoothing, None, dict(m.info))
 
 
+def _beside(X, pairs, parts) -> np.ndarray:
+    """For each part of ``parts``: whether it is part 0 (the largest) or meets it: at least
+    ``MIN_CONTACTS`` of its matches have a match of part 0 among their ``GROW_NEIGHBOURS`` nearest
+    matches (source side), within three median matched spacings, or three of their local spacings
+    where the matches are sampled non-uniformly (a body's shoulder, sampled three times more
+    sparsely than its face and hands)."""
+    xs = X[pairs[:, 0]]
+    n = int(parts.max()) + 1
+    out = np.zeros(n, bool)
+    out[0] = True
+    if n == 1:
+        return out
+    tree = cKDTree(xs)
+    reach = np.full(xs.shape[0], 3.0 * median_spacing(xs))
+    local = _local_spacing(xs, tree)
+    if local is not None:
+        reach = np.maximum(reach, 3.0 * local)
+    k = min(GROW_NEIGHBOURS + 1, xs.shape[0])
+    dist, nb = tree.query(xs, k=k)
+    meets = np.any((parts[nb[:, 1:]] == 0) & (dist[:, 1:] <= reach[:, None]), axis=1)
+    near = np.bincount(parts[meets & (parts != 0)], minlength=n)
+    out[1:] = near[1:] >= MIN_CONTACTS
+    return out
+
+
+def _match_gates(Y, rows, m: NonRigidMotion) -> np.ndarray | float:
+    """The sampling gate of each of ``m``'s matches (targets ``Y[rows]``): the registration's
+    gate, or half the local spacing where the target is sampled non-uniformly
+    (:func:`gatv.nonrigid.multiscale.local_gates`, as the registration gated them)."""
+    Yr = Y[rows]
+    spacing = m.info.get("spacing")
+    gate = float(m.info.get("gate", 0.5 * median_spacing(Yr)))
+    floor = max(0.0, gate - 0.5 * float(spacing)) if spacing else 0.0
+    gates = local_gates(Yr, cKDTree(Yr), gate, floor, rows=dense_rows(Yr))
+    return gates[m.correspondences[:, 1]]
+
+
 def _absorb(P, labels, matched, k: int) -> None:
-    """Give label ``k`` to unlabelled rows within one matched spacing of ``k``'s matched rows."""
+    """Give label ``k`` to unlabelled rows lying among ``k``'s matched rows: within one spacing of the
+    nearest, its own (the distance to its nearest other matched row) where that is wider than the
+    median (a body's limbs)."""
     free = np.flatnonzero(labels < 0)
     if free.size == 0 or matched.size < 2:
         return
     pts = P[matched]
-    d, _ = cKDTree(pts).query(P[free], k=1, distance_upper_bound=median_spacing(pts))
-    labels[free[np.isfinite(d)]] = k
+    tree = cKDTree(pts)
+    own = tree.query(pts, k=2)[0][:, 1]
+    h = median_spacing(pts)
+    d, j = tree.query(P[free], k=1, distance_upper_bound=max(h, float(own.max())))
+    ok = np.isfinite(d)
+    ok[ok] = d[ok] <= np.maximum(h, own[j[ok]])
+    labels[free[ok]] = k

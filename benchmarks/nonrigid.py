@@ -6,6 +6,9 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
 * ``face``: the real face expressions of ``shared/data/nonrigid_bcpd_face``,
   all 23,728 rows, x → y and x → g.y, the same rows in both (exact truth);
   and x → y *differently sampled* (each set an independent 80% of the rows).
+* ``face-sizes``: the face x → y at 10k, 25k, 100k points per set (``--sizes`` ≥ 10,000), each set
+  an independent 80% of rows: a random subset of the 23,728 vertices, or all of them plus points
+  drawn on the mesh's triangles with the same barycentric coordinates in both expressions.
 * ``twist``: a 10 × 10 plane (jittered grid) twisted by 90° (Fig. 13) at
   2k, 10k, 25k and 100k points per set with the same rows, and at 10k and
   25k differently sampled (independent 80% subsets of 12.5k / 31k points).
@@ -18,7 +21,8 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
 * ``bunny``: ``shared/data/nonrigid_bcpd_bunny`` x → y (rotated about 93°,
   scaled about 0.83, deformed; 8,171 rows) and bunny-x-co → y (the 1,600-point
   outlier blob in the source), with the similarity model as pre-alignment
-  (``prealign=True, model="similarity"``); outliers are not added to these.
+  (``prealign=True, model="similarity"``); outliers are not added to these; both again with each
+  set an independent 80% of the 8,171 rows (the blob stays whole).
 * ``two-motion``: a twisted plate and a bent bar, side by side, moving
   independently (``gatv.nonrigid.segment``; peers register the whole scene).
 * ``two-real`` (not in the default groups): the body and 6,000 rows of the face side by side
@@ -119,8 +123,8 @@ TOLD = {"gatv+sim": ("bunny",)}
 #: (``--peer-info blind``, the default): CPD's own default in Myronenko's reference
 #: code (``opt.outliers = 0.1``), the same for every row, as gatv is told nothing.
 PEER_W = 0.1
-GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion", "two-real", "small")
-DEFAULT_GROUPS = ("face", "twist", "elastic", "body", "bunny", "two-motion")
+GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "two-motion", "two-real", "small")
+DEFAULT_GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "two-motion")
 DEFAULT_SIZES = (2000, 10000, 25000)
 PEER_MODULE = {"cpd": "pycpd", "bcpd": "probreg", "filterreg": "probreg"}
 
@@ -181,6 +185,43 @@ def _subsets(x, y, rng, sampled: bool, share: float = 0.8):
     return np.sort(rng.choice(n, k, replace=False)), np.sort(rng.choice(n, k, replace=False))
 
 
+def _face_rows(x, y, total: int, rng):
+    """``total`` rows of the face pair: a random subset of its 23,728 vertices, or all of them and
+    points drawn on its triangles (area-weighted, uniform barycentric coordinates) with the same
+    coordinates in both expressions, the deformation interpolated linearly within each triangle."""
+    n = x.shape[0]
+    if total <= n:
+        rows = np.sort(rng.choice(n, total, replace=False))
+        return x[rows], y[rows]
+    tri = np.loadtxt(DATA / "nonrigid_bcpd_face/face-g-triangles.txt", dtype=np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]), axis=1)
+    pick = rng.choice(tri.shape[0], total - n, p=area / area.sum())
+    u, v = rng.uniform(size=(2, total - n))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    w = np.column_stack([1 - u - v, u, v])[:, :, None]
+    return np.vstack([x, np.sum(w * x[tri[pick]], axis=1)]), np.vstack([y, np.sum(w * y[tri[pick]], axis=1)])
+
+
+def _bunny_sampled(x, y, rng) -> Trial:
+    """The bcpd bunny with each set an independent 80% of its 8,171 rows (the truth: the rows both
+    share); bunny-x-co's outlier blob (its rows past 8,171) stays whole in the source."""
+    from gatv.candidates import median_spacing
+
+    n_true = y.shape[0]
+    xr, yr = _subsets(x[:n_true], y, rng, True)
+    src = np.vstack([x[xr], x[n_true:]])
+    tgt = y[yr]
+    ps, pt = rng.permutation(src.shape[0]), rng.permutation(tgt.shape[0])
+    inv_s, inv_t = np.argsort(ps), np.argsort(pt)
+    _, ix, iy = np.intersect1d(xr, yr, return_indices=True)
+    pairs = np.column_stack([inv_s[ix], inv_t[iy]])
+    pairs = pairs[np.argsort(pairs[:, 0])]
+    inl = inv_s[: xr.size]
+    order = np.argsort(inl)
+    return Trial(src[ps], tgt[pt], pairs, inl[order], y[xr][order], np.arange(tgt.shape[0]), median_spacing(tgt))
+
+
 def make_trial(case: Case, f: float, rng) -> Trial:
     """Build the trial of ``case`` at outlier share ``f`` (shuffled, outliers in each box)."""
     from gatv.candidates import median_spacing
@@ -192,6 +233,9 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         x, y = _plane_pair(case, rng)
     elif case.kind == "face":
         x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
+    elif case.kind == "face-n":
+        x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
+        x, y = _face_rows(x, y, round(case.n / 0.8) if case.sampled else case.n, rng)
     elif case.kind == "body":
         x, y = _load("nonrigid_bcpd_human/female-x.txt"), _load("nonrigid_bcpd_human/female-y.txt")
     elif case.kind == "small-face":
@@ -208,6 +252,8 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         x, y = _load(f"nonrigid_bcpd_bunny/{case.warp}.txt"), _load("nonrigid_bcpd_bunny/bunny-y.txt")
         # bunny-x-co: rows 8171.. are the outlier blob (no true position)
         n_true = y.shape[0]
+        if case.sampled:
+            return _bunny_sampled(x, y, rng)
         ps, pt = rng.permutation(x.shape[0]), rng.permutation(n_true)
         inv_s, inv_t = np.argsort(ps), np.argsort(pt)
         pairs = np.column_stack([inv_s[:n_true], inv_t])
@@ -510,6 +556,9 @@ def cases(groups, sizes):
         out += [Case("face x→y (23,728)", "face", warp="face-y"),
                 Case("face x→g.y (23,728)", "face", warp="face-g.y"),
                 Case("face x→y, sampled 80%/80%", "face", warp="face-y", sampled=True)]
+    if "face-sizes" in groups:
+        out += [Case(f"face x→y {n // 1000}k, sampled 80%/80%", "face-n", n, "face-y", sampled=True)
+                for n in sizes if n >= 10_000]
     if "twist" in groups:
         out += [Case(f"twist 90°, {n // 1000}k", "plane", n, "twist90") for n in sizes]
         out += [Case(f"twist 90°, {n // 1000}k sampled 80%/80%", "plane", n, "twist90", sampled=True)
@@ -522,7 +571,10 @@ def cases(groups, sizes):
                 Case("body x→y turned 180°, sampled 80%/80%", "body", sampled=True, turn=180.0)]
     if "bunny" in groups:
         out += [Case("bunny x→y (sim. + deform)", "bunny", warp="bunny-x", outliers_ok=False),
-                Case("bunny x-co→y (+1,600 blob)", "bunny", warp="bunny-x-co", outliers_ok=False)]
+                Case("bunny x-co→y (+1,600 blob)", "bunny", warp="bunny-x-co", outliers_ok=False),
+                Case("bunny x→y, sampled 80%/80%", "bunny", warp="bunny-x", outliers_ok=False, sampled=True),
+                Case("bunny x-co→y, sampled 80%/80%", "bunny", warp="bunny-x-co", outliers_ok=False,
+                     sampled=True)]
     if "two-motion" in groups:
         out += [Case("two motions: twisted plate + bent bar (2×400)", "two", 400)]
     if "two-real" in groups:
@@ -607,7 +659,7 @@ def main(argv=None) -> int:
         chosen = [c for c in chosen if args.only in c.name]
     if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
         print(f"data not found in {DATA}: face and bunny rows left out")
-        chosen = [c for c in chosen if c.kind not in ("face", "small-face", "bunny", "body", "two-real")]
+        chosen = [c for c in chosen if c.kind not in ("face", "face-n", "small-face", "bunny", "body", "two-real")]
     elif not (DATA / "nonrigid_bcpd_human" / "female-x.txt").is_file():
         print(f"body data not found in {DATA}: body rows left out")
         chosen = [c for c in chosen if c.kind not in ("body", "two-real")]

@@ -169,8 +169,13 @@ def test_articulated_body_sampled_80_80_recall():
     assert np.sum(src == tgt) / shared >= 0.9  # exact recall of the rows both sets share
     h = median_spacing(y[yr])
     assert np.mean(np.linalg.norm(y[tgt] - y[src], axis=1) <= h) >= 0.95
-    # the arms turn by about 50° at the shoulders: parts that turn are reported
-    assert any(p["angle_deg"] > 30.0 for p in m.info["parts"])
+    # the arms turn by about 50° at the shoulders: parts that turn are reported, and a joint between
+    # the torso (near 0°) and a turned part, where the two motions move the centre alike within a
+    # spacing (the shoulder blends; the elbows' gaps are under a tenth of a spacing)
+    parts = m.info["parts"]
+    assert any(p["angle_deg"] > 30.0 for p in parts)
+    assert any(j["gap"] < h and min(parts[i]["angle_deg"] for i in j["parts"]) < 5.0
+               and max(parts[i]["angle_deg"] for i in j["parts"]) > 30.0 for j in m.info["joints"])
 
 
 def test_part_windows_join_a_limb_at_its_joint_but_not_a_second_body():
@@ -195,3 +200,42 @@ def test_part_windows_join_a_limb_at_its_joint_but_not_a_second_body():
     assert found.growth.max() == 1
     kept = [w for w in found.windows if w.get("kept")]
     assert len(kept) == 1 and kept[0].get("hinge_gap") is not None and kept[0]["hinge_gap"] < 0.2 * h
+
+
+def test_neighbour_pairs_are_the_radius_pairs_on_a_uniform_sampling_and_reach_sparse_rows():
+    from gatv.nonrigid.deformations import sample_plane
+
+    p = sample_plane(300, 10.0, seed=2)
+    r = 3.0 * median_spacing(p)
+    a, b = ms.neighbour_pairs(p, r)
+    ref = cKDTree(p).query_pairs(r, output_type="ndarray")
+    assert np.array_equal(np.column_stack([a, b]), ref)
+    # a strip sampled at 0.1 (630 rows) and at 0.5 (175 rows): every sparse row gets a neighbour
+    g = np.mgrid[0:3:0.1, 0:2.05:0.1].reshape(2, -1).T
+    s = np.mgrid[3:20:0.5, 0:2.05:0.5].reshape(2, -1).T
+    q = np.column_stack([np.vstack([g, s]), np.zeros(len(g) + len(s))])
+    a, b = ms.neighbour_pairs(q, 3.0 * median_spacing(q))
+    linked = np.zeros(len(q), bool)
+    linked[a] = linked[b] = True
+    assert linked.all()
+    assert np.all(np.linalg.norm(q[a] - q[b], axis=1) <= 1.5 + 1e-9)  # three sparse spacings at most
+
+
+def test_segment_labels_each_row_with_the_part_of_its_match():
+    from gatv.nonrigid import deformations as D
+    from gatv.nonrigid import segment
+
+    a = D.sample_plane(100, 10.0, seed=0)
+    b = a + [14.0, 0, 0]
+    seg = segment(np.vstack([a, b]), np.vstack([D.twist(a, 45.0), D.bend(b, 60.0) + [0, 0, 3]]))
+    assert len(seg) == 2
+    sp, tp = seg.info["source_parts"], seg.info["target_parts"]
+    matched = np.zeros(200, bool)
+    for mo in seg.motions:
+        labels = np.asarray(mo.info["part_labels"])
+        assert labels.shape == (mo.support,)
+        assert np.array_equal(sp[mo.correspondences[:, 0]], labels)
+        assert np.array_equal(tp[mo.correspondences[:, 1]], labels)
+        assert labels.max() < len(mo.info["parts"])
+        matched[mo.correspondences[:, 0]] = True
+    assert np.all(sp[~matched] == -1)

@@ -56,6 +56,7 @@ __all__ = [
     "loo_affine_residuals",
     "memory_estimate",
     "motion_parts",
+    "neighbour_pairs",
     "on_surfaces",
     "plane_distances",
     "refine",
@@ -673,16 +674,7 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
     k = xs.shape[0]
     if k < 2:
         return np.zeros(k, np.int64)
-    radius = 3.0 * median_spacing(xs)
-    tree = cKDTree(xs)
-    a, b = tree.query_pairs(radius, output_type="ndarray").T
-    local = _local_spacing(xs, tree)
-    if local is not None:  # non-uniform: also the nearest within three local spacings
-        m = min(GROW_NEIGHBOURS + 1, k)
-        dist, nb = tree.query(xs, k=m)
-        keep = (dist[:, 1:] <= 3.0 * local[:, None]) & (dist[:, 1:] > radius)
-        rows = np.repeat(np.arange(k), m - 1).reshape(k, m - 1)
-        a, b = np.r_[a, rows[keep]], np.r_[b, nb[:, 1:][keep]]
+    a, b = neighbour_pairs(xs, 3.0 * median_spacing(xs))
     per_match = np.ndim(gate) > 0
     if per_match:
         g = np.asarray(gate, dtype=float)
@@ -694,6 +686,26 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
     rank = np.empty_like(sizes)
     rank[np.argsort(-sizes, kind="stable")] = np.arange(sizes.size)
     return rank[labels]
+
+
+def neighbour_pairs(P, radius: float, tree=None):
+    """Pairs ``(a, b)`` of rows of ``P`` within ``radius`` of each other, and, where the sampling is
+    non-uniform (:func:`_local_spacing`), each row with its ``GROW_NEIGHBOURS`` nearest within
+    three of its local spacings: the neighbours of :func:`motion_parts` and of
+    :mod:`gatv.nonrigid.parts` (a body's limbs are sampled 2–3 times more sparsely than the median,
+    and a radius of three median spacings leaves them in pieces)."""
+    P = np.asarray(P, dtype=np.float64)
+    tree = cKDTree(P) if tree is None else tree
+    a, b = tree.query_pairs(radius, output_type="ndarray").T
+    local = _local_spacing(P, tree)
+    if local is not None:
+        k = P.shape[0]
+        m = min(GROW_NEIGHBOURS + 1, k)
+        dist, nb = tree.query(P, k=m)
+        keep = (dist[:, 1:] <= 3.0 * local[:, None]) & (dist[:, 1:] > radius)
+        rows = np.repeat(np.arange(k), m - 1).reshape(k, m - 1)
+        a, b = np.r_[a, rows[keep]], np.r_[b, nb[:, 1:][keep]]
+    return a, b
 
 
 def _local_spacing(P, tree, k: int = 8) -> np.ndarray | None:

@@ -325,9 +325,8 @@ class Part:
 
 
 def _graph(xs, radius):
-    k = xs.shape[0]
-    a, b = cKDTree(xs).query_pairs(radius, output_type="ndarray").T
-    return a, b, k
+    a, b = ms.neighbour_pairs(xs, radius)
+    return a, b, xs.shape[0]
 
 
 def rigid_parts(source_points, target_points, *, tolerance: float, seed: int = 0,
@@ -339,7 +338,8 @@ def rigid_parts(source_points, target_points, *, tolerance: float, seed: int = 0
     motion of each one's 12 nearest matches (its local motion), and counts
     the matches within ``tolerance`` of it that are connected to the seed in
     the source (matches closer than ``radius``, default three median matched
-    spacings).  The best is refitted on its inliers (Kabsch) and counted
+    spacings, or among the nearest within three local spacings where the sampling is
+    non-uniform: :func:`gatv.nonrigid.multiscale.neighbour_pairs`).  The best is refitted on its inliers (Kabsch) and counted
     again; it is kept when it holds ``min_size`` matches (default
     ``max(8, PART_MIN_SHARE · K)``) and its matches are removed.  Same seed,
     same parts.
@@ -449,8 +449,10 @@ def parts_info(source_points, target_points, *, spacing: float, floor: float = 0
     the parts are found on a seeded subsample of that many, and each match
     takes the part of its nearest sampled match when that part's motion fits
     it within the tolerance.  Two parts meet when a match of
-    one lies within three matched spacings of a match of the other; their
-    joint is :func:`joint` with ``parts`` the two part indices.
+    one lies within three matched spacings of a match of the other (or, where the matches are
+    sampled non-uniformly, is among its nearest within three of its local spacings:
+    :func:`gatv.nonrigid.multiscale.neighbour_pairs`); their joint is :func:`joint` with
+    ``parts`` the two part indices.
     """
     xs = np.asarray(source_points, dtype=np.float64)
     ys = np.asarray(target_points, dtype=np.float64)
@@ -486,7 +488,7 @@ def parts_info(source_points, target_points, *, spacing: float, floor: float = 0
                       "rms": p.rms, "joints": []})
     joints = []
     if len(found) >= 2:
-        a, b = cKDTree(xs).query_pairs(radius, output_type="ndarray").T
+        a, b, _ = _graph(xs, radius)
         la, lb = labels[a], labels[b]
         cross = (la >= 0) & (lb >= 0) & (la != lb)
         lo, hi = np.minimum(la[cross], lb[cross]), np.maximum(la[cross], lb[cross])

@@ -51,7 +51,10 @@ class NonRigidSegmentation:
         (within one spacing) carry its label.
     info : dict
         Per round: the registration's hypothesis and support, the parts
-        found; the reason the peeling stopped.  Not compared.
+        found; the reason the peeling stopped; ``source_parts`` and
+        ``target_parts``, per row the near-rigid part of its match within its
+        motion (an index into that motion's ``info["parts"]``; -1: none).  Not
+        compared.
     """
 
     motions: tuple
@@ -236,6 +239,15 @@ def segment(
     remap = np.full(len(motions) + 1, -1, np.int64)
     remap[order] = np.arange(len(motions))
     info = {"rounds": rounds, "min_support": least}
+    # per row: the near-rigid part (index into its motion's info["parts"]) of its match, -1 when none
+    src_part = np.full(X.shape[0], -1, np.int64)
+    tgt_part = np.full(Y.shape[0], -1, np.int64)
+    for mo in motions:
+        labels = mo.info.get("part_labels")
+        if labels is not None and len(labels) == mo.support:
+            src_part[mo.correspondences[:, 0]] = labels
+            tgt_part[mo.correspondences[:, 1]] = labels
+    info.update(source_parts=src_part, target_parts=tgt_part)
     if motions:  # the weakest motion's verdict; with none, the last round's
         info["verdict"] = min((mo.info["verdict"] for mo in motions), key=lambda v: v["margin"])
     else:
@@ -279,8 +291,12 @@ def _round_verdict(m: NonRigidMotion, support: int, least: float) -> dict:
 def _sub_motion(m: NonRigidMotion, rows, pairs) -> NonRigidMotion:
     """The part ``rows`` of ``m``'s matches as a motion, with input-row correspondences."""
     smoothing = m.smoothing if int(rows.sum()) == m.support else 0.0
+    info = dict(m.info)
+    labels = info.get("part_labels")
+    if labels is not None and len(labels) == m.support:  # the near-rigid part of each of its matches
+        info["part_labels"] = np.asarray(labels)[rows]
     return NonRigidMotion(pairs, m.source_points[rows], m.target_points[rows], m.rotations[rows],
-                          m.translations[rows], smoothing, None, dict(m.info))
+                          m.translations[rows], smoothing, None, info)
 
 
 def _beside(X, pairs, parts) -> np.ndarray:

@@ -422,6 +422,22 @@ def test_many_copies_are_searched_block_by_block_with_their_whole_correspondence
     assert np.unique(rows).size == rows.size
 
 
+def test_a_fragment_too_small_for_a_copy_is_set_aside_once():
+    """Two copies and a 30% fragment of the model apart: the fragment passes its verdict but is no copy; found on
+    the whole scene after the blocks, it is set aside there once and for all (not searched again and again)."""
+    model = _model(2, 50)
+    rots = Rotation.random(3, random_state=5).as_matrix()
+    cut = model[model[:, 0] > np.quantile(model[:, 0], 0.7)]
+    pts = np.vstack([model @ rots[0].T, model @ rots[1].T + [12.0, 0, 0], cut @ rots[2].T + [24.0, 0, 0]])
+    rng = np.random.default_rng(3)
+    scene = np.vstack([pts, rng.uniform(pts.min(0) - 1, pts.max(0) + 1, (100, 3))])
+    found = instances(model, scene, seed=0, time_limit=60)
+    assert len(found) == 2 and found.info["exhausted"]
+    small = [r for r in found.info["rounds"] if r.get("kept") is False]
+    assert len(small) == 1 and "block" not in small[0]
+    assert np.all(found.labels[100:115] == -1)  # the fragment's points belong to no instance
+
+
 def _noisy_frames(model, k, n_frames, noise, seed, clutter=0.3):
     """Frames of ``k`` whole copies moving independently, Gaussian ``noise`` on every point, uniform clutter."""
     rng = np.random.default_rng(seed)

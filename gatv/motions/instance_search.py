@@ -649,7 +649,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
             return Stop(judgement.reason, exhausted=True)
         rows = candidate.detail
         small = rows[np.asarray(candidate.motion.correspondences, dtype=np.int64)[:, 1]]
-        if blocks[0] is not None:  # a copy cut by the block's side: its points stay in the other blocks
+        if current[0] >= 0:  # found in a block (a copy cut by its side?): its points stay in the other blocks
             blocks[0].set_aside(current[0], small, m)
         else:
             aside[small] = True

@@ -423,7 +423,14 @@ def instances(
     time_limit : float or None, default: ten times :data:`gatv.registration.TIME_LIMIT`
         Seconds for the whole call: no round starts past it, and each
         round's search gets what is left (at most a registration's own
-        bound).  ``info["reason"]`` says when it stopped the search.
+        bound).  ``info["reason"]`` says when it stopped the search.  On
+        scans the parts searched in vain since the last copy found (or the
+        start) share one registration's bound
+        (:data:`gatv.registration.TIME_LIMIT`, at most ``time_limit``): a
+        part that holds no copy costs a whole scans search (three attempts,
+        10-15 s on a 2-core machine), and a scene without the model would
+        otherwise cost that for each of its parts; no part starts when the
+        slowest part search so far would carry them past it.
 
     Returns
     -------
@@ -474,6 +481,9 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
 
     parts = _Parts(Y, int(rng.integers(0, 2**31 - 1)), memory_budget) if chosen == "scans" else None
     blocks: list = [None]  # the exact pipeline's blocks once a copy is found (scene_blocks)
+    # On scans: since when parts have been searched in vain (the start, or the last copy kept), how many, and
+    # the slowest part search so far (search_parts' bound).
+    vain = {"since": t_start, "parts": 0, "slowest": 0.0}
     current = [-1]  # the block of the last candidate
     least_part = max(MIN_MODEL_POINTS, int(np.ceil(smallest_part(X, Y) * parts.voted))) if parts is not None else 0
 
@@ -601,8 +611,14 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         connected component of the rows), so they are found once a round.
         """
         for part in scene_parts(Y, rows, parts.mask, parts.link, least_part):
+            now = time.perf_counter()
+            if deadline is not None and now - vain["since"] + vain["slowest"] > min(TIME_LIMIT, deadline - t_start):
+                return Stop(f"the parts searched in vain since the last copy ({vain['parts']}) took "
+                            f"{now - vain['since']:.0f} s, and one more would take the scene past one "
+                            f"registration's time limit ({TIME_LIMIT:g} s)", exhausted=False)
             try:
                 result = register_on(part, None)
+                vain["slowest"] = max(vain["slowest"], rounds[-1]["time_s"])
             except InputError as exc:
                 result = None
                 rounds.append({"round": len(rounds), "scene_points": int(part.size), "reason": str(exc)})
@@ -615,6 +631,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
                 rounds[-1]["reason"] = result.info.get("reason", "the part's motion did not pass its verdict")
             rounds[-1]["set_aside"] = int(part.size)
             aside[part] = True
+            vain["parts"] += 1
             if deadline is not None and time.perf_counter() > deadline:
                 return Stop("the time limit ran out before the next search", exhausted=False)
         return Stop(f"no part of the scene's surfaces left holds the {least_part} points a copy needs",
@@ -643,6 +660,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
     def reject(candidate: Candidate, judgement):
         if judgement.detail == "noise":  # on scans: the part is set aside, the next one searched
             aside[candidate.detail] = True
+            vain["parts"] += 1
             rounds[-1].update(kept=False, set_aside=int(candidate.detail.size), reason=judgement.reason)
             return None
         if judgement.detail != "small":
@@ -674,6 +692,7 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         motion = dataclasses.replace(result, correspondences=pairs, info=info)
         found.append(motion)
         rounds[-1].update(kept=True, scene_points_taken=int(taken.size))
+        vain.update(since=time.perf_counter(), parts=0)
         if chosen == "exact" and not found[:-1]:
             # once the first copy says how far a copy reaches (the model's extent and its gate's margin)
             blocks[0] = scene_blocks(Y, model_diameter(X) + 2.0 * g)

@@ -239,3 +239,23 @@ def test_segment_labels_each_row_with_the_part_of_its_match():
         assert labels.max() < len(mo.info["parts"])
         matched[mo.correspondences[:, 0]] = True
     assert np.all(sp[~matched] == -1)
+
+
+def test_contacts_reach_across_a_sparse_boundary_and_not_across_a_jump():
+    from gatv.nonrigid.parts import contacts
+
+    # dense rows (0.1) for x < 3, sparse (0.5) beyond; the sparse rows are the new part
+    g = np.mgrid[0:3:0.1, 0:2.05:0.1].reshape(2, -1).T
+    s = np.mgrid[3:20:0.5, 0:2.05:0.5].reshape(2, -1).T
+    X = np.column_stack([np.vstack([g, s]), np.zeros(len(g) + len(s))])
+    old = np.column_stack([np.arange(len(g))] * 2)
+    new = np.column_stack([np.arange(len(g), len(X))] * 2)
+    moved = X @ Rotor.from_axis_angle([0, 0, 1], 0.1).as_matrix().T + [0.3, 0.1, 0.0]
+    # the three sparse columns within three sparse spacings of the dense edge meet it (5 rows each,
+    # less the corners beyond 1.5): more than three median spacings (0.3) reach
+    n = contacts(X, moved, old, new, 0.35, 0.05)
+    assert n >= 10
+    # the sparse part moved 2 units off: no contact
+    jumped = moved.copy()
+    jumped[len(g):] += [0.0, 0.0, 2.0]
+    assert contacts(X, jumped, old, new, 0.35, 0.05) == 0

@@ -262,23 +262,36 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
 
 def contacts(X, Y, old, new, strain: float, gate: float) -> int:
     """Matches of ``new`` that meet a match of ``old`` continuously: within three matched spacings
-    in the source, their displacements differing by at most ``strain · |x_a − x_b| + gate`` (the
-    length half of the local eq.-41 tolerance, as :func:`gatv.nonrigid.multiscale.motion_parts`)."""
+    in the source (or, where the matches are sampled non-uniformly, among its ``GROW_NEIGHBOURS``
+    nearest of ``old`` within three of its local spacings: a body's shoulder is sampled three times
+    more sparsely than the median), their displacements differing by at most
+    ``strain · |x_a − x_b| + gate`` (the length half of the local eq.-41 tolerance, as
+    :func:`gatv.nonrigid.multiscale.motion_parts`)."""
     if old.shape[0] == 0 or new.shape[0] == 0:
         return 0
     xo, xn = X[old[:, 0]], X[new[:, 0]]
     do, dn = Y[old[:, 1]] - xo, Y[new[:, 1]] - xn
-    radius = 3.0 * median_spacing(np.vstack([xo, xn]))
-    near = cKDTree(xo).query_ball_point(xn, radius)
-    g = np.broadcast_to(np.asarray(gate, dtype=float), (Y.shape[0],)) if np.ndim(gate) else None
-    n = 0
-    for i, js in enumerate(near):
-        if not js:
-            continue
-        js = np.asarray(js)
-        lim = strain * np.linalg.norm(xo[js] - xn[i], axis=1) + (gate if g is None else g[new[i, 1]])
-        n += bool(np.any(np.linalg.norm(do[js] - dn[i], axis=1) <= lim))
-    return n
+    both = np.vstack([xo, xn])
+    radius = 3.0 * median_spacing(both)
+    g = np.broadcast_to(np.asarray(gate, dtype=float), (Y.shape[0],))[new[:, 1]]
+    local = ms._local_spacing(both, cKDTree(both))
+    if local is None:  # about uniform: every old match within the radius
+        n = 0
+        for i, js in enumerate(cKDTree(xo).query_ball_point(xn, radius)):
+            if js:
+                js = np.asarray(js)
+                lim = strain * np.linalg.norm(xo[js] - xn[i], axis=1) + g[i]
+                n += bool(np.any(np.linalg.norm(do[js] - dn[i], axis=1) <= lim))
+        return n
+    reach = np.maximum(radius, 3.0 * local[xo.shape[0]:])
+    k = min(ms.GROW_NEIGHBOURS, xo.shape[0])
+    dist, js = cKDTree(xo).query(xn, k=k, distance_upper_bound=float(reach.max()))
+    dist, js = dist.reshape(xn.shape[0], k), js.reshape(xn.shape[0], k)
+    ok = dist <= reach[:, None]
+    jj = np.where(ok, js, 0)
+    lim = strain * dist + g[:, None]
+    close = np.linalg.norm(do[jj] - dn[:, None, :], axis=2) <= np.where(ok, lim, -1.0)
+    return int(np.sum(np.any(close & ok, axis=1)))
 
 
 def hinged(X, Y, old, new, gate: float) -> dict | None:

@@ -521,3 +521,17 @@ def test_cli_segment_writes_labels(tmp_path, capsys, parse_nonrigid):
     assert record["success"] and record["n_motions"] == 2
     assert len(record["source_labels"]) == 160
     assert "motions:         2" in capsys.readouterr().out
+
+
+def test_segment_counts_only_structure_apart_from_the_motions_found():
+    from gatv.nonrigid.segment import _apart
+
+    a = deform.sample_plane(200, 10.0, seed=0)
+    P = np.vstack([a, a + [30.0, 0.0, 0.0]])  # two patches far apart
+    explained = np.zeros(400, bool)
+    explained[:200:2] = True  # every other row of the first patch matched
+    h = median_spacing(a)
+    rows = np.flatnonzero(~explained)
+    # the first patch's unmatched rows lie among its matches: only the second patch counts
+    assert _apart(P, rows, explained, 3.0 * h) == 200
+    assert _apart(P, rows, np.zeros(400, bool), 3.0 * h) == rows.size

@@ -414,7 +414,7 @@ def test_many_copies_are_searched_block_by_block_with_their_whole_correspondence
     found = instances(model, scene, seed=0)
     assert len(found) == 12 and sorted(_match(found, poses, model)) == list(range(12))
     assert any("block" in r for r in found.info["rounds"])  # the blocks were searched
-    assert any(r.get("whole_copy") for r in found.info["rounds"])  # a block's side cut a copy
+    assert any(r.get("whole_copy") is True for r in found.info["rounds"])  # a block's side cut a copy
     for k, m in enumerate(found):
         assert m.support == len(model)  # the whole copy's correspondences
         assert np.unique(owner[found.scene_rows(k)]).size == 1

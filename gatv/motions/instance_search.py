@@ -590,13 +590,18 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         box = rows[np.all((Y[rows] >= lo) & (Y[rows] <= hi), axis=1)]
         if np.setdiff1d(box, candidate.detail, assume_unique=True).size == 0:
             return candidate  # the block holds every point around the copy
+        before = len(rounds)
         try:
             again = register_at_noise(box, share, noise, candidate.support)
         except InputError:
-            return candidate
-        rounds[-1].update(block=current[0], whole_copy=True)
+            again = None
         if again and (again.info.get("verdict") or {}).get("passed", False) and again.support >= candidate.support:
+            rounds[-1].update(block=current[0], whole_copy=True)
             return Candidate(again, int(again.support), box)
+        # Kept as the block gave it: the block's round stays the candidate's record (the last one).
+        tried = rounds[before:]
+        del rounds[before:]
+        rounds[-1]["whole_copy"] = {"tried": len(tried), "reason": tried[-1].get("reason", "") if tried else ""}
         return candidate
 
     def block_noise():

@@ -4,15 +4,20 @@
 :func:`gatv.motions.segment` peels rigid ones: :func:`gatv.nonrigid.register`
 on the points no motion explains yet; its matches split into the parts that
 are connected in the source *and* move continuously — two matches are
-neighbours when their source points are within three matched spacings and
-their displacements agree up to the local strain (the tolerance of the
-local eq. 41, ``strain · |Δx| + gate``) — so two bodies that move
-independently become two motions even when one smooth warp was fitted
-through both; each part with enough support is a motion; its matched points
-and the unmatched points lying among them (within one spacing) leave the
-pool, and the search repeats until nothing beats chance.  The number of
-motions is not given.  The rounds are the one peel loop,
-:func:`gatv.peel_loop.peel_loop`, with the registration as its search step.
+neighbours when their source points are within three matched spacings (three
+local spacings where the sampling is non-uniform) and their displacements
+agree up to the local strain (the tolerance of the local eq. 41,
+``strain · |Δx| + gate``, at each match's local gate) — so two bodies that
+move independently become two motions even when one smooth warp was fitted
+through both.  The round's largest part is a motion, and so is each part
+with enough support that meets it (a limb past a joint); a part apart from
+it (a second body the growth reached across outliers) goes back to the pool
+and is searched from its own seeds.  A motion's matched points and the
+unmatched points lying among them leave the pool, and the search repeats
+until nothing beats chance or too little structure is left apart from the
+motions found.  The number of motions is not given.  The rounds are the one
+peel loop, :func:`gatv.peel_loop.peel_loop`, with the registration as its
+search step.
 """
 
 from __future__ import annotations

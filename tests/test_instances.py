@@ -561,26 +561,29 @@ def test_another_real_object_gives_no_instance():
 
 
 @pytest.mark.slow
-def test_parts_searched_in_vain_stop_within_one_registrations_time():
+def test_parts_searched_in_vain_stop_within_one_registrations_time(monkeypatch):
     """Five copies of the parasaurolophus view, the chef's view as the model: each part searched in vain costs
-    a whole scans search (11-13 s); the parts searched in vain share one registration's time limit, so the call
-    ends, with nothing found and a reason that says it was not exhausted, within the time it is given."""
+    a whole scans search (11-15 s on 2 loaded cores); the parts searched in vain share one registration's
+    time limit (here made 10 s), so the call ends with nothing found, before the last part, and a reason that
+    says the scene was not exhausted."""
     import time
 
     from gatv.datasets import DataNotFoundError, load_uwa_pair
+    from gatv.motions import instance_search
 
     try:
         model, view = load_uwa_pair("chef", DATA)[0], load_uwa_pair("parasaurolophus", DATA)[1]
     except DataNotFoundError:
         pytest.skip("real data (../shared/data) not available")
-    rots = Rotation.random(3, random_state=2).as_matrix()
+    rots = Rotation.random(5, random_state=2).as_matrix()
     size = model_size(model)
     scene = np.vstack([view @ Q.T + [1.5 * size * k, 0.0, 0.0] for k, Q in enumerate(rots)])
+    monkeypatch.setattr(instance_search, "TIME_LIMIT", 10.0)  # one registration's bound, shortened
     t0 = time.perf_counter()
-    found = instances(model, scene, seed=0, time_limit=20.0)
+    found = instances(model, scene, seed=0)  # the call's own limit (600 s) is not what stops it
     took = time.perf_counter() - t0
-    assert not found and not found.info["exhausted"]
-    assert "in vain" in found.info["reason"] or "time limit" in found.info["reason"]
+    assert not found and np.all(found.labels == -1)
     searched = [r for r in found.info["rounds"] if r.get("part")]
-    assert 1 <= len(searched) < 3  # not every part: the bound stopped the search
-    assert took < 20.0 + max(r["time_s"] for r in searched)
+    assert not found.info["exhausted"] and "in vain" in found.info["reason"]
+    assert 1 <= len(searched) < 5  # not every part: the bound stopped the search
+    assert took < 10.0 + max(r["time_s"] for r in searched)

@@ -483,10 +483,11 @@ def register(
     fit, tolerance = found.fit, found.tolerance
     if settle:
         fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])
-    info["verdict"] = stages.found_verdict(found, fit.support).to_dict()
+    verdict = stages.found_verdict(found, fit.support)
+    info["verdict"] = verdict.to_dict()
     info.update(tolerance=tolerance, noise=tolerance, sigma=found.judged.sigma,
                 n_tokens=found.judged.n_tokens, trials=tried, trial_support=found.trial_support,
-                chance_support=found.threshold)
+                chance_support=int(verdict.chance))
     if policy.rival_check:
         info.update(symmetry_rival(P, fit, tolerance, rng, memory_budget=memory_budget))
     info["time_s"] = time.perf_counter() - t_start

@@ -41,6 +41,7 @@ __all__ = [
     "Fit",
     "Found",
     "Judged",
+    "LevelCount",
     "Problem",
     "Tokens",
     "Votes",
@@ -61,6 +62,7 @@ __all__ = [
     "motion_result",
     "nearest_pairs",
     "noise_from_residuals",
+    "passing_level",
     "polish_trials",
     "prepare",
     "refine",
@@ -708,6 +710,16 @@ def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: floa
 
 
 # ------------------------------------------------------------------- search
+@dataclass(frozen=True)
+class LevelCount:
+    """A fit's pairs within one level's gate against chance there (:func:`passing_level`)."""
+
+    gate: float
+    support: int
+    level: float
+    n_tested: float
+
+
 @dataclass(frozen=True, eq=False)
 class Found:
     """The first trial motion of a :func:`search` whose judged support beat chance.
@@ -729,6 +741,11 @@ class Found:
         every match the budget scores behind the density test's screen).
     gate : float
         The gate the level was computed at (the accepting level's).
+    passed_at : LevelCount, optional
+        Behind the density test's screen, the level whose gate held enough
+        of the polished pairs to beat chance (:func:`passing_level`; it
+        may be finer than the accepting level, whose ``threshold`` the
+        motion then need not reach).
     """
 
     fit: Fit
@@ -738,6 +755,7 @@ class Found:
     threshold: int
     n_tested: float = 1.0
     gate: float = float("nan")
+    passed_at: LevelCount | None = None
 
 
 #: Wrong trial motions :func:`search`'s density test may pass on to tensor
@@ -745,8 +763,8 @@ class Found:
 JUDGED_WRONG = 50.0
 
 
-def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: float) -> bool:
-    """Whether ``fit``'s pairs within some level's gate beat chance there.
+def passing_level(problem: Problem, fit: Fit, levels, n_tests: float) -> LevelCount | None:
+    """The first level (finest first, as given) whose gate holds enough of ``fit``'s pairs to beat chance.
 
     A motion found at a coarse tolerance is polished at its gate, which
     also collects the chance pairs of that wide gate; a true motion's pairs
@@ -757,16 +775,24 @@ def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: floa
     where ``fit`` puts the source (:meth:`Problem.chance_under`): a wrong
     motion that lays the source onto a dense part of the target collects
     chance pairs at that part's density.  The pairs are ``fit``'s own
-    (one-to-one), so a finer gate only drops pairs.
+    (one-to-one), so a finer gate only drops pairs.  ``None`` when no level
+    passes.
     """
     res = problem.residuals(fit.matrix, fit.correspondences)
     radii = problem.landing_radii(fit.matrix)
-    n_levels = float(len(levels))
+    n_all = n_tests * float(len(levels))
     for tol in levels:
         g = gate(tol)
-        if np.count_nonzero(res <= g) >= problem.chance_under(fit.matrix, g, n_tests * n_levels, radii):
-            return True
-    return False
+        count = int(np.count_nonzero(res <= g))
+        level = problem.chance_under(fit.matrix, g, n_all, radii)
+        if count >= level:
+            return LevelCount(float(g), count, float(level), float(n_all))
+    return None
+
+
+def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: float) -> bool:
+    """Whether ``fit``'s pairs within some level's gate beat chance there (:func:`passing_level`)."""
+    return passing_level(problem, fit, levels, n_tests) is not None
 
 
 def search_failure(tried: list, time_limit: float | None = None) -> str:
@@ -1122,7 +1148,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         fit = refine(problem, fit, g)
                     if final > threshold:
                         # At its own gate or a finer level's (a true motion's pairs stay tight).
-                        if not beats_chance_at_some_level(problem, fit, levels[:level + 1], n_final):
+                        passed = passing_level(problem, fit, levels[:level + 1], n_final)
+                        if passed is None:
                             continue
                     elif fit.support < final:
                         continue
@@ -1130,14 +1157,24 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         fit, grown = grow_tolerance(problem, fit, levels, level)
                         tol = levels[grown]
                     n_tested = n_final if final > threshold else n_judge_tests
-                    return Found(fit, tol, judged, int(trials.support[k]), int(final), float(n_tested), g)
+                    return Found(fit, tol, judged, int(trials.support[k]), int(final), float(n_tested), g,
+                                 passed if final > threshold else None)
         return None
 
 
 # ------------------------------------------------------------------ verdict
 def found_verdict(found: Found, support: int | None = None) -> Verdict:
-    """The verdict on a :func:`search`'s motion: ``support`` (default the found fit's) against the
-    level it had to reach (:attr:`Found.threshold`, family-wise over :attr:`Found.n_tested`)."""
+    """The verdict on a :func:`search`'s motion: the test that admitted it.
+
+    ``support`` (default the found fit's) against the level it had to reach
+    (:attr:`Found.threshold`, family-wise over :attr:`Found.n_tested`); or,
+    for a motion admitted at a level finer than its own
+    (:attr:`Found.passed_at`), which need not reach that threshold, its
+    pairs within that level's gate against chance there.
+    """
+    if found.passed_at is not None:
+        at = found.passed_at
+        return chance_verdict(at.support, float(np.ceil(at.level)), at.n_tested, method="poisson")
     return chance_verdict(found.fit.support if support is None else support, found.threshold, found.n_tested,
                           method="poisson")
 

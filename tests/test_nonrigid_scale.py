@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -535,3 +536,20 @@ def test_segment_counts_only_structure_apart_from_the_motions_found():
     # the first patch's unmatched rows lie among its matches: only the second patch counts
     assert _apart(P, rows, explained, 3.0 * h) == 200
     assert _apart(P, rows, np.zeros(400, bool), 3.0 * h) == rows.size
+
+
+def test_growth_waits_between_two_samples_however_narrow_the_nearest_gate():
+    # seeds on a line, matched in place; the next source row (5, 0, 0) is predicted in place, its
+    # nearest target 0.2 away (inside its gate, 0.25) and a second 0.3 away (outside that gate)
+    x = np.array([[float(i), 0.0, 0.0] for i in range(6)])
+    y = np.vstack([x[:5], [[5.2, 0.0, 0.0], [5.0, 0.3, 0.0], [40.0, 0.0, 0.0]]])
+    seeds = np.column_stack([np.arange(5), np.arange(5)])
+    tree_y = cKDTree(y)
+    gates = np.array([0.25] * 7 + [1.0])  # one wide gate elsewhere (a sparse region): non-uniform
+    grown = ms.grow(x, y, tree_y, seeds, gates, spacing=1.0)
+    assert 5 not in grown[:, 0]  # ambiguous: waits
+    # with the second target beyond the widest gate it is no rival: matched to the nearest
+    y2 = y.copy()
+    y2[6] = [5.0, 1.5, 0.0]
+    grown = ms.grow(x, y2, cKDTree(y2), seeds, gates, spacing=1.0)
+    assert [5, 5] in grown.tolist()

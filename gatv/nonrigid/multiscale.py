@@ -571,7 +571,8 @@ def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate, h: float, 
     """One ring of :func:`grow`: the unused source points among the ``kn`` nearest of ``centres``,
     moved by the local affine warp of ``pairs`` and matched one-to-one (closest first) to their
     nearest unused target within ``gate``, when at most ``ambiguity`` times as far as the second
-    (with ``claimed``, a target that is another candidate's nearest is no second).  Marks the new
+    unused target within the query's reach (the widest gate; with ``claimed``, a target that is
+    another candidate's nearest is no second).  Marks the new
     matches used; returns them, (K, 2)."""
     near = tree_x.query(X[centres], k=kn)[1]
     free = np.unique(near.reshape(-1))
@@ -584,7 +585,11 @@ def _ring(X, Y, tree_x, tree_y, pairs, centres, used_s, used_t, gate, h: float, 
     ok = _within(d, j, gate)  # each target within its own gate
     ok[ok] = ~used_t[j[ok]]
     first = np.argmax(ok, axis=1)  # the nearest unused target's column (distances come sorted)
-    rivals = ok.copy()
+    # rivals: every unused target the query reached, within its own gate or not — a prediction
+    # between two samples is ambiguous however narrow the nearest one's gate (a body's hand: gates
+    # at their floor held one sample, and a slide by a finger's spacing grew unambiguous)
+    rivals = np.isfinite(d)
+    rivals[rivals] = ~used_t[j[rivals]]
     rivals[np.arange(free.size), first] = False
     if claimed:
         nearest = j[np.arange(free.size), first][ok.any(axis=1)]

@@ -365,7 +365,7 @@ def two_motions_half_outliers():
 
 @pytest.mark.slow
 def test_two_non_rigid_motions_among_half_outliers(two_motions_half_outliers):
-    """Both motions found (the bent bar by the local windows of round 2), each precise and
+    """Both motions found (the bent bar in round 2, by a start that turns it), each precise and
     complete, on one body each, no third (spurious) motion; same seed, same result."""
     src, tgt, truth, body, seg = two_motions_half_outliers
     assert len(seg) == 2
@@ -379,7 +379,9 @@ def test_two_non_rigid_motions_among_half_outliers(two_motions_half_outliers):
         precision, recall = ok.mean(), ok.sum() / 400
         assert precision >= 0.95 and recall >= 0.8, (k, precision, recall)
     assert found == {0, 1}
-    assert [r["hypothesis"] for r in seg.info["rounds"]][1] == "local"
+    # round 2 registers the bar (bent 60°, turned 20°) by a start that turns it: the local windows,
+    # or the dominant rigid motion now that the plate's unmatched rows left the pool with it
+    assert [r["hypothesis"] for r in seg.info["rounds"]][1] in ("local", "rigid")
     all_tgt = np.concatenate([m.correspondences[:, 1] for m in seg.motions])
     assert len(np.unique(all_tgt)) == len(all_tgt)
     again = segment(src, tgt)

@@ -254,10 +254,12 @@ def main(argv=None) -> int:
             for name, table in tables.items():
                 runs[name, local] = run_dask(client, table, folder / name / "dask", chunk=None)
         t0 = time.perf_counter()
-        # the workers run with the local cluster's settings (no sampling profiler, 200 ms tick), as
-        # environment variables: what a user sets on a cluster's machines (docs/batch.rst)
+        # the workers run with the local cluster's settings (no sampling profiler, 200 ms tick, glibc's
+        # own malloc thresholds), as environment variables: what a user sets on a cluster's machines
+        # (docs/batch.rst)
         dask_env = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
-                    "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "200ms"}
+                    "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "200ms",
+                    "DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": '{"MALLOC_TRIM_THRESHOLD_": None}'}
         with process_cluster(args.workers, threads=1, env=dask_env) as address, Client(address) as client:
             fixed["process cluster start"] = time.perf_counter() - t0
             client.run(warm_up, *first)

@@ -576,15 +576,20 @@ def _import_distributed():
     return distributed
 
 
-#: Dask settings of the local clusters :func:`connect` starts.  Both switch off
-#: diagnostics that cost CPU all the time a worker lives, taken from the cores
-#: the rows run on: the statistical profiler of the dashboard's "Profile" page
-#: (a sample of every worker's stack each 10 ms) and the event-loop tick
-#: measurement, every 200 ms instead of 20 ms (it feeds the "event loop
-#: unresponsive" warning, whose threshold is seconds, and a dashboard
-#: metric).  Dask's own test utilities run with the same two settings; the
+#: Dask settings of the local clusters :func:`connect` starts.  The first two
+#: switch off diagnostics that cost CPU all the time a worker lives, taken from
+#: the cores the rows run on: the statistical profiler of the dashboard's
+#: "Profile" page (a sample of every worker's stack each 10 ms) and the
+#: event-loop tick measurement, every 200 ms instead of 20 ms (it feeds the
+#: "event loop unresponsive" warning, whose threshold is seconds, and a
+#: dashboard metric); Dask's own test utilities run with the same two.  The
+#: third keeps the nanny from setting ``MALLOC_TRIM_THRESHOLD_`` (65536) in the
+#: workers' environment: an explicit trim threshold also fixes glibc's mmap
+#: threshold at 128 KiB, so every larger numpy array is mapped and its pages
+#: faulted in afresh, and a row ran 10–15% slower in a worker than here.  The
 #: measurements are in docs/design-notes.md.
-LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "200ms"}
+LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "200ms",
+                        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
 #: Seconds of work one Dask task aims at when ``chunk`` is automatic: rows that
 #: take less are grouped, so Dask's own cost per task (a few ms of scheduler,

@@ -963,15 +963,18 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         return [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
                                       n_looks=len(gates)), g) for i, g in enumerate(gates)]
 
+    def on_the_motion(R, t):
+        """Whether ``(R, t)`` ended on the motion judged (within 2° and three gates at the centroid)."""
+        return rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
+
     # The search's own polished trial motions that did not end on the motion are wrong motions found the
     # way it was found: they count first.
     wrong = [surface_support(Xs, Ys, target_normals, tree, R, t, gates, reach, frame) for R, t in searched
-             if not (rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate)]
+             if not on_the_motion(R, t)]
     n_searched = len(wrong)
     for k in np.argsort(ranks, kind="stable")[::-1][:n_polished]:
         R, t, g, _ = polish(*starts[k])
-        same = rotation_angle_deg(R @ R0.T) < 2.0 and np.linalg.norm(R @ c + t - R0 @ c - t0) < 3.0 * gate
-        if not same:
+        if not on_the_motion(R, t):
             wrong.append(surface_support(Xs, Ys, target_normals, tree, R, t, gates, reach, frame))
             # More draws only raise the levels: once every gate's is reached, the motion has failed.
             if not any(v for v, _ in judged(wrong)):

@@ -57,6 +57,7 @@ __all__ = [
     "memory_estimate",
     "motion_parts",
     "neighbour_pairs",
+    "nonuniform_spacings",
     "on_surfaces",
     "plane_distances",
     "refine",
@@ -111,14 +112,22 @@ def local_gates(Y, tree_y, gate: float, floor: float = 0.0, rows=None, k: int = 
     Y = np.asarray(Y, dtype=np.float64)
     if Y.shape[0] < k + 1:
         return np.full(Y.shape[0], float(gate))
-    d1 = tree_y.query(Y, k=2)[0][:, 1]
-    near = tree_y.query(Y, k=k)[1]
-    local = np.median(d1[near], axis=1)
-    structure = local if rows is None else local[np.asarray(rows)]
-    lo, hi = np.percentile(structure, [10, 90])
-    if hi <= SAMPLING_CONTRAST * lo:
+    local = _row_spacings(Y, tree_y, k)
+    if not _non_uniform(local if rows is None else local[np.asarray(rows)]):
         return np.full(Y.shape[0], float(gate))
     return np.maximum(float(gate) * LOCAL_GATE_MIN, 0.5 * local + floor)
+
+
+def _row_spacings(P, tree, k: int) -> np.ndarray:
+    """Each row's local spacing: the median nearest-neighbour distance of its ``k`` nearest rows."""
+    d1 = tree.query(P, k=2)[0][:, 1]
+    return np.median(d1[tree.query(P, k=k)[1]], axis=1)
+
+
+def _non_uniform(local) -> bool:
+    """Whether local spacings vary more than ``SAMPLING_CONTRAST`` (90th percentile over 10th)."""
+    lo, hi = np.percentile(local, [10, 90])
+    return bool(hi > SAMPLING_CONTRAST * lo)
 
 
 def _within(d, j, gate) -> np.ndarray:
@@ -695,14 +704,14 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
 
 def neighbour_pairs(P, radius: float, tree=None):
     """Pairs ``(a, b)`` of rows of ``P`` within ``radius`` of each other, and, where the sampling is
-    non-uniform (:func:`_local_spacing`), each row with its ``GROW_NEIGHBOURS`` nearest within
+    non-uniform (:func:`nonuniform_spacings`), each row with its ``GROW_NEIGHBOURS`` nearest within
     three of its local spacings: the neighbours of :func:`motion_parts` and of
     :mod:`gatv.nonrigid.parts` (a body's limbs are sampled 2–3 times more sparsely than the median,
     and a radius of three median spacings leaves them in pieces)."""
     P = np.asarray(P, dtype=np.float64)
     tree = cKDTree(P) if tree is None else tree
     a, b = tree.query_pairs(radius, output_type="ndarray").T
-    local = _local_spacing(P, tree)
+    local = nonuniform_spacings(P, tree)
     if local is not None:
         k = P.shape[0]
         m = min(GROW_NEIGHBOURS + 1, k)
@@ -713,13 +722,11 @@ def neighbour_pairs(P, radius: float, tree=None):
     return a, b
 
 
-def _local_spacing(P, tree, k: int = 8) -> np.ndarray | None:
+def nonuniform_spacings(P, tree, k: int = 8) -> np.ndarray | None:
     """Each row's local spacing (the median nearest-neighbour distance of its ``k`` nearest, as
     :func:`local_gates`) where the sampling is non-uniform (90th percentile over 10th above
     ``SAMPLING_CONTRAST``); None where it is about uniform or there are too few rows."""
     if P.shape[0] < k + 1:
         return None
-    d1 = tree.query(P, k=2)[0][:, 1]
-    local = np.median(d1[tree.query(P, k=k)[1]], axis=1)
-    lo, hi = np.percentile(local, [10, 90])
-    return local if hi > SAMPLING_CONTRAST * lo else None
+    local = _row_spacings(P, tree, k)
+    return local if _non_uniform(local) else None

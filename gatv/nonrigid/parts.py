@@ -274,7 +274,7 @@ def contacts(X, Y, old, new, strain: float, gate: float) -> int:
     both = np.vstack([xo, xn])
     radius = 3.0 * median_spacing(both)
     g = np.broadcast_to(np.asarray(gate, dtype=float), (Y.shape[0],))[new[:, 1]]
-    local = ms._local_spacing(both, cKDTree(both))
+    local = ms.nonuniform_spacings(both, cKDTree(both))
     if local is None:  # about uniform: every old match within the radius
         n = 0
         for i, js in enumerate(cKDTree(xo).query_ball_point(xn, radius)):

@@ -34,7 +34,7 @@ from ..candidates import median_spacing
 from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..verdict import chance_verdict
 from .motion import NonRigidMotion
-from .multiscale import GROW_NEIGHBOURS, _local_spacing, dense_rows, local_gates, motion_parts
+from .multiscale import GROW_NEIGHBOURS, dense_rows, local_gates, motion_parts, nonuniform_spacings
 from .parts import MIN_CONTACTS, UNCOVERED_REACH
 from .registration import VERDICT_METHOD, register
 
@@ -333,7 +333,7 @@ def _beside(X, pairs, parts) -> np.ndarray:
         return out
     tree = cKDTree(xs)
     reach = np.full(xs.shape[0], 3.0 * median_spacing(xs))
-    local = _local_spacing(xs, tree)
+    local = nonuniform_spacings(xs, tree)
     if local is not None:
         reach = np.maximum(reach, 3.0 * local)
     k = min(GROW_NEIGHBOURS + 1, xs.shape[0])

@@ -465,71 +465,99 @@ def instances(
     report = check_progress(progress)
     chosen, why, _ = checked_pipeline(X, Y, "rigid", pipeline, memory_budget)
     deadline = None if time_limit is None else t_start + time_limit
-    return _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances, deadline, t_start)
+    return peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances, deadline, t_start)
 
 
-def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances, deadline, t_start) -> Instances:
-    """The peel loop of :func:`instances` on validated points (also each frame of :func:`gatv.motions.track`)."""
-    m = Y.shape[0]
-    labels = np.full(m, -1, np.int64)
-    aside = np.zeros(m, bool)  # the points of motions too small for a copy: out of the later searches
-    found: list = []
-    rounds: list[dict] = []
+def peel_instances(X, Y, chosen: str, why: str, rng, report, memory_budget, max_instances, deadline,
+                   t_start: float) -> Instances:
+    """The peel loop of :func:`instances` on validated points (also each frame of :func:`gatv.motions.track`).
 
-    def remaining() -> np.ndarray:
-        return np.flatnonzero((labels < 0) & ~aside)
+    ``X`` and ``Y`` are checked (N, 3) and (M, 3) float arrays, ``chosen``
+    and ``why`` the pipeline :func:`gatv.registration.checked_pipeline`
+    chose, ``report`` a checked progress callable, ``deadline`` a
+    :func:`time.perf_counter` instant or ``None``.
+    """
+    return InstancePeel(X, Y, chosen, rng, memory_budget, deadline, t_start).run(why, report, max_instances)
 
-    parts = _Parts(Y, int(rng.integers(0, 2**31 - 1)), memory_budget) if chosen == "scans" else None
-    blocks: list = [None]  # the exact pipeline's blocks once a copy is found (scene_blocks)
-    # On scans: since when parts have been searched in vain (the start, or the last copy kept), how many, and
-    # the slowest part search so far (search_parts' bound).
-    vain = {"since": t_start, "parts": 0, "slowest": 0.0}
-    current = [-1]  # the block of the last candidate
-    least_part = max(MIN_MODEL_POINTS, int(np.ceil(smallest_part(X, Y) * parts.voted))) if parts is not None else 0
 
-    def register_on(rows, share, noise=None):
+class InstancePeel:
+    """The state of one :func:`instances` peel: the scene's labels, the copies found, the rounds' records.
+
+    Its methods are the loop's stages (:func:`gatv.peel_loop.peel_loop`):
+    :meth:`search`, :meth:`accept`, :meth:`reject` and :meth:`remove`.
+    """
+
+    def __init__(self, X, Y, chosen: str, rng, memory_budget, deadline, t_start: float):
+        self.X, self.Y, self.chosen, self.rng = X, Y, chosen, rng
+        self.memory_budget, self.deadline, self.t_start = memory_budget, deadline, t_start
+        self.m = Y.shape[0]
+        self.labels = np.full(self.m, -1, np.int64)
+        #: The points of motions too small for a copy: out of the later searches.
+        self.aside = np.zeros(self.m, bool)
+        self.found: list = []
+        self.rounds: list[dict] = []
+        self.parts = _Parts(Y, int(rng.integers(0, 2**31 - 1)), memory_budget) if chosen == "scans" else None
+        #: The exact pipeline's blocks once a copy is found (:func:`scene_blocks`).
+        self.blocks: Blocks | None = None
+        #: On scans: since when parts have been searched in vain (the start, or the last copy kept), how
+        #: many, and the slowest part search so far (:meth:`search_parts`' bound).
+        self.vain_since, self.vain_parts, self.slowest = t_start, 0, 0.0
+        #: The block of the last candidate (-1: the whole scene).
+        self.current = -1
+        self.least_part = (max(MIN_MODEL_POINTS, int(np.ceil(smallest_part(X, Y) * self.parts.voted)))
+                           if self.parts is not None else 0)
+        self.report = None
+
+    def remaining(self) -> np.ndarray:
+        return np.flatnonzero((self.labels < 0) & ~self.aside)
+
+    def past_deadline(self) -> bool:
+        return self.deadline is not None and time.perf_counter() > self.deadline
+
+    def register_on(self, rows, share, noise=None):
         """One registration of the model on the scene ``rows`` (its record appended to ``rounds``)."""
-        round_seed = int(rng.integers(0, 2**63 - 1))
-        left = None if deadline is None else max(deadline - time.perf_counter(), 1e-3)
+        round_seed = int(self.rng.integers(0, 2**63 - 1))
+        left = None if self.deadline is None else max(self.deadline - time.perf_counter(), 1e-3)
         t0 = time.perf_counter()
         options = {} if share is None else {"min_inlier_share": share}
         if noise is not None:
             options["noise"] = noise
-        result = register(X, Y[rows], pipeline=chosen, seed=round_seed, memory_budget=memory_budget,
+        result = register(self.X, self.Y[rows], pipeline=self.chosen, seed=round_seed,
+                          memory_budget=self.memory_budget,
                           time_limit=TIME_LIMIT if left is None else min(TIME_LIMIT, left), **options)
-        rounds.append({"round": len(rounds), "scene_points": int(rows.size), "min_inlier_share": share,
-                       "noise": noise, "support": int(result.support), "time_s": time.perf_counter() - t0,
-                       "verdict": result.info.get("verdict")})
+        self.rounds.append({"round": len(self.rounds), "scene_points": int(rows.size), "min_inlier_share": share,
+                            "noise": noise, "support": int(result.support), "time_s": time.perf_counter() - t0,
+                            "verdict": result.info.get("verdict")})
         return result
 
-    def search():
-        rows = remaining()
+    def search(self):
+        rows = self.remaining()
         if rows.size < MIN_MODEL_POINTS:
             return Stop(f"{rows.size} scene points left, fewer than the {MIN_MODEL_POINTS} an instance needs",
                         exhausted=True)
-        if parts is not None:
-            return search_parts(rows)
-        share = expected_share(found, X.shape[0]) if chosen == "exact" else None
-        current[0] = -1
-        if blocks[0] is not None and not blocks[0].exhausted.all():
-            in_block = search_blocks(rows, share)
+        if self.parts is not None:
+            return self.search_parts(rows)
+        share = expected_share(self.found, self.X.shape[0]) if self.chosen == "exact" else None
+        self.current = -1
+        if self.blocks is not None and not self.blocks.exhausted.all():
+            in_block = self.search_blocks(rows, share)
             if in_block is not None:
                 return in_block
         # The whole scene at the schedule's tolerances: the first round, and once every block was searched in
         # vain at the copies' noise (a copy of another noise, or one the blocks' searches missed).
         try:
-            result = register_on(rows, share)
+            result = self.register_on(rows, share)
         except InputError as exc:
-            if found:  # what the earlier rounds left is no point set a motion can be registered on
+            if self.found:  # what the earlier rounds left is no point set a motion can be registered on
                 return Stop(f"the {rows.size} scene points left cannot be registered on: {exc}", exhausted=True)
             raise
         if not result:
             reason = result.info.get("reason", "no motion beats the wrong motions on what remains")
-            rounds[-1]["reason"] = reason
+            self.rounds[-1]["reason"] = reason
             return Stop(reason, exhausted=not _stopped_at_limit(result))
         return Candidate(result, int(result.support), rows)
 
-    def search_blocks(rows, share):
+    def search_blocks(self, rows, share):
         """The exact pipeline's rounds once a copy is found: one block at a time, at the copies' noise.
 
         The block with the most points left first; a block searched in vain
@@ -537,45 +565,46 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         copy found on the whole scene resets them).  ``None`` once every
         block is searched in vain.
         """
-        b_all = blocks[0]
-        least = smallest_copy(found)
-        noise = block_noise()
+        blocks = self.blocks
+        least = smallest_copy(self.found)
+        noise = self.block_noise()
         while True:
-            live = np.flatnonzero(~b_all.exhausted)
+            live = np.flatnonzero(~blocks.exhausted)
             if live.size == 0:
                 return None
-            inside = [b_all.rows(b, rows) for b in live]
+            inside = [blocks.rows(b, rows) for b in live]
             pick = int(np.argmax([w.size for w in inside]))
             b, here = int(live[pick]), inside[pick]
             if here.size < max(least, MIN_MODEL_POINTS):
-                b_all.exhausted[b] = True
+                blocks.exhausted[b] = True
                 continue
             try:
-                result = register_at_noise(here, share, noise, least)
+                result = self.register_at_noise(here, share, noise, least)
             except InputError as exc:
-                rounds.append({"round": len(rounds), "scene_points": int(here.size), "reason": str(exc)})
+                self.rounds.append({"round": len(self.rounds), "scene_points": int(here.size), "reason": str(exc)})
                 result = None
-            rounds[-1]["block"] = b
+            self.rounds[-1]["block"] = b
             if result and (result.info.get("verdict") or {}).get("passed", False):
-                current[0] = b
-                return whole_copy(Candidate(result, int(result.support), here), rows, share, noise)
+                self.current = b
+                return self.whole_copy(Candidate(result, int(result.support), here), rows, share, noise)
             if result is not None:
-                rounds[-1]["reason"] = result.info.get("reason", "no motion beats the wrong motions in the block")
-            b_all.exhausted[b] = True
-            if deadline is not None and time.perf_counter() > deadline:
+                self.rounds[-1]["reason"] = result.info.get("reason",
+                                                            "no motion beats the wrong motions in the block")
+            blocks.exhausted[b] = True
+            if self.past_deadline():
                 return Stop("the time limit ran out before the next search", exhausted=False)
 
-    def register_at_noise(rows, share, noise, least):
-        """:func:`register_on` at the copies' ``noise``; at the schedule's tolerances when a trial as large as
+    def register_at_noise(self, rows, share, noise, least):
+        """:meth:`register_on` at the copies' ``noise``; at the schedule's tolerances when a trial as large as
         a copy (``least`` points) beat the density screen there and the judge refused it at this tolerance
         (at a millionth of the spacing it may, where the schedule's next level finds the copy)."""
-        result = register_on(rows, share, noise=noise)
+        result = self.register_on(rows, share, noise=noise)
         if not result and noise is not None and _best_trial(result) >= least:
-            rounds[-1]["reason"] = result.info.get("reason", "")
-            result = register_on(rows, share)
+            self.rounds[-1]["reason"] = result.info.get("reason", "")
+            result = self.register_on(rows, share)
         return result
 
-    def whole_copy(candidate, rows, share, noise):
+    def whole_copy(self, candidate, rows, share, noise):
         """The candidate again on every point left around its copy, when its block cut the copy.
 
         A block holds a copy cut by its side as well as whole ones; the
@@ -584,7 +613,8 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         bounds the copy: registered on the points left in that box, the
         copy gives all its correspondences.
         """
-        moved = X @ np.asarray(candidate.motion.rotation).T + np.asarray(candidate.motion.translation)
+        Y, rounds = self.Y, self.rounds
+        moved = self.X @ np.asarray(candidate.motion.rotation).T + np.asarray(candidate.motion.translation)
         margin = final_gate(candidate.motion)
         lo, hi = moved.min(axis=0) - margin, moved.max(axis=0) + margin
         box = rows[np.all((Y[rows] >= lo) & (Y[rows] <= hi), axis=1)]
@@ -592,11 +622,11 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
             return candidate  # the block holds every point around the copy
         before = len(rounds)
         try:
-            again = register_at_noise(box, share, noise, candidate.support)
+            again = self.register_at_noise(box, share, noise, candidate.support)
         except InputError:
             again = None
         if again and (again.info.get("verdict") or {}).get("passed", False) and again.support >= candidate.support:
-            rounds[-1].update(block=current[0], whole_copy=True)
+            rounds[-1].update(block=self.current, whole_copy=True)
             return Candidate(again, int(again.support), box)
         # Kept as the block gave it: the block's round stays the candidate's record (the last one).
         tried = rounds[before:]
@@ -604,26 +634,28 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
         rounds[-1]["whole_copy"] = {"tried": len(tried), "reason": tried[-1].get("reason", "") if tried else ""}
         return candidate
 
-    def block_noise():
+    def block_noise(self):
         """The tolerance of the blocks' searches: the largest the copies found measured (``None``: the schedule)."""
-        tol = [float(m.info["tolerance"]) for m in found if np.isscalar(m.info.get("tolerance"))]
+        tol = [float(m.info["tolerance"]) for m in self.found if np.isscalar(m.info.get("tolerance"))]
         return max(tol) if tol and max(tol) > 0 else None
 
-    def search_parts(rows):
+    def search_parts(self, rows):
         """The scans rounds: the largest part first; a part where no copy passes is set aside.
 
         Setting a part aside leaves the other parts as they are (each is a
         connected component of the rows), so they are found once a round.
         """
-        for part in scene_parts(Y, rows, parts.mask, parts.link, least_part):
+        parts, rounds = self.parts, self.rounds
+        for part in scene_parts(self.Y, rows, parts.mask, parts.link, self.least_part):
             now = time.perf_counter()
-            if deadline is not None and now - vain["since"] + vain["slowest"] > min(TIME_LIMIT, deadline - t_start):
-                return Stop(f"the parts searched in vain since the last copy ({vain['parts']}) took "
-                            f"{now - vain['since']:.0f} s, and one more would take the scene past one "
+            if (self.deadline is not None
+                    and now - self.vain_since + self.slowest > min(TIME_LIMIT, self.deadline - self.t_start)):
+                return Stop(f"the parts searched in vain since the last copy ({self.vain_parts}) took "
+                            f"{now - self.vain_since:.0f} s, and one more would take the scene past one "
                             f"registration's time limit ({TIME_LIMIT:g} s)", exhausted=False)
             try:
-                result = register_on(part, None)
-                vain["slowest"] = max(vain["slowest"], rounds[-1]["time_s"])
+                result = self.register_on(part, None)
+                self.slowest = max(self.slowest, rounds[-1]["time_s"])
             except InputError as exc:
                 result = None
                 rounds.append({"round": len(rounds), "scene_points": int(part.size), "reason": str(exc)})
@@ -635,19 +667,19 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
             if result is not None:
                 rounds[-1]["reason"] = result.info.get("reason", "the part's motion did not pass its verdict")
             rounds[-1]["set_aside"] = int(part.size)
-            aside[part] = True
-            vain["parts"] += 1
-            if deadline is not None and time.perf_counter() > deadline:
+            self.aside[part] = True
+            self.vain_parts += 1
+            if self.past_deadline():
                 return Stop("the time limit ran out before the next search", exhausted=False)
-        return Stop(f"no part of the scene's surfaces left holds the {least_part} points a copy needs",
+        return Stop(f"no part of the scene's surfaces left holds the {self.least_part} points a copy needs",
                     exhausted=True)
 
-    def accept(candidate: Candidate) -> Judgement:
+    def accept(self, candidate: Candidate) -> Judgement:
         verdict = candidate.motion.info.get("verdict") or {}
         if not verdict.get("passed", False):
             return Judgement(False, f"the best instance on what remains ({candidate.support} points) does not "
                                     "pass its verdict", verdict)
-        if parts is not None:
+        if self.parts is not None:
             # As a scan segmentation keeps a part's motion (section 8): a right motion's pairs sit at the
             # scans' own noise, a wrong one's (a surface laid across another) spread over the gate.
             info = candidate.motion.info
@@ -656,71 +688,76 @@ def _peel_instances(X, Y, chosen, why, rng, report, memory_budget, max_instances
                 return Judgement(False, f"its pairs' residual deviation {res:.3g} is {res / noise:.1f} times the "
                                         f"scans' noise {noise:.3g}, more than {NOISE_FACTOR}", verdict,
                                  detail="noise")
-        least = smallest_copy(found)
+        least = smallest_copy(self.found)
         if candidate.support < least:
             return Judgement(False, f"a motion of {candidate.support} points, fewer than the {least} expected of "
                                     "a copy", verdict, detail="small")
         return Judgement(True, "kept", verdict)
 
-    def reject(candidate: Candidate, judgement):
+    def reject(self, candidate: Candidate, judgement):
         if judgement.detail == "noise":  # on scans: the part is set aside, the next one searched
-            aside[candidate.detail] = True
-            vain["parts"] += 1
-            rounds[-1].update(kept=False, set_aside=int(candidate.detail.size), reason=judgement.reason)
+            self.aside[candidate.detail] = True
+            self.vain_parts += 1
+            self.rounds[-1].update(kept=False, set_aside=int(candidate.detail.size), reason=judgement.reason)
             return None
         if judgement.detail != "small":
             return Stop(judgement.reason, exhausted=True)
         rows = candidate.detail
         small = rows[np.asarray(candidate.motion.correspondences, dtype=np.int64)[:, 1]]
-        if current[0] >= 0:  # found in a block (a copy cut by its side?): its points stay in the other blocks
-            blocks[0].set_aside(current[0], small, m)
+        if self.current >= 0:  # found in a block (a copy cut by its side?): its points stay in the other blocks
+            self.blocks.set_aside(self.current, small, self.m)
         else:
-            aside[small] = True
-        rounds[-1].update(kept=False, set_aside=int(candidate.support), reason=judgement.reason)
+            self.aside[small] = True
+        self.rounds[-1].update(kept=False, set_aside=int(candidate.support), reason=judgement.reason)
         return None
 
-    def remove(candidate: Candidate, judgement) -> tuple:
+    def remove(self, candidate: Candidate, judgement) -> tuple:
         result, rows = candidate.motion, candidate.detail
+        found, Y = self.found, self.Y
         k = len(found)
         pairs = np.asarray(result.correspondences, dtype=np.int64).copy()
         pairs[:, 1] = rows[pairs[:, 1]]
         taken = [pairs[:, 1]]
         g = final_gate(result)
         if g > 0:
-            moved = X @ np.asarray(result.rotation).T + np.asarray(result.translation)
-            free = remaining()  # on scans beyond the part searched: the copy's points off the voted surfaces
+            moved = self.X @ np.asarray(result.rotation).T + np.asarray(result.translation)
+            free = self.remaining()  # on scans beyond the part searched: the copy's points off the voted surfaces
             near = cKDTree(moved).query(Y[free], k=1, distance_upper_bound=g)[0]
             taken.append(free[np.isfinite(near)])
         taken = np.unique(np.concatenate(taken))
-        labels[taken] = k
+        self.labels[taken] = k
         info = dict(result.info, instance=k, gate=g, scene_points=int(taken.size))
         motion = dataclasses.replace(result, correspondences=pairs, info=info)
         found.append(motion)
-        rounds[-1].update(kept=True, scene_points_taken=int(taken.size))
-        vain.update(since=time.perf_counter(), parts=0)
-        if chosen == "exact" and not found[:-1]:
+        self.rounds[-1].update(kept=True, scene_points_taken=int(taken.size))
+        self.vain_since, self.vain_parts = time.perf_counter(), 0
+        if self.chosen == "exact" and not found[:-1]:
             # once the first copy says how far a copy reaches (the model's extent and its gate's margin)
-            blocks[0] = scene_blocks(Y, model_diameter(X) + 2.0 * g)
-        elif blocks[0] is not None and current[0] < 0:
-            blocks[0].exhausted[:] = False  # found on the whole scene: the blocks again, at the copies' noise now
-        report(float(np.mean(labels >= 0)), f"instance {k}: {motion.support} correspondences")
+            self.blocks = scene_blocks(Y, model_diameter(self.X) + 2.0 * g)
+        elif self.blocks is not None and self.current < 0:
+            self.blocks.exhausted[:] = False  # found on the whole scene: the blocks again, at the copies' noise now
+        self.report(float(np.mean(self.labels >= 0)), f"instance {k}: {motion.support} correspondences")
         return (motion,)
 
-    outcome = peel_loop(search, accept, remove, reject=reject, max_motions=max_instances, deadline=deadline,
-                        max_rounds=m + 1, full="max_instances reached",
-                        late="the time limit ran out before the next search")
-    least = smallest_copy(found)
-    kept = [m for m in found if m.support >= least]
-    dropped = [{"support": int(m.support), "angle_deg": float(m.angle_deg)} for m in found if m.support < least]
-    if dropped:  # found before a better copy raised the bar: renumber the rest
-        relabel = np.full(len(found) + 1, -1, np.int64)
-        for new, m in enumerate(kept):
-            relabel[m.info["instance"]] = new
-        labels[:] = relabel[labels]
-        kept = [dataclasses.replace(m, info=dict(m.info, instance=k)) for k, m in enumerate(kept)]
-    report(1.0, f"{len(kept)} instances")
-    info = {"reason": outcome.reason, "exhausted": outcome.exhausted, "pipeline": chosen,
-            "pipeline_reason": why, "rounds": rounds, "n_model": int(X.shape[0]), "n_scene": int(m),
-            "model_size": model_size(X), "smallest_copy": least, "dropped": dropped,
-            "time_s": time.perf_counter() - t_start}
-    return Instances(tuple(kept), labels, info)
+    def run(self, why: str, report, max_instances) -> Instances:
+        """The peel loop to its end; the copies smaller than the smallest copy dropped, the labels renumbered."""
+        self.report = report
+        labels, found = self.labels, self.found
+        outcome = peel_loop(self.search, self.accept, self.remove, reject=self.reject, max_motions=max_instances,
+                            deadline=self.deadline, max_rounds=self.m + 1, full="max_instances reached",
+                            late="the time limit ran out before the next search")
+        least = smallest_copy(found)
+        kept = [m for m in found if m.support >= least]
+        dropped = [{"support": int(m.support), "angle_deg": float(m.angle_deg)} for m in found if m.support < least]
+        if dropped:  # found before a better copy raised the bar: renumber the rest
+            relabel = np.full(len(found) + 1, -1, np.int64)
+            for new, m in enumerate(kept):
+                relabel[m.info["instance"]] = new
+            labels[:] = relabel[labels]
+            kept = [dataclasses.replace(m, info=dict(m.info, instance=k)) for k, m in enumerate(kept)]
+        report(1.0, f"{len(kept)} instances")
+        info = {"reason": outcome.reason, "exhausted": outcome.exhausted, "pipeline": self.chosen,
+                "pipeline_reason": why, "rounds": self.rounds, "n_model": int(self.X.shape[0]),
+                "n_scene": int(self.m), "model_size": model_size(self.X), "smallest_copy": least,
+                "dropped": dropped, "time_s": time.perf_counter() - self.t_start}
+        return Instances(tuple(kept), labels, info)

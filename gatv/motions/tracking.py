@@ -29,8 +29,8 @@ from ..registration import TIME_LIMIT, checked_pipeline
 from .instance_search import (
     TIME_LIMIT_ROUNDS,
     Instances,
-    _peel_instances,
     model_size,
+    peel_instances,
     pose_distance,
     validate_model,
 )
@@ -192,8 +192,8 @@ def track(
         chosen, why, _ = checked_pipeline(X, Y, "rigid", pipeline, memory_budget)
         rng = seed if isinstance(seed, np.random.Generator) else as_rng(seed)
         deadline = None if time_limit is None else t0 + time_limit
-        found.append(_peel_instances(X, Y, chosen, why, rng, check_progress(None), memory_budget, max_instances,
-                                     deadline, t0))
+        found.append(peel_instances(X, Y, chosen, why, rng, check_progress(None), memory_budget, max_instances,
+                                    deadline, t0))
         report((k + 1) / len(scenes), f"frame {k}: {len(found[-1])} instances")
     size = model_size(X)
     identities, present = assign_identities(found, X.mean(axis=0), size)

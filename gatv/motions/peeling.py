@@ -71,6 +71,8 @@ from .result import Segmentation
 __all__ = [
     "LISTING",
     "assign_pairs",
+    "assignment_gain",
+    "joint_assignment",
     "likelihood_gate",
     "listed_share",
     "merge_same_motions",
@@ -354,6 +356,106 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     return out, sigma
 
 
+#: Bound on the rounds of :func:`joint_assignment` (assign, refit); it stops
+#: earlier once the labelling no longer changes.
+JOINT_ROUNDS = 10
+
+
+def _candidate_pairs(P: Problem, fits: list[Fit], g: float):
+    """Every (source, target, motion) within ``g`` under each motion's pose, and its residual."""
+    pairs, res, owner = [], [], []
+    for k, fit in enumerate(fits):
+        A, t = split_matrix(fit.matrix)
+        near = P.tree.query_ball_point(P.source @ A.T + t, g)
+        c = np.array([(i, j) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
+        pairs.append(c)
+        res.append(P.residuals(fit.matrix, c))
+        owner.append(np.full(c.shape[0], k))
+    return np.vstack(pairs), np.concatenate(res), np.concatenate(owner)
+
+
+def assignment_gain(problem: Problem, fits: list[Fit], g: float) -> float:
+    """The objective :func:`joint_assignment` maximises: ``Σ (g² − r²)`` over every motion's correspondences.
+
+    Times ``1 / 2s²`` (``s² = 2σ²``), each term is the log-likelihood ratio
+    of the pair being a true pair of its motion (a Gaussian residual) over
+    its two points being outliers, whose cost ``g`` is the residual where
+    the two are equally likely (:func:`likelihood_gate`).
+    """
+    return float(sum(np.sum(g**2 - np.square(problem.residuals(f.matrix, f.correspondences))) for f in fits))
+
+
+def joint_assignment(problem: Problem, fits: list[Fit], sigma: float, *, gate: float | None = None,
+                     rounds: int = JOINT_ROUNDS) -> tuple[list[Fit], dict]:
+    """Every point to its most likely motion or to the outliers, jointly and one-to-one; poses refitted.
+
+    Coordinate ascent on one objective, :func:`assignment_gain`: the total
+    log-likelihood ratio of the labelled pairs, each ``g² − r²`` (``g`` the
+    outlier cost, by default :func:`pool_noise`'s gate at ``sigma``, the
+    larger of :data:`gatv.stages.FINAL_GATE` σ and :func:`likelihood_gate`
+    at the target's mean density).  With the poses fixed, the most likely
+    one-to-one labelling over all motions is a maximum-weight matching
+    (:func:`assign_pairs`, exact: every pair of positive gain is a
+    candidate); with the labels fixed, each motion's least-squares refit on
+    its pairs lowers their ``Σ r²``.  Neither step lowers the objective, so
+    the rounds stop when the labelling repeats or after ``rounds``; a round
+    that would leave a motion under the model's ``sample_size`` pairs, or
+    lower the objective (rounding), is not taken.  Returns the fits (poses
+    refitted, correspondences the labelling) and a record: the gate, the
+    objective after each round (``trace``, non-decreasing; its first entry
+    the input's) and the rounds run.
+    """
+    P = problem
+    if gate is None:
+        gate = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
+    g = float(gate)
+    k_min = P.model.sample_size
+    fits = [Fit(f.matrix, f.correspondences) for f in fits]
+    trace = [assignment_gain(P, fits, g)]
+    record = {"gate": g, "trace": trace, "rounds": 0}
+    if not fits or g <= 0.0:
+        return fits, record
+    assigned = fits  # the last labelling taken, under the poses it was made with
+    for _ in range(int(rounds)):
+        pairs, res, owner = _candidate_pairs(P, fits, g)
+        keep = assign_pairs(pairs, g**2 - np.square(res))
+        labelled = []
+        for k in range(len(fits)):
+            c = pairs[keep[owner[keep] == k]]
+            labelled.append(c[np.argsort(c[:, 0], kind="stable")])
+        if any(c.shape[0] < k_min for c in labelled):
+            break
+        assigned = [Fit(f.matrix, c) for f, c in zip(fits, labelled)]  # every pair within g
+        value = assignment_gain(P, assigned, g)
+        if value < trace[-1]:
+            break
+        # the labelling repeated: the poses are its least-squares fits already
+        done = record["rounds"] > 0 and all(np.array_equal(a.correspondences, b.correspondences)
+                                            for a, b in zip(fits, assigned))
+        fits = assigned
+        trace.append(value)
+        record["rounds"] += 1
+        if done:
+            break
+        refitted = []
+        for fit in fits:
+            c = fit.correspondences
+            M = P.model.fit(P.source[c[:, 0]], P.target[c[:, 1]])
+            # least squares lowers Σ r² on the fixed labels; kept only when it does (rounding)
+            if np.sum(np.square(P.residuals(M, c))) > np.sum(np.square(P.residuals(fit.matrix, c))):
+                M = fit.matrix
+            refitted.append(Fit(M, c))
+        fits = refitted  # the next round labels under these poses
+    # Stopped after a refit (the rounds' bound): a pair now beyond g has a negative gain and goes.
+    out = [Fit(f.matrix, f.correspondences[P.residuals(f.matrix, f.correspondences) <= g]) for f in fits]
+    if fits is not assigned and all(f.support >= k_min for f in out):
+        value = assignment_gain(P, out, g)
+        if value >= trace[-1]:
+            trace.append(value)
+            return out, record
+    return assigned, record
+
+
 def peel(problem: Problem, *, max_motions: int | None = None, min_support: int | None = None, seed=0,
          noise: float | None = None, refine: bool = True, min_inlier_share: float = 0.03,
          confidence: float = 0.999, max_triples: int | None = None, sigma: float | None = None,
@@ -484,9 +586,14 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
             break
         if not _return_held(state, config):
             break
+    joint = None
+    if pooled is not None:
+        # The labels last: every point to its most likely motion or the outliers, poses refitted.
+        state.fits, joint = joint_assignment(P, state.fits, pooled)
+        joint = {**joint, "trace": [float(x) for x in joint["trace"]]}
     return _segmentation(P, state, {
         "model": model.name, "n_source": int(n1), "n_target": int(n2), "spacing": P.spacing, "mode": "peel",
-        "noisy": noisy, "pooled_noise": pooled, "merged": merged, "dropped": dropped, "returned": state.returned,
+        "noisy": noisy, "pooled_noise": pooled, "joint": joint, "merged": merged, "dropped": dropped, "returned": state.returned,
         "reason": reason, "rounds": state.log}, t_start, report)
 
 

@@ -414,3 +414,34 @@ def test_partial_copy_of_a_symmetric_object_is_found(scene, seed):
     m = register(model, copy, seed=seed)
     assert m and rotation_error_deg(m.rotation, R) < 1.0
     assert m.support == copy.shape[0]
+
+
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 10**6), noise=st.floats(0.002, 0.2))
+def test_trials_drawn_stay_bounded_as_the_noise_grows(seed, noise):
+    """On two random sets (nothing to find) each tolerance draws at most its RANSAC cap, which does not
+    grow with the tolerance, and the whole search stops at its work bound (one chunk over at most)."""
+    from gatv import stages
+    from gatv.stats import samples_needed
+
+    rng = np.random.default_rng(seed)
+    P = stages.prepare(rng.uniform(-5, 5, (200, 3)), rng.uniform(-5, 5, (200, 3)))
+    policy = P.model.search_policy()
+    # the noise as a share of the spacing, and three tolerances up to it
+    levels = sorted({noise * P.spacing * f for f in (0.25, 0.5, 1.0)})
+    tried: list = []
+    max_work = 1.5e6
+    found = stages.search(P, levels, budget=10**6, rng=rng, max_matches=policy.max_matches,
+                          trial_options=policy.trial_options, max_work=max_work, judged_wrong=None,
+                          tried=tried)
+    assert not found
+    records = [r for r in tried if "tolerance" in r]
+    caps = [min(10**6, samples_needed(min(1.0, r["threshold"] / 200) * stages.listed_share(stages.LISTING, 1),
+                                      0.999, 3)) for r in records]
+    assert all(r["triples"] <= c for r, c in zip(records, caps))
+    assert all(a >= b for a, b in zip(caps, caps[1:]))  # a coarser tolerance never draws more
+    work = sum(r["work"] for r in records)
+    chunk = max(r["work"] / max(r["triples"], 1) for r in records) * 4096
+    assert work <= max_work + chunk
+    assert any(r.get("stopped") == "work bound" for r in tried) or all(
+        r["triples"] == c for r, c in zip(records, caps))

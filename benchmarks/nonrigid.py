@@ -23,6 +23,14 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
   outlier blob in the source), with the similarity model as pre-alignment
   (``prealign=True, model="similarity"``); outliers are not added to these; both again with each
   set an independent 80% of the 8,171 rows (the blob stays whole).
+* ``bunny-sizes``: the bunny x → y at 10k, 25k, 100k points per set (``--sizes`` ≥ 10,000), each set an
+  independent 80% of the rows.  The bcpd bunny's 8,171 rows are the vertices of the Stanford
+  ``bun_zipper_res2.ply`` mesh in the same order (a similarity maps one onto the other to 1e-5 of the
+  extent; checked when the rows are built), so its 16,301 triangles (in
+  ``shared/data/stanford_bunny_reconstruction``) hold for both bunny-x and bunny-y: the rows are all
+  8,171 vertices plus points drawn on the triangles (area-weighted in x, uniform barycentric
+  coordinates) with the *same* coordinates in x and y, the deformation interpolated linearly within
+  each triangle (the piecewise-linear truth of a smooth warp); then each set an independent 80%.
 * ``two-motion``: a twisted plate and a bent bar, side by side, moving
   independently (``gatv.nonrigid.segment``; peers register the whole scene).
 * ``two-real`` (not in the default groups): the body and 6,000 rows of the face side by side
@@ -120,13 +128,14 @@ METHODS = ("gatv", "gatv+sim", "cpd", "lrcpd", "bcpd", "filterreg")
 #: ``gatv+sim`` is gatv with the bunny's per-dataset options (``prealign=True,
 #: model="similarity"``: the shape is known to be rotated and scaled); ``gatv`` runs the
 #: defaults everywhere.
-TOLD = {"gatv+sim": ("bunny",)}
+TOLD = {"gatv+sim": ("bunny", "bunny-n")}
 #: Outlier share the peers are given (``w``) when they are not told the truth
 #: (``--peer-info blind``, the default): CPD's own default in Myronenko's reference
 #: code (``opt.outliers = 0.1``), the same for every row, as gatv is told nothing.
 PEER_W = 0.1
-GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "two-motion", "two-real", "small")
-DEFAULT_GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "two-motion")
+GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "bunny-sizes", "two-motion", "two-real",
+          "small")
+DEFAULT_GROUPS = ("face", "face-sizes", "twist", "elastic", "body", "bunny", "bunny-sizes", "two-motion")
 DEFAULT_SIZES = (2000, 10000, 25000)
 PEER_MODULE = {"cpd": "pycpd", "lrcpd": "rustcpd", "bcpd": "probreg", "filterreg": "probreg"}
 
@@ -137,7 +146,7 @@ class Case:
     """One row: how to build its trial (picklable: names and numbers only)."""
 
     name: str
-    kind: str  # "plane", "face", "body", "bunny", "two", "small-plane", "small-face"
+    kind: str  # "plane", "face", "face-n", "body", "bunny", "bunny-n", "two", "small-plane", "small-face"
     n: int = 0  # points per set (planes) or rows drawn (small faces)
     warp: str = ""  # twist90, elastic, face-y, face-g.y, ...
     sampled: bool = False  # independent 80% subsets
@@ -196,6 +205,14 @@ def _face_rows(x, y, total: int, rng):
         rows = np.sort(rng.choice(n, total, replace=False))
         return x[rows], y[rows]
     tri = np.loadtxt(DATA / "nonrigid_bcpd_face/face-g-triangles.txt", dtype=np.int64)
+    return _triangle_rows(x, y, tri, total, rng)
+
+
+def _triangle_rows(x, y, tri, total: int, rng):
+    """All rows of ``x``, ``y`` and ``total − len(x)`` points drawn on the triangles ``tri`` (area-weighted
+    in ``x``, uniform barycentric coordinates), the same coordinates in both sets: the deformation
+    interpolated linearly within each triangle."""
+    n = x.shape[0]
     area = 0.5 * np.linalg.norm(np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]), axis=1)
     pick = rng.choice(tri.shape[0], total - n, p=area / area.sum())
     u, v = rng.uniform(size=(2, total - n))
@@ -203,6 +220,28 @@ def _face_rows(x, y, total: int, rng):
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     w = np.column_stack([1 - u - v, u, v])[:, :, None]
     return np.vstack([x, np.sum(w * x[tri[pick]], axis=1)]), np.vstack([y, np.sum(w * y[tri[pick]], axis=1)])
+
+
+#: The Stanford mesh whose vertices, in order, are the bcpd bunny's rows (up to a similarity).
+BUNNY_MESH = "stanford_bunny_reconstruction/bun_zipper_res2.ply"
+
+
+def bunny_triangles(x) -> np.ndarray:
+    """The (16,301, 3) triangles of the bcpd bunny's rows: those of :data:`BUNNY_MESH`, after checking
+    that a similarity maps the mesh's vertices onto ``x`` row by row (to 1e-4 of its extent)."""
+    import pyvista as pv
+
+    from gatv.fitting import umeyama
+
+    mesh = pv.read(str(DATA / BUNNY_MESH))
+    v = np.asarray(mesh.points, dtype=float)
+    if v.shape != x.shape:
+        raise ValueError(f"{BUNNY_MESH} has {v.shape[0]} vertices, the bunny {x.shape[0]} rows")
+    s, R, t = umeyama(v, x)
+    off = np.linalg.norm(s * v @ R.T + t - x, axis=1).max()
+    if off > 1e-4 * np.ptp(x, axis=0).max():
+        raise ValueError(f"{BUNNY_MESH}'s vertices are not the bunny's rows in order (off by {off:.3g})")
+    return np.asarray(mesh.faces, np.int64).reshape(-1, 4)[:, 1:]
 
 
 def _bunny_sampled(x, y, rng) -> Trial:
@@ -240,6 +279,14 @@ def make_trial(case: Case, f: float, rng) -> Trial:
         x, y = _face_rows(x, y, round(case.n / 0.8) if case.sampled else case.n, rng)
     elif case.kind == "body":
         x, y = _load("nonrigid_bcpd_human/female-x.txt"), _load("nonrigid_bcpd_human/female-y.txt")
+    elif case.kind == "bunny-n":
+        x, y = _load(f"nonrigid_bcpd_bunny/{case.warp}.txt"), _load("nonrigid_bcpd_bunny/bunny-y.txt")
+        total = round(case.n / 0.8) if case.sampled else case.n
+        if total <= x.shape[0]:
+            rows = np.sort(rng.choice(x.shape[0], total, replace=False))
+            x, y = x[rows], y[rows]
+        else:
+            x, y = _triangle_rows(x, y, bunny_triangles(x), total, rng)
     elif case.kind == "small-face":
         x, y = _load("nonrigid_bcpd_face/face-x.txt"), _load(f"nonrigid_bcpd_face/{case.warp}.txt")
         drawn = rng.choice(len(x), size=case.n, replace=False)
@@ -592,6 +639,9 @@ def cases(groups, sizes):
                 Case("bunny x→y, sampled 80%/80%", "bunny", warp="bunny-x", outliers_ok=False, sampled=True),
                 Case("bunny x-co→y, sampled 80%/80%", "bunny", warp="bunny-x-co", outliers_ok=False,
                      sampled=True)]
+    if "bunny-sizes" in groups:
+        out += [Case(f"bunny x→y {n // 1000}k, sampled 80%/80%", "bunny-n", n, "bunny-x", sampled=True,
+                     outliers_ok=False) for n in sizes if n >= 10_000]
     if "two-motion" in groups:
         out += [Case("two motions: twisted plate + bent bar (2×400)", "two", 400)]
     if "two-real" in groups:
@@ -676,10 +726,14 @@ def main(argv=None) -> int:
         chosen = [c for c in chosen if args.only in c.name]
     if not (DATA / "nonrigid_bcpd_face" / "face-x.txt").is_file():
         print(f"data not found in {DATA}: face and bunny rows left out")
-        chosen = [c for c in chosen if c.kind not in ("face", "face-n", "small-face", "bunny", "body", "two-real")]
+        chosen = [c for c in chosen if c.kind not in ("face", "face-n", "small-face", "bunny", "bunny-n", "body",
+                                                      "two-real")]
     elif not (DATA / "nonrigid_bcpd_human" / "female-x.txt").is_file():
         print(f"body data not found in {DATA}: body rows left out")
         chosen = [c for c in chosen if c.kind not in ("body", "two-real")]
+    if not (DATA / BUNNY_MESH).is_file() and any(c.kind == "bunny-n" for c in chosen):
+        print(f"{BUNNY_MESH} not found in {DATA}: bunny size rows left out")
+        chosen = [c for c in chosen if c.kind != "bunny-n"]
     tasks = []
     for c in chosen:
         for f in fractions:

@@ -358,3 +358,76 @@ def test_a_motion_that_fails_its_verdict_after_the_adaptive_stop_gets_the_whole_
     for search in ("adaptive", "whole_budget"):
         assert "wrong motions" in null.info[search]["reason"]
     assert "wrong motions" in null.info["reason"]
+
+
+def _verdict_case(seed=0, n=1500):
+    """Two samplings of one asymmetric surface in place (the identity is the motion), the target's normals,
+    its tree and a cheap polish of wrong draws (point-to-point ICP at a fixed gate)."""
+    from scipy.spatial import cKDTree
+
+    from gatv.scans import point_icp
+
+    src, tgt, _, _ = _resampled_sphere_pair(seed, n, n)
+    tgt = _resampled_sphere_pair(seed + 100, n, n)[0]
+    normals = local_scatter(tgt, tgt, 12).normals
+    tree = cKDTree(tgt)
+
+    def polish(R, t):
+        R, t, _ = point_icp(src, tgt, tree, R, t, 0.3, iterations=5)
+        return R, t, 0.1, None
+
+    return src, tgt, normals, tree, polish
+
+
+def _judge(case, R, t, **options):
+    from gatv.scans import surface_verdict
+
+    src, tgt, normals, tree, polish = case
+    options.setdefault("rng", np.random.default_rng(7))
+    return surface_verdict(src, tgt, normals, R, t, polish=polish, voxel=0.3, gate=0.1, n_tested=1000,
+                           tree=tree, n_draws=48, **options)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_sequential_verdict_stops_only_on_a_pass(seed):
+    """``surface_verdict(sure=)`` polishes the best-screened draws first and stops once the margin over at
+    least VERDICT_MIN_WRONG of them reaches ``sure``: the right motion passes after those few, its wrong
+    supports the full verdict's first ones; a wrong motion's verdict is the full one, figure for figure."""
+    from gatv.scans import VERDICT_MIN_WRONG, VERDICT_SURE
+
+    case = _verdict_case(seed)
+    full, full_figures = _judge(case, np.eye(3), np.zeros(3))
+    fast, fast_figures = _judge(case, np.eye(3), np.zeros(3), sure=VERDICT_SURE)
+    assert full and fast and fast.margin >= VERDICT_SURE
+    assert full_figures["polished"] == 16 and VERDICT_MIN_WRONG <= fast_figures["polished"] < 16
+    assert fast_figures["wrong_support"] == full_figures["wrong_support"][:len(fast_figures["wrong_support"])]
+    assert fast.margin >= full.margin  # fewer draws, lower levels
+    R_wrong = Rotor.from_axis_angle([1.0, 0.2, -0.5], np.radians(70.0)).as_matrix()
+    wrong, wrong_figures = _judge(case, R_wrong, np.zeros(3))
+    wrong_fast, wrong_fast_figures = _judge(case, R_wrong, np.zeros(3), sure=VERDICT_SURE)
+    assert not wrong and not wrong_fast
+    assert wrong_fast.to_dict() == wrong.to_dict() and wrong_fast_figures == wrong_figures
+
+
+def test_wrong_draws_are_polished_once_for_every_verdict():
+    """One WrongDraws for several verdicts (match_surfaces' searches): each verdict equals the one that
+    draws its own from the same stream, and a draw polished for one is not polished again for the next."""
+    from gatv.scans import SourceFrame, WrongDraws
+
+    case = _verdict_case(2)
+    src, tgt, normals, tree, polish = case
+    calls = []
+
+    def counted(R, t):
+        calls.append(1)
+        return polish(R, t)
+
+    draws = WrongDraws(src, tgt, normals, tree, SourceFrame.of(src), polish=counted, voxel=0.3,
+                       rng=np.random.default_rng(7), n_draws=48)
+    R_wrong = Rotor.from_axis_angle([0.2, 1.0, 0.3], np.radians(50.0)).as_matrix()
+    for R in (R_wrong, np.eye(3)):
+        shared = _judge(case, R, np.zeros(3), draws=draws)
+        own = _judge(case, R, np.zeros(3))
+        assert shared[0].to_dict() == own[0].to_dict() and shared[1] == own[1]
+    assert len(calls) == draws.n_polished == max(_judge(case, R, np.zeros(3))[1]["polished"]
+                                                  for R in (R_wrong, np.eye(3)))

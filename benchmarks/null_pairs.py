@@ -32,7 +32,9 @@ for ``register``: success within 1° and 2 mm (bunny) or 0.3° and 1 mm
 (UWA).
 
 Columns: ``found`` (null rows: should be 0; true rows: success), the
-verdict's support and level (``info["verdict"]``) and the seconds.
+verdict's support and level (``info["verdict"]``), the wrong draws it
+polished (scans pipeline: ``info["verdict_gates"]["polished"]``, of 16; the
+sequential verdict stops early on a clear pass) and the seconds.
 
 Usage::
 
@@ -126,11 +128,13 @@ def true_pairs(seed):
     return out
 
 
-def _verdict(info: dict) -> tuple[str, str]:
+def _verdict(info: dict) -> tuple[str, str, str]:
+    """Support, level and (scans pipeline) the wrong draws polished for the verdict that decided."""
     v = info.get("verdict") or {}
     if not v:
-        return "", ""
-    return str(int(v["support"])), f"{v['chance']:.0f}"
+        return "", "", ""
+    polished = (info.get("verdict_gates") or {}).get("polished", "")
+    return str(int(v["support"])), f"{v['chance']:.0f}", str(polished)
 
 
 def run_null(method: str, source, target, seed: int) -> dict:
@@ -156,8 +160,9 @@ def run_null(method: str, source, target, seed: int) -> dict:
         found, info = bool(m), m.info
     else:
         raise ValueError(method)
-    support, level = _verdict(info)
-    return {"found": int(found), "support": support, "level": level, "seconds": time.perf_counter() - t0,
+    support, level, polished = _verdict(info)
+    return {"found": int(found), "support": support, "level": level, "polished": polished,
+            "seconds": time.perf_counter() - t0,
             "reason": "" if found else str(info.get("reason", ""))[:80]}
 
 
@@ -187,7 +192,7 @@ def run_catadioptric(seed: int) -> list[dict]:
         motions = getattr(m, "motions", None)
         found = len(motions) > 0 if motions is not None else bool(m)
         rows.append({"pipeline": "catadioptric", "pair": f"random pixels {k}", "kind": "null", "found": int(found),
-                     "support": "", "level": "", "seconds": time.perf_counter() - t0, "reason": ""})
+                     "support": "", "level": "", "polished": "", "seconds": time.perf_counter() - t0, "reason": ""})
     return rows
 
 
@@ -226,11 +231,12 @@ def main(argv=None) -> int:
             dt = time.perf_counter() - t0
             ok = bool(m) and rotation_error_deg(m.rotation, R) <= tol_deg and \
                 np.linalg.norm(m.rotation @ centroid + m.translation - (R @ centroid + t)) * mm <= tol_mm
-            support, level = _verdict(m.info)
+            support, level, polished = _verdict(m.info)
             rows.append({"pipeline": "register", "pair": name, "kind": "true", "found": int(ok), "support": support,
-                         "level": level, "seconds": dt, "reason": "" if m else str(m.info.get("reason", ""))[:80]})
+                         "level": level, "polished": polished, "seconds": dt,
+                         "reason": "" if m else str(m.info.get("reason", ""))[:80]})
             print(f"register  {name:26s} ok={int(ok)} {dt:.1f}s", file=sys.stderr, flush=True)
-    cols = ["pipeline", "pair", "kind", "found", "support", "level", "seconds", "reason"]
+    cols = ["pipeline", "pair", "kind", "found", "support", "level", "polished", "seconds", "reason"]
     table = [[r[c] if c != "seconds" else f"{r[c]:.1f}" for c in cols] for r in rows]
     print(markdown_table(cols, table))
     null_found = sum(r["found"] for r in rows if r["kind"] == "null")

@@ -49,7 +49,8 @@ How it works
    multi-resolution path gates each target row by its local spacing
    (:func:`gatv.nonrigid.multiscale.local_gates`), and, when no
    identity-placed window counts, tries a bounded rigid pre-alignment before
-   the coarse solve.
+   the coarse solve, and where that finds nothing (a rotation with a change of
+   scale) the similarity of the principal axes.
 8. **Fit:** the winner is grown and re-verified; each correspondence gets
    the rigid motion fitted on its nearest matches, and the thin-plate
    warp's smoothing is chosen by 5-fold cross-validation unless given;
@@ -573,8 +574,27 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     if seeds is None and rigid is not None and not rigid_tried:
         seeds, local = _seed_windows(rigid[1], Y, rigid[2], dx, tree_y, by_identity[:IDENTITY_WINDOWS],
                                      identity, margin, quick, window_points, report, tried, "rigid")
-    if seeds is not None and tried[-1]["placement"] == "rigid":
-        prior, X, tree_xd = rigid
+    moments = None  # (matrix, moved source, its tree) of the similarity from principal axes
+    if seeds is None and settings.prealign == "auto" and prior is None and rigid is None:
+        # a rotation with a change of scale (the bcpd bunny: 93°, scale 0.83): the rigid search finds
+        # nothing, and identity-placed windows do not hold the partners.  The similarity of the
+        # principal axes and trimmed ICP (:func:`multiscale.moment_prealign`, the fallback of
+        # ``prealign=True, model="similarity"``) places the same windows, with the local hypothesis;
+        # kept only when it explains more of the coarse sets than the identity and a window counts
+        report(0.07, "similarity pre-alignment (principal axes)")
+        t0 = time.perf_counter()
+        A = ms.moment_prealign(X[dx], Y[dy], seed=settings.seed)
+        Xm = X @ A[:3, :3].T + A[:3, 3]
+        tree_ti = cKDTree(Y[ti])
+        explained = (_explained(X[si], tree_ti, coarse_spacing), _explained(Xm[si], tree_ti, coarse_spacing))
+        info["auto_similarity"] = {"scale": float(np.cbrt(np.linalg.det(A[:3, :3]))), "explained": explained,
+                                   "time_s": time.perf_counter() - t0}
+        if explained[1] > explained[0]:
+            moments = (A, Xm, cKDTree(Xm[dx]))
+            seeds, local = _seed_windows(Xm, Y, moments[2], dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,
+                                         margin, settings, window_points, report, tried, "similarity")
+    if seeds is not None and tried[-1]["placement"] in ("rigid", "similarity"):
+        prior, X, tree_xd = rigid if tried[-1]["placement"] == "rigid" else moments
         tree_x = cKDTree(X)
     if seeds is None and settings.local:
         seeds, local = _seed_windows(X, Y, tree_xd, dx, tree_y, by_identity[:IDENTITY_WINDOWS], identity,

@@ -454,6 +454,23 @@ def test_motion_parts_splits_disconnected_and_discontinuous_matches():
     assert np.all(motion_parts(xs[:100], small, 0.35, 0.05) == 0)
 
 
+@pytest.mark.parametrize("angle", [60.0, 180.0])
+def test_motion_parts_keep_a_shape_turned_as_a_whole_in_one_part(angle):
+    # a twisted plane turned as a whole: every displacement between neighbours changes by
+    # 2 sin(θ/2) |Δx| (over the strain), their lengths only by the twist's strain
+    a = deform.sample_plane(200, 10.0, seed=1)
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    b = deform.rigid(deform.twist(a, 30.0), angle, axis=axis, translation=(5.0, -2.0, 1.0))
+    assert np.all(ms.motion_parts(a, b, 0.35, 0.05) == 0)
+    # the same turned shape with a third of it lifted by 3 units still splits there
+    lifted = b.copy()
+    right = a[:, 0] > 1.5
+    lifted[right] += 3.0 * axis
+    parts = ms.motion_parts(a, lifted, 0.35, 0.05)
+    assert np.unique(parts[right]).size == 1 and np.unique(parts[~right]).size == 1
+    assert parts[right][0] != parts[~right][0]
+
+
 def _two_densities():
     """A strip sampled at 0.1 for x < 3 (630 rows) and at 0.5 beyond (175 rows, 22%): the median
     spacing is the dense one's, five times under the sparse one's (as a body's limbs)."""

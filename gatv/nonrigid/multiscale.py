@@ -668,9 +668,11 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
     """Label the matches by connected part: near in the source and moving continuously.
 
     Matches ``a`` and ``b`` are joined when ``|x_a − x_b|`` is at most three
-    median matched spacings and ``|d_a − d_b| <= strain |x_a − x_b| + gate``
+    median matched spacings and ``| |y_a − y_b| − |x_a − x_b| | <= strain |x_a − x_b| + gate``
     (the length half of the local eq.-41 tolerance: a locally rigid motion
-    changes the displacement between neighbours by at most the local strain).
+    changes the distance between neighbours by at most the local strain).  Lengths, not
+    displacements: a shape turned as a whole by θ changes every displacement between neighbours by
+    ``2 sin(θ/2) |x_a − x_b|``, over the strain beyond about 20°, and fell into pieces.
     ``gate`` is a float or one per match (:func:`local_gates` at the matches' targets; an edge
     takes the wider of its two).  Where the matches are sampled non-uniformly (the contrast of
     :func:`local_gates`), a match is also joined to its ``GROW_NEIGHBOURS`` nearest within three
@@ -684,7 +686,7 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
         Part label of each match, 0 for the largest part.
     """
     xs = np.asarray(source_points, dtype=np.float64)
-    d = np.asarray(target_points, dtype=np.float64) - xs
+    ys = np.asarray(target_points, dtype=np.float64)
     k = xs.shape[0]
     if k < 2:
         return np.zeros(k, np.int64)
@@ -693,7 +695,8 @@ def motion_parts(source_points, target_points, strain: float, gate) -> np.ndarra
     if per_match:
         g = np.asarray(gate, dtype=float)
         gate = np.maximum(g[a], g[b])
-    ok = np.linalg.norm(d[a] - d[b], axis=1) <= strain * np.linalg.norm(xs[a] - xs[b], axis=1) + gate
+    lx = np.linalg.norm(xs[a] - xs[b], axis=1)
+    ok = np.abs(np.linalg.norm(ys[a] - ys[b], axis=1) - lx) <= strain * lx + gate
     graph = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(k, k))
     _, labels = connected_components(graph, directed=False)
     sizes = np.bincount(labels)

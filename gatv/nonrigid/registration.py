@@ -664,6 +664,9 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
     # grow again from the polished matches: their warp predicts the rows past a strongly bent
     # joint better than the first growth's did; until a round adds under REGROW_GAIN of them
     rounds = 0
+    # off-surface matches are dropped once: on_surfaces is not idempotent (the planes and the median
+    # height change with the matches it drops, and a second pass drops more)
+    filtered = False
     while rounds < REGROW_ROUNDS and pairs.shape[0] >= 4:
         rounds += 1
         grown = ms.grow(X, Y, tree_y, pairs, gates, spacing=spacing_x, tree_x=tree_x)
@@ -673,11 +676,12 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
             break
         kept = _on_surfaces(X, Y, again.pairs, gates, info)
         gain = kept.shape[0] - pairs.shape[0]
-        pairs = kept
+        pairs, filtered = kept, True
         if gain < REGROW_GAIN * pairs.shape[0]:
             break
     info["regrow_rounds"] = rounds
-    pairs = _on_surfaces(X, Y, pairs, gates, info)
+    if not filtered:
+        pairs = _on_surfaces(X, Y, pairs, gates, info)
     # matches no farther from the local affine trend than 8 median residuals (as the seeds on
     # exact data): a match shifted by one sample stands out by about a spacing
     res = ms.loo_affine_residuals(X[pairs[:, 0]], Y[pairs[:, 1]] - X[pairs[:, 0]])

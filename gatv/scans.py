@@ -825,10 +825,11 @@ NOISE_REACH = 3.0
 
 #: The sequential verdict (:func:`surface_verdict` with ``sure=``): once at least :data:`VERDICT_MIN_WRONG`
 #: wrong draws, best screened first, are polished and counted, a motion whose margin over them reaches
-#: ``VERDICT_SURE`` passes without the others.  On the recorded verdicts of 46 calls (null and true pairs
-#: of ``benchmarks/null_pairs.py`` at seeds 0 and 1, an ellipsoid, a sphere, scans against meshes; every
-#: draw polished), each verdict that fails with all its draws had a margin of at most 1.52 over its first
-#: three or more; the true pairs pass after a median of 3 polished draws (at most 6), not 16.
+#: ``VERDICT_SURE`` passes without the others.  On the recorded verdicts of 46 calls (74 verdicts: null and
+#: true pairs of ``benchmarks/null_pairs.py`` at seeds 0 and 1, an ellipsoid, a sphere, scans against
+#: meshes; every draw polished, screened on the voxel grid), each verdict that fails with all its draws had
+#: a margin of at most 1.14 over its first three or more (1.52 with the screen on every target point); the
+#: true pairs pass after a median of 3 polished draws (at most 6), not 16.
 VERDICT_SURE = 3.0
 #: The wrong draws counted before the sequential verdict may stop (after one or two, failing verdicts
 #: reached margins of 3.96 and 1.59).
@@ -1024,7 +1025,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     reaches ``sure`` (:data:`VERDICT_SURE`): a margin that far over the
     best screened draws is not undone by the draws left (measured on
     recorded verdicts, every draw polished: a failing verdict's margin
-    over its first three wrong draws or more was at most 1.52).  The
+    over its first three wrong draws or more was at most 1.14).  The
     level is then that of the draws polished; a motion that fails still
     fails as without ``sure`` (it only ends a verdict that passes).
     ``figures["polished"]`` counts the draws polished.  Returns the

@@ -32,6 +32,9 @@ found."  :func:`peel` does this for any :class:`~gatv.models.MotionModel`
    (``info["dropped"]``).  The points a rejected or dropped motion held out
    of the later rounds (its chance pairs may be a true motion's points) go
    back to the search for one more pass (``info["returned"]``).
+5. **Label**: every point to its most likely motion or to the outliers,
+   jointly and one-to-one, each pose refitted on its labels, until the
+   labelling repeats (:func:`joint_assignment`, ``info["joint"]``).
 
 It stops when no trial beats chance, ``max_motions`` motions were found,
 or too few points are left (``info["reason"]`` says which).  Steps 1-3 are
@@ -524,7 +527,9 @@ def peel(problem: Problem, *, max_motions: int | None = None, min_support: int |
         ``tokens`` the kept correspondences with ``token_labels`` their
         motion; ``info["reason"]`` says why the peeling stopped,
         ``info["returned"]`` how many passes searched again the points that
-        rejected or dropped motions had held out (:data:`RETURNS` at most).
+        rejected or dropped motions had held out (:data:`RETURNS` at most),
+        ``info["joint"]`` the final joint assignment's gate, objective trace
+        and rounds (``None`` with fewer than two motions or a given noise).
     """
     t_start = time.perf_counter()
     if not isinstance(problem, Problem):

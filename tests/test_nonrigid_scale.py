@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -572,3 +573,27 @@ def test_growth_waits_between_two_samples_however_narrow_the_nearest_gate():
     y2[6] = [5.0, 1.5, 0.0]
     grown = ms.grow(x, y2, cKDTree(y2), seeds, gates, spacing=1.0)
     assert [5, 5] in grown.tolist()
+
+
+BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "nonrigid_bcpd_bunny"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (BUNNY / "bunny-x.txt").is_file(), reason="shared data absent")
+def test_bunny_turned_and_scaled_sampled_80_80_with_the_defaults():
+    # the bcpd bunny x → y (rotated 93°, scaled 0.83, deformed), each set an independent 80% of the
+    # rows: no rigid motion explains the change of scale, the principal axes' similarity places
+    # the windows (nothing was found before)
+    x, y = np.loadtxt(BUNNY / "bunny-x.txt"), np.loadtxt(BUNNY / "bunny-y.txt")
+    rng = np.random.default_rng(5)
+    n, k = len(x), round(0.8 * len(x))
+    xr, yr = np.sort(rng.choice(n, k, replace=False)), np.sort(rng.choice(n, k, replace=False))
+    ps, pt = rng.permutation(k), rng.permutation(k)
+    m = register(x[xr][ps], y[yr][pt], seed=0)
+    assert m.info["placement"] == "similarity"
+    c = m.correspondences
+    src, tgt = xr[ps][c[:, 0]], yr[pt][c[:, 1]]
+    assert np.sum(src == tgt) / np.intersect1d(xr, yr).size >= 0.9  # exact recall of the shared rows
+    assert np.mean(src == tgt) >= 0.95  # exact precision
+    h = median_spacing(y[yr])
+    assert np.mean(np.linalg.norm(y[tgt] - y[src], axis=1) <= h) >= 0.95

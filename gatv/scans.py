@@ -977,6 +977,17 @@ class WrongDraws:
         return self._supports[key]
 
 
+def gate_verdicts(found, wrong, n_tested: float, n_points: int) -> list:
+    """:func:`surface_verdict`'s verdict at each gate: supports ``found`` (one a gate) against the rows of
+    ``wrong`` (a wrong motion's supports at the same gates), each raised by three Poisson deviations (small
+    counts at fine gates do not pass on noise)."""
+    found = np.asarray(found).reshape(-1)
+    wrong = np.array(wrong, dtype=np.float64).reshape(-1, found.size)
+    wrong = wrong + 3.0 * np.sqrt(wrong)
+    return [wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=n_points, n_looks=found.size)
+            for i in range(found.size)]
+
+
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
                     n_tested: float, rng: np.random.Generator | None, tree: cKDTree | None = None,
                     noise: float = 0.0, n_draws: int = VERDICT_DRAWS,
@@ -1011,8 +1022,9 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     (:data:`NOISE_REACH`); on scans far less noisy than their sampling,
     about the gate.  ``frame``: ``SourceFrame.of(Xs)`` when the caller
     judges several motions of one source.  ``searched``: ``(R, t)`` of
-    motions the search itself polished and ranked as it did this one (the
-    partial-overlap search's other trials): those that did not end on the
+    motions the search itself polished and ranked as it did this one (a
+    rival nearly as well supported, the partial-overlap search's other
+    trials): those that did not end on the
     motion are wrong motions selected as it was, and count before the draws
     (``figures["searched"]`` of them).  ``draws``: the :class:`WrongDraws`
     of an earlier verdict on the same scans, polish and stream (``polish``,
@@ -1045,10 +1057,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     c = Xs.mean(axis=0)
 
     def judged(wrong):
-        wrong = np.array(wrong, dtype=np.float64).reshape(-1, len(gates))
-        wrong = wrong + 3.0 * np.sqrt(wrong)  # small counts: three Poisson deviations above each
-        return [(wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=Xs.shape[0],
-                                      n_looks=len(gates)), g) for i, g in enumerate(gates)]
+        return list(zip(gate_verdicts(found, wrong, n_tested, Xs.shape[0]), gates))
 
     def on_the_motion(R, t):
         """Whether ``(R, t)`` ended on the motion judged (within 2° and three gates at the centroid)."""
@@ -1180,7 +1189,14 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     ``verdict``: the motion must also pass the verdict
     (:func:`surface_verdict`: wrong motions polished as it was), recorded
     in ``info["verdict"]``; a motion that fails it gives a falsy match
-    whose reason says so.  False leaves the verdict to the caller (motion
+    whose reason says so.  A polished rival that keeps
+    :data:`RIVAL_SHARE` of the motion's support (``info["ambiguous"]``)
+    counts there as a wrong motion, first: the motion passes only where it
+    explains the surface better than its rival at some gate (a right
+    motion's points sit at the noise, a wrong one's fill the gate); where
+    the rival alone sets a level it does not reach, the reason begins
+    ``"ambiguous: two motions ... apart explain the data alike"`` and
+    ``info["rival"]["supports"]`` has the rival's supports at the gates.  False leaves the verdict to the caller (motion
     segmentation has its own levels).  ``noise``: the two scans' noise
     combined, for the verdict's reach (:func:`surface_verdict`).
 
@@ -1330,6 +1346,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         count = "normals" if partial else True
         R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3], count=count)
         info["ambiguous"] = False
+        rival_motion = None  # a distinct polished motion holding RIVAL_SHARE of the best's support
         for rival in rivals:
             # Judged nearly as well: polish it too and compare at full resolution.
             Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3], count=count)
@@ -1341,20 +1358,40 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             if on_r >= RIVAL_SHARE * on:
                 info["ambiguous"] = True
                 info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
+                rival_motion = (Rr, tr)
                 break
         info.update(final_gate=g, on_surface=on)
         _stamp(info, "polish", t0)
         if verdict:
             report(0.95, "verdict")
+            # The rival is a wrong motion if this one is right: it counts first, as the search's own wrong
+            # motions do, so that the verdict decides between the two at the gate where they differ most (a
+            # right motion's points sit at the noise, a wrong one laid across the surface fills the gate);
+            # where it cannot, the answer is no motion, not one of two motions the data hold equally.
+            searched = [] if rival_motion is None else [rival_motion]
+            if partial:
+                searched += [(f.matrix[:3, :3], f.matrix[:3, 3]) for f in fits]
             judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
                                                polish=verdict_polish, n_tested=max(trials.n_congruent, 1),
                                                tree=tree, noise=noise, rng=None, frame=source_frame(),
-                                               searched=[(f.matrix[:3, :3], f.matrix[:3, 3]) for f in fits]
-                                               if partial else (), draws=wrong_draws(), sure=VERDICT_SURE)
+                                               searched=searched, draws=wrong_draws(), sure=VERDICT_SURE)
             info.update(verdict=judged.to_dict(), verdict_gates=figures)
             _stamp(info, "verdict", t0)
             if not judged:
-                return SurfaceMatch(None, None, g, none, 0, dict(info, reason=judged.reason()))
+                reason = judged.reason()
+                if rival_motion is not None:
+                    # Against the rival alone (the level it sets at each gate; the gate where this motion
+                    # stands out most): failing there, the data do not tell the two apart.
+                    rival_support = surface_support(Xs, Ys, target_normals, tree, *rival_motion,
+                                                    figures["gates"], figures["reach"], source_frame())
+                    rival = max(gate_verdicts(figures["support"], [rival_support], max(trials.n_congruent, 1),
+                                              Xs.shape[0]), key=lambda v: v.margin)
+                    info["rival"].update(supports=[int(x) for x in rival_support])
+                    if not rival:
+                        reason = (f"ambiguous: two motions {info['rival']['angle_deg']:.0f} deg apart explain the "
+                                  f"data alike (at best {rival.support} points against the other's level of "
+                                  f"{rival.chance:.0f}); " + reason)
+                return SurfaceMatch(None, None, g, none, 0, dict(info, reason=reason))
         pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
         return SurfaceMatch(R, t, g, pairs, on, info)
 

@@ -431,3 +431,38 @@ def test_wrong_draws_are_polished_once_for_every_verdict():
         assert shared[0].to_dict() == own[0].to_dict() and shared[1] == own[1]
     assert len(calls) == draws.n_polished == max(_judge(case, R, np.zeros(3))[1]["polished"]
                                                   for R in (R_wrong, np.eye(3)))
+
+
+def test_a_rival_counts_first_and_the_verdict_tells_the_right_motion():
+    """A rival (match_surfaces' distinct motion nearly as well supported) counts as a wrong motion before
+    the draws: the right motion still passes against a wrong rival (its points sit at the noise at every
+    gate), a wrong motion against the right one as its rival fails, and fails against that rival alone
+    (``gate_verdicts``, the reason's "ambiguous" test); ``gate_verdicts`` gives the verdict's own levels."""
+    from gatv.scans import gate_verdicts
+
+    case = _verdict_case(3)
+    src = case[0]
+    R_wrong = Rotor.from_axis_angle([0.4, -1.0, 0.2], np.radians(25.0)).as_matrix()
+    right, figures = _judge(case, np.eye(3), np.zeros(3), searched=[(R_wrong, np.zeros(3))])
+    assert right and figures["searched"] == 1
+    levels = gate_verdicts(figures["support"], figures["wrong_support"], 1000, src.shape[0])
+    assert [v.chance for v in levels] == figures["chance"]
+    wrong, wrong_figures = _judge(case, R_wrong, np.zeros(3), searched=[(np.eye(3), np.zeros(3))])
+    assert not wrong and wrong_figures["searched"] == 1
+    alone = gate_verdicts(wrong_figures["support"], wrong_figures["wrong_support"][:1], 1000, src.shape[0])
+    assert not any(alone)
+
+
+def test_two_motions_the_data_hold_alike_give_no_motion_and_say_so():
+    """An ellipsoid matches itself after a half-turn: the motion and its rival hold the same points at
+    every gate, so the answer is no motion, its reason naming the two (not one of them, confidently)."""
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(4000, 3))
+    surface = u / np.linalg.norm(u, axis=1, keepdims=True) * [1.0, 0.7, 0.5]
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = surface[rng.permutation(4000)[:3000]] @ R.T + [0.2, 0.0, -0.1]
+    m = register_scans(surface, moved, seed=0, n_points=300, max_triples=60)
+    assert not m and m.info["reason"].startswith("ambiguous: two motions")
+    rival = m.info["rival"]
+    assert rival["angle_deg"] > 90.0
+    assert np.allclose(rival["supports"], m.info["verdict_gates"]["support"], rtol=0.02)

@@ -825,14 +825,13 @@ NOISE_REACH = 3.0
 
 #: The sequential verdict (:func:`surface_verdict` with ``sure=``): once at least :data:`VERDICT_MIN_WRONG`
 #: wrong draws, best screened first, are polished and counted, a motion whose margin over them reaches
-#: ``VERDICT_SURE`` passes without the others.  On the recorded verdicts of 46 calls (74 verdicts: null and
-#: true pairs of ``benchmarks/null_pairs.py`` at seeds 0 and 1, an ellipsoid, a sphere, scans against
-#: meshes; every draw polished, screened on the voxel grid), each verdict that fails with all its draws had
-#: a margin of at most 1.14 over its first three or more (1.52 with the screen on every target point); the
-#: true pairs pass after a median of 3 polished draws (at most 6), not 16.
+#: ``VERDICT_SURE`` passes without the others.  A motion that fails is judged against every draw.  The
+#: threshold is more than twice the largest margin a failing verdict reached over its first three draws
+#: on the recorded null and true pairs (design notes, section 6, "The verdict: draws shared, polished in
+#: order").
 VERDICT_SURE = 3.0
-#: The wrong draws counted before the sequential verdict may stop (after one or two, failing verdicts
-#: reached margins of 3.96 and 1.59).
+#: The wrong draws counted before the sequential verdict may stop: after one or two, failing verdicts
+#: reached margins above ``VERDICT_SURE`` / 2 (design notes, section 6).
 VERDICT_MIN_WRONG = 3
 
 

@@ -422,15 +422,20 @@ def test_assign_pairs_gives_a_point_its_second_target_when_its_nearest_is_taken(
     assert stages.select_one_to_one(pairs, 1.0 - gain).tolist() == [0]  # cheapest first keeps one pair
 
 
+def _matrix(R, t) -> np.ndarray:
+    """The 4 × 4 matrix of rotation ``R`` and translation ``t``."""
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, t
+    return M
+
+
 def test_pool_noise_regates_every_motion_one_to_one():
     """Low per-motion noise estimates drop true pairs; the pooled gate brings them back, one-to-one overall."""
     scene = _noisy_two_motions(3, 0.1)
     P = stages.prepare(scene.source, scene.target)
     fits = []
     for R, t, truth in zip(scene.rotations, scene.translations, scene.true_pairs):
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        fits.append(stages.regate(P, stages.Fit(M, truth), stages.FINAL_GATE * 0.05))  # half the noise
+        fits.append(stages.regate(P, stages.Fit(_matrix(R, t), truth), stages.FINAL_GATE * 0.05))  # half the noise
     out, sigma = pool_noise(P, fits, [0.05, 0.1])
     n = np.array([f.support for f in fits], float)
     assert sigma == pytest.approx(np.sqrt((n[0] * 0.05**2 + n[1] * 0.1**2) / n.sum()))
@@ -455,10 +460,8 @@ def test_joint_assignment_never_lowers_the_likelihood_it_maximises(seed, noise, 
     rng = np.random.default_rng(seed)
     fits = []
     for R, t, truth in zip(scene.rotations, scene.translations, scene.true_pairs):
-        M = np.eye(4)  # each pose a little off the truth
-        M[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * tilt).as_matrix() @ R
-        M[:3, 3] = t + rng.normal(size=3) * noise
-        fits.append(stages.Fit(M, truth))
+        off = Rotation.from_rotvec(rng.normal(size=3) * tilt).as_matrix()  # each pose a little off the truth
+        fits.append(stages.Fit(_matrix(off @ R, t + rng.normal(size=3) * noise), truth))
     start, sigma = pool_noise(P, fits, [noise, noise])  # a one-to-one labelling over both motions
     g = None if gate is None else gate * sigma
     out, rec = joint_assignment(P, start, sigma, gate=g)
@@ -482,10 +485,9 @@ def test_joint_assignment_refits_a_pose_off_the_truth_and_takes_the_true_pairs()
     scene = _noisy_two_motions(5, 0.05)
     P = stages.prepare(scene.source, scene.target)
     fits = []
+    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix()
     for R, t, truth in zip(scene.rotations, scene.translations, scene.true_pairs):
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix() @ R, t
-        fits.append(stages.Fit(M, truth[: len(truth) // 2]))
+        fits.append(stages.Fit(_matrix(turn @ R, t), truth[: len(truth) // 2]))
     out, rec = joint_assignment(P, fits, 0.05)
     assert rec["rounds"] >= 2 and rec["trace"][-1] > rec["trace"][0]
     for f, R, truth in zip(out, scene.rotations, scene.true_pairs):

@@ -1023,9 +1023,9 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     judges several motions of one source.  ``searched``: ``(R, t)`` of
     motions the search itself polished and ranked as it did this one (a
     rival nearly as well supported, the partial-overlap search's other
-    trials): those that did not end on the
-    motion are wrong motions selected as it was, and count before the draws
-    (``figures["searched"]`` of them).  ``draws``: the :class:`WrongDraws`
+    trials): those that did not end on the motion are wrong motions
+    selected as it was, and count before the draws (``figures["searched"]``
+    of them).  ``draws``: the :class:`WrongDraws`
     of an earlier verdict on the same scans, polish and stream (``polish``,
     ``rng``, ``n_draws`` and ``n_polished`` are then not used); the draws
     already polished are not polished again.
@@ -1040,8 +1040,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     level is then that of the draws polished; a motion that fails still
     fails as without ``sure`` (it only ends a verdict that passes).
     ``figures["polished"]`` counts the draws polished.  Returns the
-    verdict and its per-gate figures
-    (``info["verdict_gates"]``).
+    verdict and its per-gate figures (``info["verdict_gates"]``).
     """
     R0, t0 = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     tree = cKDTree(Ys) if tree is None else tree
@@ -1195,8 +1194,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     motion's points sit at the noise, a wrong one's fill the gate); where
     the rival alone sets a level it does not reach, the reason begins
     ``"ambiguous: two motions ... apart explain the data alike"`` and
-    ``info["rival"]["supports"]`` has the rival's supports at the gates.  False leaves the verdict to the caller (motion
-    segmentation has its own levels).  ``noise``: the two scans' noise
+    ``info["rival"]["supports"]`` has the rival's supports at the gates.
+    False leaves the verdict to the caller (motion segmentation has its
+    own levels).  ``noise``: the two scans' noise
     combined, for the verdict's reach (:func:`surface_verdict`).
 
     With the verdict, the search stops at the first motion that passes it:

@@ -329,7 +329,7 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     """
     P = problem
     sigma = _support_weighted_noise(fits, noises)
-    g = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
+    g = _pooled_gate(P, sigma)
     n1, density = P.source.shape[0], P.target.shape[0] / P.volume
     ball = np.pi ** (P.dim / 2.0) / gamma(P.dim / 2.0 + 1.0)
     pairs, gain, owner = [], [], []
@@ -341,9 +341,7 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
         g_k = g_own if g > g_own and wider.support - fit.support <= shell else g
         # Every target within the gate, not only the nearest: a point whose
         # nearest target is another's partner may take its second nearest.
-        A, t = split_matrix(fit.matrix)
-        near = P.tree.query_ball_point(P.source @ A.T + t, g_k)
-        c = np.array([(i, j) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
+        c = _gated_pairs(P, fit.matrix, g_k)
         pairs.append(c)
         # log-likelihood ratio of "true pair" over "both unexplained", times 2σ²
         gain.append(g_k**2 - np.square(P.residuals(fit.matrix, c)))
@@ -352,11 +350,29 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     keep = assign_pairs(pairs, gain)
     out = []
     for k, fit in enumerate(fits):
-        mine = keep[owner[keep] == k]
-        c = pairs[mine]
-        out.append(Fit(fit.matrix, c[np.argsort(c[:, 0], kind="stable")]) if c.shape[0] >= P.model.sample_size
-                   else fit)
+        c = _labelled(pairs, keep, owner, k)
+        out.append(Fit(fit.matrix, c) if c.shape[0] >= P.model.sample_size else fit)
     return out, sigma
+
+
+def _pooled_gate(P: Problem, sigma: float) -> float:
+    """:func:`pool_noise`'s gate at the pooled noise ``sigma``: the larger of :data:`gatv.stages.FINAL_GATE` σ
+    and :func:`likelihood_gate` at the target's mean density."""
+    return max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
+
+
+def _gated_pairs(P: Problem, matrix: np.ndarray, g: float) -> np.ndarray:
+    """Every (source, target) pair within ``g`` under the pose ``matrix``, (K, 2)."""
+    A, t = split_matrix(matrix)
+    near = P.tree.query_ball_point(P.source @ A.T + t, g)
+    return np.array([(i, j) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
+
+
+def _labelled(pairs: np.ndarray, keep: np.ndarray, owner: np.ndarray, k: int) -> np.ndarray:
+    """The pairs of motion ``k`` among the kept rows ``keep`` of ``pairs`` (``owner``: each row's motion),
+    by source row."""
+    c = pairs[keep[owner[keep] == k]]
+    return c[np.argsort(c[:, 0], kind="stable")]
 
 
 #: Bound on the rounds of :func:`joint_assignment` (assign, refit); it stops
@@ -368,9 +384,7 @@ def _candidate_pairs(P: Problem, fits: list[Fit], g: float):
     """Every (source, target, motion) within ``g`` under each motion's pose, and its residual."""
     pairs, res, owner = [], [], []
     for k, fit in enumerate(fits):
-        A, t = split_matrix(fit.matrix)
-        near = P.tree.query_ball_point(P.source @ A.T + t, g)
-        c = np.array([(i, j) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
+        c = _gated_pairs(P, fit.matrix, g)
         pairs.append(c)
         res.append(P.residuals(fit.matrix, c))
         owner.append(np.full(c.shape[0], k))
@@ -409,9 +423,7 @@ def joint_assignment(problem: Problem, fits: list[Fit], sigma: float, *, gate: f
     the input's) and the rounds run.
     """
     P = problem
-    if gate is None:
-        gate = max(stages.FINAL_GATE * sigma, likelihood_gate(sigma, P.target.shape[0] / P.volume, P.dim))
-    g = float(gate)
+    g = float(_pooled_gate(P, sigma) if gate is None else gate)
     k_min = P.model.sample_size
     fits = [Fit(f.matrix, f.correspondences) for f in fits]
     trace = [assignment_gain(P, fits, g)]
@@ -422,10 +434,7 @@ def joint_assignment(problem: Problem, fits: list[Fit], sigma: float, *, gate: f
     for _ in range(int(rounds)):
         pairs, res, owner = _candidate_pairs(P, fits, g)
         keep = assign_pairs(pairs, g**2 - np.square(res))
-        labelled = []
-        for k in range(len(fits)):
-            c = pairs[keep[owner[keep] == k]]
-            labelled.append(c[np.argsort(c[:, 0], kind="stable")])
+        labelled = [_labelled(pairs, keep, owner, k) for k in range(len(fits))]
         if any(c.shape[0] < k_min for c in labelled):
             break
         assigned = [Fit(f.matrix, c) for f, c in zip(fits, labelled)]  # every pair within g

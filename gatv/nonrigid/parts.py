@@ -265,8 +265,9 @@ def contacts(X, Y, old, new, strain: float, gate: float) -> int:
     in the source (or, where the matches are sampled non-uniformly, among its ``GROW_NEIGHBOURS``
     nearest of ``old`` within three of its local spacings: a body's shoulder is sampled three times
     more sparsely than the median), their displacements differing by at most
-    ``strain · |x_a − x_b| + gate`` (the length half of the local eq.-41 tolerance, as
-    :func:`gatv.nonrigid.multiscale.motion_parts`)."""
+    ``strain · |x_a − x_b| + gate`` (the local eq.-41 tolerance on displacements; unlike
+    :func:`gatv.nonrigid.multiscale.motion_parts`, which compares lengths, so that a part turned
+    as a whole relative to ``old`` meets it only near the axis)."""
     if old.shape[0] == 0 or new.shape[0] == 0:
         return 0
     xo, xn = X[old[:, 0]], X[new[:, 0]]

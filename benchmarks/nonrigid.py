@@ -25,8 +25,8 @@ default 0 and 0.5; outliers uniform in each set's bounding box):
   set an independent 80% of the 8,171 rows (the blob stays whole).
 * ``bunny-sizes``: the bunny x → y at 10k, 25k, 100k points per set (``--sizes`` ≥ 10,000), each set an
   independent 80% of the rows.  The bcpd bunny's 8,171 rows are the vertices of the Stanford
-  ``bun_zipper_res2.ply`` mesh in the same order (a similarity maps one onto the other to 1e-5 of the
-  extent; checked when the rows are built), so its 16,301 triangles (in
+  ``bun_zipper_res2.ply`` mesh in the same order (a similarity maps one onto the other to 3e-5 of the
+  extent; checked to 1e-4 when the rows are built), so its 16,301 triangles (in
   ``shared/data/stanford_bunny_reconstruction``) hold for both bunny-x and bunny-y: the rows are all
   8,171 vertices plus points drawn on the triangles (area-weighted in x, uniform barycentric
   coordinates) with the *same* coordinates in x and y, the deformation interpolated linearly within

@@ -48,6 +48,7 @@ __all__ = [
     "beats_chance_at_some_level",
     "candidate_tokens",
     "chunk_work",
+    "closest_count",
     "constraint",
     "density_tests",
     "failure",
@@ -57,6 +58,7 @@ __all__ = [
     "grow_tolerance",
     "joint_spaces",
     "judge",
+    "level_counts",
     "listed_share",
     "make_result",
     "motion_result",
@@ -778,16 +780,33 @@ def passing_level(problem: Problem, fit: Fit, levels, n_tests: float) -> LevelCo
     (one-to-one), so a finer gate only drops pairs.  ``None`` when no level
     passes.
     """
+    counts = level_counts(problem, fit, levels, n_tests)
+    return counts[-1] if counts and counts[-1].support >= counts[-1].level else None
+
+
+def level_counts(problem: Problem, fit: Fit, levels, n_tests: float) -> list[LevelCount]:
+    """:func:`passing_level`'s count at each level, finest first, up to the first that passes.
+
+    All of them when none passes: a refused motion's closest count
+    (:func:`closest_count`) is then the one a search's verdict reports.
+    """
     res = problem.residuals(fit.matrix, fit.correspondences)
     radii = problem.landing_radii(fit.matrix)
     n_all = n_tests * float(len(levels))
+    counts = []
     for tol in levels:
         g = gate(tol)
         count = int(np.count_nonzero(res <= g))
         level = problem.chance_under(fit.matrix, g, n_all, radii)
+        counts.append(LevelCount(float(g), count, float(level), float(n_all)))
         if count >= level:
-            return LevelCount(float(g), count, float(level), float(n_all))
-    return None
+            break
+    return counts
+
+
+def closest_count(counts) -> LevelCount | None:
+    """The count of ``counts`` (:class:`LevelCount`) nearest its level, by ``support / level``."""
+    return max(counts, key=lambda c: c.support / max(c.level, 1e-300), default=None)
 
 
 def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: float) -> bool:
@@ -1136,22 +1155,30 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     # screen; polished, their pairs scatter over the gate and fail
                     # every finer one, at the cost of a few nearest-neighbour
                     # queries instead of a tensor-voting pass.
-                    if final > threshold and not beats_chance_at_some_level(
+                    if final > threshold:
+                        counts = level_counts(
                             problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
-                            levels[:level + 1], n_judge_tests):
-                        continue
+                            levels[:level + 1], n_judge_tests)
+                        if counts[-1].support < counts[-1].level:
+                            _refused(rec, closest_count(counts))
+                            continue
                     judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
                     if judged is None or judged.fit.support < threshold:
+                        _refused(rec, LevelCount(g, 0 if judged is None else int(judged.fit.support),
+                                                 float(threshold), float(n_judge_tests)))
                         continue
                     fit = judged.fit
                     if polish:
                         fit = refine(problem, fit, g)
                     if final > threshold:
                         # At its own gate or a finer level's (a true motion's pairs stay tight).
-                        passed = passing_level(problem, fit, levels[:level + 1], n_final)
+                        counts = level_counts(problem, fit, levels[:level + 1], n_final)
+                        passed = counts[-1] if counts[-1].support >= counts[-1].level else None
                         if passed is None:
+                            _refused(rec, closest_count(counts))
                             continue
                     elif fit.support < final:
+                        _refused(rec, LevelCount(g, int(fit.support), float(final), float(n_judge_tests)))
                         continue
                     if grow:
                         fit, grown = grow_tolerance(problem, fit, levels, level)
@@ -1180,13 +1207,34 @@ def found_verdict(found: Found, support: int | None = None) -> Verdict:
 
 
 def search_verdict(tried: list) -> Verdict:
-    """The verdict on a :func:`search` that found nothing: the best trial support it saw, against
-    that level's density-test level (its ``tried`` records; the closest to passing, by ratio)."""
-    recs = [r for r in tried if "best_support" in r]
-    if not recs:
+    """The verdict on a :func:`search` that found nothing, from its ``tried`` records.
+
+    Each tolerance's closest test to passing: where a trial beat the
+    density screen, the test that refused it (the check before the judge,
+    the judge's level or the final level; its ``"refused"`` record), else
+    the best trial support against the screen's level.  The verdict is the
+    closest of those, by ratio, so a search that returns nothing never
+    reads "passed".
+    """
+    figures = []
+    for r in tried:
+        if "refused" in r:
+            c = r["refused"]
+            figures.append((c["support"], c["level"], c["n_tests"]))
+        elif "best_support" in r:
+            figures.append((r["best_support"], float(r["threshold"]), r.get("n_tests", 1.0)))
+    if not figures:
         return chance_verdict(0, 0.0, 1.0, method="poisson")
-    best = max(recs, key=lambda r: r["best_support"] / max(float(r["threshold"]), 1e-300))
-    return chance_verdict(best["best_support"], best["threshold"], best.get("n_tests", 1.0), method="poisson")
+    support, level, n_tests = max(figures, key=lambda f: f[0] / max(float(f[1]), 1e-300))
+    return chance_verdict(support, level, n_tests, method="poisson")
+
+
+def _refused(rec: dict, count: LevelCount) -> None:
+    """Keep in ``rec["refused"]`` the refused trial's test nearest its level (:func:`search_verdict`)."""
+    old = rec.get("refused")
+    if old is None or count.support / max(count.level, 1e-300) > old["support"] / max(old["level"], 1e-300):
+        rec["refused"] = {"support": int(count.support), "level": float(count.level),
+                          "n_tests": float(count.n_tested)}
 
 
 # ------------------------------------------------------------------- result

@@ -55,6 +55,7 @@ def test_register_found_carries_its_verdict():
 @given(k=st.integers(0, 10_000))
 @example(k=24)  # passed at a finer level than its own; the verdict said "failed" at 0b98c68
 @example(k=32)
+@example(k=229)  # a trial beat the screen and was refused after it; the verdict said "passed" at fac1de8
 def test_register_found_at_a_finer_level_says_passed(k):
     """Noisy Table-2 (f = 0.5, 4% noise): a motion admitted where its polished pairs beat chance
     at a finer level than its own (stages.passing_level) reports that test, so a found motion's

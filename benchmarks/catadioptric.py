@@ -189,7 +189,7 @@ def _real_detected_trial(task):
     best = max(gt, ht)
     nb = int(onb.sum())
     if (i, j) == (1, 2):
-        from catadioptric._render import render_matches
+        from catadioptric.render import render_matches
 
         render_matches(img1, img2, d1, d2, c, DEFAULT_OUT / "catadioptric_real_001_002.png",
                        title=f"img_para_001 / 002: {m.support} matches, {len(m.motions)} motions")

@@ -53,7 +53,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gatv._validation import as_points
+from gatv.validation import as_points
 from gatv.errors import InputError
 
 if TYPE_CHECKING:

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gatv._validation import as_points, check_positive
+from gatv.validation import as_points, check_positive
 from gatv.errors import InputError
 
 if TYPE_CHECKING:

@@ -60,7 +60,7 @@ from catadioptric.constants import (
     REACH_SPACINGS,
 )
 from catadioptric.rotation import dominant_rotation
-from gatv._validation import check_memory
+from gatv.validation import check_memory
 from gatv.candidates import one_to_one
 
 __all__ = ["epipolar_stage", "essential_from_motion"]

@@ -106,8 +106,8 @@ from catadioptric.rotation import (
     voted_seeds,
 )
 from catadioptric.voting import voting_stage
-from gatv._validation import as_rng, check_progress, file_hint, seed_int
-from gatv._validation import frozen_array as _frozen
+from gatv.validation import as_rng, check_progress, file_hint, seed_int
+from gatv.validation import frozen_array as _frozen
 from gatv.errors import InputError
 from gatv.motion import rotation_angle_deg
 from gatv.stats import chance_support
@@ -412,7 +412,7 @@ def match(
     memory_budget : float, optional
         Bytes that one of the large tables (trial rotations of matched
         triangles, the RANSAC table, the epipolar candidates) may take;
-        default :data:`gatv._validation.DEFAULT_MEMORY_BUDGET` or the
+        default :data:`gatv.validation.DEFAULT_MEMORY_BUDGET` or the
         ``GATV_MEMORY_BUDGET`` environment variable.
 
     Returns

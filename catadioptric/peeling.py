@@ -29,7 +29,7 @@ from catadioptric.constants import (
 )
 from catadioptric.plane import apply_homography, decompose_homography, plane_stage
 from catadioptric.rotation import gated_pairs
-from gatv._validation import frozen_array as _frozen
+from gatv.validation import frozen_array as _frozen
 from gatv.fitting import kabsch
 from gatv.motion import rotation_angle_deg
 from gatv.peel_loop import Candidate, Judgement, Stop, peel_loop

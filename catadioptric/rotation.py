@@ -31,7 +31,7 @@ from catadioptric.constants import (
     REACH_SPACINGS,
     TRIANGLE_NEIGHBOURS,
 )
-from gatv._validation import check_memory
+from gatv.validation import check_memory
 from gatv.candidates import one_to_one
 from gatv.fitting import kabsch
 
@@ -125,7 +125,7 @@ def dominant_rotation(r1, r2, rel_tol, radius_deg, max_matches=8, memory_budget=
     max_matches : int, default: 8
         Target triangles retrieved per source triangle (nearest in shape).
     memory_budget : float, optional
-        Bytes the trial tables may take (:func:`gatv._validation.check_memory`).
+        Bytes the trial tables may take (:func:`gatv.validation.check_memory`).
 
     Returns
     -------

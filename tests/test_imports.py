@@ -207,3 +207,40 @@ def test_no_function_local_import_of_the_package(module):
     path = MODULES[module]
     local = _local_imports(module, ast.parse(path.read_text(), str(path)))
     assert not local, f"{module} imports inside functions: " + ", ".join(f"line {n}: {t}" for n, t in local)
+
+
+def _private_imports(module: str, tree: ast.Module) -> list[tuple[int, str]]:
+    """(line, name) of every import, anywhere in ``module``, of a private module or name of the
+    *other* top-level package (a leading underscore in a module path part or an imported name)."""
+    own = module.split(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            target = _resolve(module, node)
+            names = [f"{target}.{a.name}" for a in node.names]
+        else:
+            continue
+        for name in names:
+            parts = name.split(".")
+            if parts[0] in PACKAGES and parts[0] != own and any(
+                    p.startswith("_") and not p.startswith("__") for p in parts):
+                out.append((node.lineno, name))
+    return sorted(set(out))
+
+
+def test_the_private_walk_sees_a_private_import():
+    tree = ast.parse("from gatv._validation import as_points\nimport gatv.voting._passes\n"
+                     "from gatv.validation import as_points\ndef f():\n    from gatv.scans import _voxel_for\n")
+    assert _private_imports("catadioptric.camera", tree) == [
+        (1, "gatv._validation.as_points"), (2, "gatv.voting._passes"), (5, "gatv.scans._voxel_for")]
+    assert _private_imports("gatv.stages", tree) == []  # inside its own package
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_no_import_of_the_other_package_private_names(module):
+    """catadioptric is built on gatv's public names only (``gatv.validation`` for the input checks)."""
+    path = MODULES[module]
+    private = _private_imports(module, ast.parse(path.read_text(), str(path)))
+    assert not private, f"{module} imports private names: " + ", ".join(f"line {n}: {t}" for n, t in private)

@@ -92,7 +92,7 @@ def _import_catadioptric():
 def _render(image1, image2, pixels1, pixels2, motions, path, title) -> None:
     import numpy as np
 
-    from catadioptric._render import render_matches
+    from catadioptric.render import render_matches
 
     pairs = np.vstack([m.correspondences for m in motions]) if motions else np.empty((0, 2), np.int64)
     which = np.concatenate([np.full(m.support, k) for k, m in enumerate(motions)]) if motions else None

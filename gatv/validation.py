@@ -9,38 +9,8 @@ A package built on gatv (``catadioptric``) or a new motion model behind
 
 from __future__ import annotations
 
-from ._validation import (
-    DEFAULT_MEMORY_BUDGET,
-    as_points,
-    as_rng,
-    as_vectors,
-    check_finite_array,
-    check_fraction,
-    check_int,
-    check_memory,
-    check_positive,
-    check_progress,
-    coordinates,
-    file_hint,
-    frozen_array,
-    memory_budget_limit,
-    seed_int,
-)
+from ._validation import *  # noqa: F403  (the checks of every public call, named in its __all__)
+from ._validation import __all__ as _CHECKS
+from ._validation import file_hint
 
-__all__ = [
-    "DEFAULT_MEMORY_BUDGET",
-    "as_points",
-    "as_rng",
-    "as_vectors",
-    "check_finite_array",
-    "check_fraction",
-    "check_int",
-    "check_memory",
-    "check_positive",
-    "check_progress",
-    "coordinates",
-    "file_hint",
-    "frozen_array",
-    "memory_budget_limit",
-    "seed_int",
-]
+__all__ = [*_CHECKS, "file_hint"]

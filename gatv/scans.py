@@ -978,15 +978,16 @@ class WrongDraws:
         return self._supports[key]
 
 
-def gate_verdicts(found, wrong, n_tested: float, n_points: int) -> list:
+def gate_verdicts(found, wrong, n_tested: float, n_points: int, n_drawn: int | None = None) -> list:
     """:func:`surface_verdict`'s verdict at each gate: supports ``found`` (one a gate) against the rows of
     ``wrong`` (a wrong motion's supports at the same gates), each raised by three Poisson deviations (small
-    counts at fine gates do not pass on noise)."""
+    counts at fine gates do not pass on noise); ``n_drawn``: the draws' extreme-value level too
+    (:func:`gatv.verdict.wrong_motion_verdict`)."""
     found = np.asarray(found).reshape(-1)
     wrong = np.array(wrong, dtype=np.float64).reshape(-1, found.size)
     wrong = wrong + 3.0 * np.sqrt(wrong)
-    return [wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=n_points, n_looks=found.size)
-            for i in range(found.size)]
+    return [wrong_motion_verdict(int(found[i]), wrong[:, i], n_tested, n_points=n_points, n_looks=found.size,
+                                 n_drawn=n_drawn) for i in range(found.size)]
 
 
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
@@ -1075,8 +1076,11 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
                            n_draws=n_draws, n_polished=n_polished)
     c = Xs.mean(axis=0)
 
-    def judged(wrong):
-        return list(zip(gate_verdicts(found, wrong, n_tested, Xs.shape[0]), gates))
+    def judged(wrong, extreme=True):
+        # A motion judged against the draws alone (no motion the search selected as it was): the draws' level
+        # is raised for the search's selection among its n_tested motions (extreme values).
+        lone = extreme and start is not None and n_searched == 0
+        return list(zip(gate_verdicts(found, wrong, n_tested, Xs.shape[0], draws.n_drawn if lone else None), gates))
 
     def on_the_motion(R, t):
         """Whether ``(R, t)`` ended on the motion judged (within 2° and three gates at the centroid)."""
@@ -1094,8 +1098,8 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         if not on_the_motion(R, t):
             wrong.append(draws.supports(i, gates, reach))
             per_gate = judged(wrong)
-            # More draws only raise the levels: once every gate's is reached, the motion has failed.
-            if not any(v for v, _ in per_gate):
+            # More draws only raise the gain's levels: once every gate's is reached, the motion has failed.
+            if not any(v for v, _ in judged(wrong, extreme=False)):
                 break
             # Sequential: far enough over the best screened wrong draws, the motion passes without the rest.
             if (sure is not None and len(wrong) - n_searched >= VERDICT_MIN_WRONG

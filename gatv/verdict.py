@@ -134,7 +134,7 @@ SEARCH_GAIN = 1.6
 
 
 def wrong_motion_verdict(support: int, draws, n_tested: float, *, n_points: int | None = None,
-                         gain: float = SEARCH_GAIN, n_looks: int = 1) -> Verdict:
+                         gain: float = SEARCH_GAIN, n_looks: int = 1, n_drawn: int | None = None) -> Verdict:
     """The surfaces' null: supports ``draws`` of polished wrong motions on the same data.
 
     The level is the best draw ``b`` made ``gain`` times likelier
@@ -149,6 +149,17 @@ def wrong_motion_verdict(support: int, draws, n_tested: float, *, n_points: int 
     overlap): ``n_looks · exp(-(support - b) / β)``, ``n_looks`` the gates
     looked at; it measures how far the motion stands out, it is not held
     to a level.
+
+    ``n_drawn``: the wrong motions the draws were drawn from (the verdict
+    polishes the best screened of them), when the search's best among its
+    ``n_tested`` motions is judged against them alone.  The level is then
+    also at least the draws' best raised by the excess the best of
+    ``n_tested`` motions has over the best of ``n_drawn`` from one
+    exponential tail, ``β · ln(n_tested / n_drawn)`` (extreme values: the
+    maximum of ``m`` exponential deviates grows as ``β ln m``), capped at
+    ``n_points``: a search that selects among many motions more than the
+    draws have is held to more (:data:`SEARCH_GAIN` alone was passed by a
+    wrong motion selected among 577, design notes, section 6).
     """
     d = np.sort(np.asarray(draws, dtype=np.float64))[::-1]
     n = max(1.0, float(n_tested))
@@ -164,4 +175,7 @@ def wrong_motion_verdict(support: int, draws, n_tested: float, *, n_points: int 
     if d.size >= 3:
         beta = max(float(np.median(d[:-1] - d[-1])) / math.log(2.0), 1.0)
         p = 1.0 if support <= best else min(1.0, n_looks * math.exp(-(float(support) - best) / beta))
+        if n_drawn is not None and n > n_drawn:
+            extreme = best + beta * math.log(n / float(n_drawn))
+            level = max(level, extreme if n_points is None else min(extreme, float(n_points)))
     return Verdict(int(support), level, n, p, "wrong motions", math.nan)

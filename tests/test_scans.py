@@ -409,6 +409,29 @@ def test_the_sequential_verdict_stops_only_on_a_pass(seed):
     assert wrong_fast.to_dict() == wrong.to_dict() and wrong_fast_figures == wrong_figures
 
 
+def test_the_motion_is_judged_as_polished_like_its_draws():
+    """``surface_verdict(start=)``: the search's trial is polished again as the wrong draws are, and the motion
+    counts at each gate with the smaller of its two supports.  Started from itself, the right motion keeps its
+    support and passes (its level only raised for the search's selection among n_tested motions); a start that
+    the draws' polish leaves 70 degrees off is judged by what it holds there, and fails."""
+    case = _verdict_case(3)
+    plain, plain_figures = _judge(case, np.eye(3), np.zeros(3))
+    right, figures = _judge(case, np.eye(3), np.zeros(3), start=(np.eye(3), np.zeros(3)))
+    assert plain and right
+    assert figures["support_polished"] == plain_figures["support"]
+    assert figures["support"] == np.minimum(figures["support_polished"], figures["support_alike"]).tolist()
+    assert figures["support_alike"][0] >= 0.95 * figures["support_polished"][0]
+    assert figures["wrong_support"] == plain_figures["wrong_support"]
+    assert all(a >= b for a, b in zip(figures["chance"], plain_figures["chance"]))
+    R_wrong = Rotor.from_axis_angle([1.0, 0.2, -0.5], np.radians(70.0)).as_matrix()
+    off, off_figures = _judge(case, np.eye(3), np.zeros(3), start=(R_wrong, np.zeros(3)))
+    assert off_figures["support_polished"] == plain_figures["support"]
+    assert off_figures["support"] == np.minimum(off_figures["support_polished"],
+                                                off_figures["support_alike"]).tolist()
+    assert off_figures["support_alike"][0] < 0.5 * off_figures["support_polished"][0]
+    assert not off
+
+
 def test_wrong_draws_are_polished_once_for_every_verdict():
     """One WrongDraws for several verdicts (match_surfaces' searches): each verdict equals the one that
     draws its own from the same stream, and a draw polished for one is not polished again for the next."""

@@ -60,6 +60,29 @@ def test_wrong_motion_level_is_the_gained_best_draw(draws, support, extra):
     assert 0.0 <= w.p_value <= 1.0
 
 
+@settings(max_examples=60, deadline=None)
+@given(draws=st.lists(st.integers(0, 10000), min_size=1, max_size=40), support=st.integers(0, 30000),
+       n_tested=st.floats(1.0, 1e6), n_drawn=st.integers(1, 1000), extra=st.integers(1, 10**6))
+def test_a_lone_motions_level_adds_the_extreme_value_excess(draws, support, n_tested, n_drawn, extra):
+    """``n_drawn``: the level is also at least the best draw plus ``β ln(n_tested / n_drawn)`` (β the p-value's
+    tail), capped at the points counted; nothing changes with fewer than three draws or n_tested <= n_drawn,
+    the p-value never, and more motions searched never lower the level."""
+    d = np.sort(np.asarray(draws, np.float64))[::-1]
+    best = float(d[0])
+    n_points = int(best) + extra
+    base = wrong_motion_verdict(support, draws, n_tested, n_points=n_points)
+    v = wrong_motion_verdict(support, draws, n_tested, n_points=n_points, n_drawn=n_drawn)
+    expected = base.chance
+    if d.size >= 3 and n_tested > n_drawn:
+        beta = max(float(np.median(d[:-1] - d[-1])) / math.log(2.0), 1.0)
+        expected = max(base.chance, min(best + beta * math.log(n_tested / n_drawn), n_points))
+    assert v.chance == pytest.approx(expected, rel=1e-12)
+    assert v.passed == (support >= v.chance)
+    assert v.p_value == base.p_value or (math.isnan(v.p_value) and math.isnan(base.p_value))
+    more = wrong_motion_verdict(support, draws, 2.0 * n_tested, n_points=n_points, n_drawn=n_drawn)
+    assert more.chance >= v.chance >= base.chance
+
+
 def test_verdict_figures_are_json_ready_and_falsy_when_failed():
     v = chance_verdict(10, 12.0, 5, method="poisson")
     assert not v and not v.passed and v.margin == pytest.approx(10 / 12)

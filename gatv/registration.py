@@ -82,7 +82,8 @@ from .verdict import chance_verdict
 from .voting import default_sigma, extract_surfaces
 
 __all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "checked_pipeline", "choose_pipeline",
-           "register", "reject_exact_options", "resolve_pipeline", "surface_likeness", "symmetry_rival"]
+           "count_ceiling", "register", "register_budget", "reject_exact_options", "resolve_pipeline",
+           "surface_likeness", "symmetry_rival"]
 
 # MAX_WORK, the default work bound of register's search, is gatv.models.base's (re-exported).
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
@@ -461,10 +462,7 @@ def register(
         raise InputError("`max_translation` needs `max_angle` (the small-motion mode).")
 
     info["mode"] = "congruent-triples"
-    share = max(float(min_inlier_share), P.model.sample_size / n)
-    need = samples_needed(share, confidence, stages.sample_points(P.model))
-    n_possible = stages.sample_space(P.model, n)
-    budget = int(min(need, 3 * n_possible if n_possible < 10**6 else need))
+    share, budget = register_budget(P, min_inlier_share, confidence)
     if max_triples is not None:
         budget = min(budget, max_triples)
     tried: list = []
@@ -493,6 +491,43 @@ def register(
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {fit.support} correspondences")
     return stages.make_result(P, fit, info)
+
+
+def register_budget(P: stages.Problem, min_inlier_share: float = 0.04,
+                    confidence: float = 0.999) -> tuple[float, int]:
+    """``(share, budget)`` of :func:`register`'s search: the smallest inlier share it looks for (at
+    least a sample's points) and the samples that find such a motion with ``confidence``."""
+    n = P.source.shape[0]
+    share = max(float(min_inlier_share), P.model.sample_size / n)
+    need = samples_needed(share, confidence, stages.sample_points(P.model))
+    n_possible = stages.sample_space(P.model, n)
+    return share, int(min(need, 3 * n_possible if n_possible < 10**6 else need))
+
+
+def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: float = 0.04,
+                  confidence: float = 0.999) -> bool:
+    """Whether the motion ``matrix`` (the truth, in a benchmark) could be kept by :func:`register`'s search.
+
+    The search keeps a motion found at a tolerance level only when its
+    refined pairs within that level's gate or a finer one's beat chance
+    family-wise over every match its budget scores
+    (:func:`gatv.stages.level_counts`).  Here the motion itself is refined
+    at each level's gate (:func:`gatv.stages.refine`) and counted the same
+    way: no trial pose is closer to it, so a motion that fails at every
+    level is beyond any trial generator of this search (the count test's
+    power, not the search's reach).  Optimistic: the density test, the judge
+    and the sample that finds the motion are taken to succeed.
+    """
+    policy = P.model.search_policy()
+    share, budget = register_budget(P, min_inlier_share, confidence)
+    levels = stages.tolerance_levels(P, None, policy.schedule)
+    n_final = float(budget) * policy.max_matches
+    for k, tol in enumerate(levels):
+        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)), stages.gate(tol))
+        counts = stages.level_counts(P, fit, levels[:k + 1], n_final)
+        if counts and counts[-1].support >= counts[-1].level:
+            return True
+    return False
 
 
 #: Source triples of the found inliers matched among themselves by

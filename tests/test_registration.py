@@ -416,6 +416,53 @@ def test_partial_copy_of_a_symmetric_object_is_found(scene, seed):
     assert m.support == copy.shape[0]
 
 
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 10**6))
+def test_count_ceiling_keeps_the_true_pose_and_never_a_random_one(seed):
+    """On a Table-2 trial at f = 0.5 and 1% noise the true pose beats the search's final level at some
+    gate; a random pose (at least 20 degrees off) never does."""
+    from gatv import stages
+    from gatv.models.base import homogeneous
+    from gatv.registration import count_ceiling
+
+    trial = table2_trial(0.5, noise=0.01, seed=seed)
+    P = stages.prepare(trial.source, trial.target)
+    assert count_ceiling(P, homogeneous(trial.rotation, trial.translation))
+    rng = np.random.default_rng(seed)
+    R = Rotor.from_axis_angle(rng.normal(size=3), np.radians(rng.uniform(20, 180))).as_matrix() @ trial.rotation
+    assert not count_ceiling(P, homogeneous(R, trial.translation + rng.normal(0, 2.0, 3)))
+
+
+@settings(max_examples=3, deadline=None)
+@given(seed=st.integers(0, 10**6), low=st.floats(0.005, 0.05), factor=st.floats(1.5, 8.0))
+def test_registers_trial_counts_stay_bounded_as_the_noise_grows(seed, low, factor):
+    """``register`` on two random sets at a noise and at a larger one: in ``info["trials"]`` the samples
+    drawn never exceed the RANSAC cap of the smallest motion the level's density test accepts, the
+    larger noise's cap is no larger, the work stays within the bound plus one chunk, and the call
+    says why it found nothing."""
+    from gatv import stages
+    from gatv.stats import samples_needed
+
+    rng = np.random.default_rng(seed)
+    source, target = rng.uniform(-5, 5, (150, 3)), rng.uniform(-5, 5, (150, 3))
+    spacing = stages.prepare(source, target).spacing
+    max_work = 1e6
+    caps = []
+    for noise in (low * spacing, low * factor * spacing):
+        m = register(source, target, noise=noise, max_work=max_work, seed=seed)
+        assert not m and m.info["reason"]
+        assert not m.info["verdict"]["passed"]
+        records = [r for r in m.info["trials"] if "tolerance" in r]
+        assert [r["tolerance"] for r in records] == [noise]
+        rec = records[0]
+        cap = samples_needed(min(1.0, rec["threshold"] / 150) * stages.listed_share(stages.LISTING, 1), 0.999, 3)
+        assert rec["triples"] <= cap
+        assert rec["work"] <= max_work + 4096 * rec["work"] / max(rec["triples"], 1)
+        assert any(r.get("stopped") == "work bound" for r in m.info["trials"]) or rec["triples"] == cap
+        caps.append(cap)
+    assert caps[1] <= caps[0]
+
+
 @settings(max_examples=4, deadline=None)
 @given(seed=st.integers(0, 10**6), noise=st.floats(0.002, 0.2))
 def test_trials_drawn_stay_bounded_as_the_noise_grows(seed, noise):

@@ -18,6 +18,11 @@ Null pairs (``--pairs``):
   (``--sizes``, default 1,000 and 20,000 points; 100,000 with ``--sizes``).
 * ``planes``: two independent samplings of a square (a degenerate surface:
   every slide fits as well).
+* ``cropped`` (not in the default run): the four object pairs with the
+  target cropped at a random plane to 40% and 50% of its points, at 0 and
+  30% uniform clutter on both, and one bunny and one chef view split at a
+  random plane into disjoint parts (45/55), one re-posed, at 0 and 30%
+  clutter: 20 partial-overlap nulls (their own stream of ``--seed``).
 
 Pipelines (``--methods``): ``register`` (``gatv.register``, its automatic
 pipeline choice), ``segment`` (``gatv.motions.segment``, found = at least
@@ -39,7 +44,7 @@ sequential verdict stops early on a clear pass) and the seconds.
 Usage::
 
     python benchmarks/null_pairs.py [--methods register,segment,nonrigid,catadioptric]
-                                    [--pairs objects,halves,random,planes] [--sizes 1000,20000]
+                                    [--pairs objects,halves,random,planes,cropped] [--sizes 1000,20000]
                                     [--true/--no-true] [--seed 0] [--out benchmarks/results]
 """
 
@@ -61,7 +66,9 @@ from _common import DEFAULT_OUT, markdown_table, parse_list, write_csv  # noqa: 
 from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair  # noqa: E402
 
 METHODS = ("register", "segment", "nonrigid", "catadioptric")
-PAIRS = ("objects", "halves", "random", "planes")
+PAIRS = ("objects", "halves", "random", "planes", "cropped")
+#: The kinds run by default (``cropped`` adds 20 slower pairs).
+DEFAULT_PAIRS = ("objects", "halves", "random", "planes")
 
 
 def _rms_radius(points: np.ndarray) -> float:
@@ -78,7 +85,47 @@ def _reposed(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (points - c) @ Rotation.random(random_state=rng).as_matrix().T + c + rng.normal(0, 0.1, 3) * _rms_radius(points)
 
 
-def null_pairs(kinds, sizes, rng):
+def _crop(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """The points below a random plane that keeps the share ``share`` of them."""
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    h = points @ u
+    return points[h <= np.quantile(h, share)]
+
+
+def _cluttered(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """``points`` with uniform clutter in their bounding box making up ``share`` of the result."""
+    if share <= 0:
+        return points
+    k = int(round(len(points) * share / (1 - share)))
+    return np.vstack([points, rng.uniform(points.min(0), points.max(0), (k, 3))])
+
+
+def cropped_pairs(seed: int):
+    """The ``cropped`` nulls: partial-overlap versions of the object pairs, and disjoint parts of one view."""
+    rng = np.random.default_rng(seed)
+    b0, b45, _, _ = load_bunny_pair("bun000", "bun045")
+    b315 = load_bunny_pair("bun000", "bun315")[1]
+    chef, para = load_uwa_pair("chef")[0], load_uwa_pair("parasaurolophus")[0]
+    objects = [("bun000/chef", _like(chef, b0), b0), ("bun045/para", _like(para, b45), b45),
+               ("chef/bun315", b315, _like(chef, b315)), ("para/chef", _like(para, chef), chef)]
+    out = []
+    for share in (0.4, 0.5):
+        for c in (0.0, 0.3):
+            for name, s, t in objects:
+                out.append((f"{name} crop{share:g} c{c:g}", _cluttered(_reposed(s, rng), c, rng),
+                            _cluttered(_crop(t, share, rng), c, rng)))
+    for name, p in (("bun000", b0), ("chef", chef)):
+        for c in (0.0, 0.3):
+            u = rng.normal(size=3)
+            u /= np.linalg.norm(u)
+            h = p @ u
+            a, b = p[h < np.quantile(h, 0.45)], p[h >= np.quantile(h, 0.45)]
+            out.append((f"{name} parts c{c:g}", _cluttered(_reposed(a, rng), c, rng), _cluttered(b, c, rng)))
+    return out
+
+
+def null_pairs(kinds, sizes, rng, seed: int = 0):
     """``(name, source, target)`` of each null pair asked for."""
     out = []
     if "objects" in kinds:
@@ -106,6 +153,11 @@ def null_pairs(kinds, sizes, rng):
         def square(n):
             return np.column_stack([rng.uniform(0, 10, (n, 2)), np.zeros(n)])
         out.append(("planes 20000", _reposed(square(20000), rng), square(20000)))
+    if "cropped" in kinds:
+        try:
+            out += cropped_pairs(seed)
+        except DataNotFoundError as exc:
+            print(f"cropped: skipped ({exc})", file=sys.stderr)
     return out
 
 
@@ -199,7 +251,7 @@ def run_catadioptric(seed: int) -> list[dict]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", type=parse_list(str), default=list(METHODS))
-    parser.add_argument("--pairs", type=parse_list(str), default=list(PAIRS))
+    parser.add_argument("--pairs", type=parse_list(str), default=list(DEFAULT_PAIRS))
     parser.add_argument("--sizes", type=parse_list(int), default=[1000, 20000])
     parser.add_argument("--true", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--seed", type=int, default=0)
@@ -210,7 +262,7 @@ def main(argv=None) -> int:
         parser.error(f"unknown --methods/--pairs {bad}; choose from {METHODS} and {PAIRS}")
     rng = np.random.default_rng(args.seed)
     rows = []
-    nulls = null_pairs(args.pairs, args.sizes, rng)
+    nulls = null_pairs(args.pairs, args.sizes, rng, args.seed)
     for method in args.methods:
         if method == "catadioptric":
             rows += run_catadioptric(args.seed)

@@ -767,7 +767,10 @@ def _seed_windows(X, Y, tree_x, rows_x, tree_y, centres, warp, margin: float, se
         tried.append(record)
         if src.size < 4 or tgt.size < 4:
             continue
-        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False, parts=False),
+        # placed rows (the identity after any pre-alignment): each local patch against the targets
+        # within the margin of it, the window's own assumption; a coarse warp moves only the centre
+        reach = margin if warp is _identity else None
+        local = _register_direct(X[src], Y[tgt], replace(settings, prealign=False, parts=False, local_reach=reach),
                                  lambda *a: None, time.perf_counter())
         record.update(support=local.support, hypothesis=local.info.get("hypothesis"),
                       verdict=local.info.get("verdict"),

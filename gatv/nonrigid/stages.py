@@ -135,6 +135,9 @@ class Settings:
     model: str = "rigid"
     local: bool = True  # try the local hypothesis when nothing counts (not with prealign=False)
     parts: bool = True  # seed further parts where the growth did not reach (not inside a window)
+    #: inside a placed window: how far a source row's partner may lie from the row (the window's
+    #: margin); the local hypothesis then searches each patch against the targets that close only
+    local_reach: float | None = None
 
     @property
     def noise_floor(self) -> float:
@@ -602,14 +605,21 @@ def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
         record = {"centre": int(c), "support": 0}
         records.append(record)
         tolerance = max(settings.noise or 0.0, LOCAL_GATE * median_spacing(X[patch]) / 3.5)
+        near_y = np.arange(Y.shape[0])
+        if settings.local_reach is not None:  # a placed window: the patch's partners lie that close
+            r = float(np.max(np.linalg.norm(X[patch] - X[c], axis=1)))
+            near_y = np.asarray(tree.query_ball_point(X[c], r + settings.local_reach), np.int64)
+            record["targets"] = int(near_y.size)
+            if near_y.size < 3:
+                continue
         try:
-            rigid = rigid_register(X[patch], Y, model=settings.model, seed=settings.seed,
+            rigid = rigid_register(X[patch], Y[near_y], model=settings.model, seed=settings.seed,
                                    noise=tolerance, max_triples=AUTO_RIGID_TRIPLES)
         except ValueError:  # a degenerate window (collinear points)
             continue
         if not rigid:
             continue
-        seeds = np.column_stack([patch[rigid.correspondences[:, 0]], rigid.correspondences[:, 1]])
+        seeds = np.column_stack([patch[rigid.correspondences[:, 0]], near_y[rigid.correspondences[:, 1]]])
         record.update(angle_deg=round(float(rigid.angle_deg), 2), rigid_support=int(rigid.support))
         if seeds.shape[0] < 3:
             continue

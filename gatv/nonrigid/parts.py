@@ -264,35 +264,45 @@ def contacts(X, Y, old, new, strain: float, gate: float) -> int:
     """Matches of ``new`` that meet a match of ``old`` continuously: within three matched spacings
     in the source (or, where the matches are sampled non-uniformly, among its ``GROW_NEIGHBOURS``
     nearest of ``old`` within three of its local spacings: a body's shoulder is sampled three times
-    more sparsely than the median), their displacements differing by at most
-    ``strain · |x_a − x_b| + gate`` (the local eq.-41 tolerance on displacements; unlike
-    :func:`gatv.nonrigid.multiscale.motion_parts`, which compares lengths, so that a part turned
-    as a whole relative to ``old`` meets it only near the axis)."""
+    more sparsely than the median), ``y_b`` within ``strain · |x_a − x_b| + gate`` of where the local
+    rigid motion of ``a`` (Kabsch on its ``MLS_NEIGHBOURS`` nearest of ``old``) takes ``x_b``:
+    ``|(y_b − y_a) − R_a (x_b − x_a)|``.  Displacements compared as they are would differ by
+    ``2 sin(θ/2) |x_a − x_b|`` between neighbours of one shape turned as a whole by θ, over the
+    strain beyond about 20°, so that the parts of a turned body met only near their common axis;
+    lengths alone would pass a part slid along the surface by twice the reach."""
     if old.shape[0] == 0 or new.shape[0] == 0:
         return 0
     xo, xn = X[old[:, 0]], X[new[:, 0]]
-    do, dn = Y[old[:, 1]] - xo, Y[new[:, 1]] - xn
+    yo, yn = Y[old[:, 1]], Y[new[:, 1]]
     both = np.vstack([xo, xn])
     radius = 3.0 * median_spacing(both)
     g = np.broadcast_to(np.asarray(gate, dtype=float), (Y.shape[0],))[new[:, 1]]
     local = ms.nonuniform_spacings(both, cKDTree(both))
+    tree_o = cKDTree(xo)
     if local is None:  # about uniform: every old match within the radius
-        n = 0
-        for i, js in enumerate(cKDTree(xo).query_ball_point(xn, radius)):
-            if js:
-                js = np.asarray(js)
-                lim = strain * np.linalg.norm(xo[js] - xn[i], axis=1) + g[i]
-                n += bool(np.any(np.linalg.norm(do[js] - dn[i], axis=1) <= lim))
-        return n
-    reach = np.maximum(radius, 3.0 * local[xo.shape[0]:])
-    k = min(ms.GROW_NEIGHBOURS, xo.shape[0])
-    dist, js = cKDTree(xo).query(xn, k=k, distance_upper_bound=float(reach.max()))
-    dist, js = dist.reshape(xn.shape[0], k), js.reshape(xn.shape[0], k)
-    ok = dist <= reach[:, None]
-    jj = np.where(ok, js, 0)
-    lim = strain * dist + g[:, None]
-    close = np.linalg.norm(do[jj] - dn[:, None, :], axis=2) <= np.where(ok, lim, -1.0)
-    return int(np.sum(np.any(close & ok, axis=1)))
+        lists = tree_o.query_ball_point(xn, radius)
+        ii = np.repeat(np.arange(xn.shape[0]), [len(js) for js in lists])
+        jj = np.fromiter((j for js in lists for j in js), np.int64, count=ii.size)
+    else:
+        reach = np.maximum(radius, 3.0 * local[xo.shape[0]:])
+        k = min(ms.GROW_NEIGHBOURS, xo.shape[0])
+        dist, js = tree_o.query(xn, k=k, distance_upper_bound=float(reach.max()))
+        dist, js = dist.reshape(xn.shape[0], k), js.reshape(xn.shape[0], k)
+        ii, kk = np.nonzero(dist <= reach[:, None])
+        jj = js[ii, kk]
+    if ii.size == 0:
+        return 0
+    # the local rigid motion of each old match that some new match reaches
+    near = np.unique(jj)
+    R = np.tile(np.eye(3), (xo.shape[0], 1, 1))
+    m = min(ms.MLS_NEIGHBOURS, xo.shape[0])
+    if m >= 3:
+        nb = tree_o.query(xo[near], k=m)[1].reshape(near.size, m)
+        R[near] = kabsch(xo[nb], yo[nb])[0]
+    dx = xn[ii] - xo[jj]
+    off = np.linalg.norm(yn[ii] - yo[jj] - np.einsum("nij,nj->ni", R[jj], dx), axis=1)
+    close = off <= strain * np.linalg.norm(dx, axis=1) + g[ii]
+    return int(np.unique(ii[close]).size)
 
 
 def hinged(X, Y, old, new, gate: float) -> dict | None:

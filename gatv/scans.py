@@ -83,6 +83,7 @@ __all__ = [
     "register_scans",
     "register_surfaces",
     "scan_noise",
+    "spatial_order",
     "surface_points",
     "surface_support",
     "surface_tokens",
@@ -229,7 +230,7 @@ def local_scatter(reference: np.ndarray, queries: np.ndarray, k: int, tree: cKDT
     dist, nb = tree.query(queries, k=k, workers=workers)
     local = reference[nb]
     centroid = local.mean(axis=1)
-    local = local - centroid[:, None, :]
+    local -= centroid[:, None, :]  # in place: ``local`` is the gather's own copy
     values, axes = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
     return LocalScatter(centroid, local, values, axes, dist[:, -1])
 
@@ -307,10 +308,10 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
         if ref is not pts or full_tree is None:
             work += ref.shape[0]  # a k-d tree built
         if ref is pts and full_tree is None:
-            full_tree = cKDTree(pts)
+            full_tree = _fit_tree(pts)
         kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
         work += at.shape[0] * kk
-        _, _, sd, radius = _plane_fits(at, ref, kk, full_tree if ref is pts else None, quadric=True)
+        _, _, sd, radius = _plane_fits(at, ref, kk, full_tree if ref is pts else _fit_tree(ref), quadric=True)
         sigma, r = float(np.median(sd)), float(np.median(radius))
         if r >= NOISE_RADIUS * sigma or k >= n - 1:
             return ScanNoise(sigma, int(k), r, int(work))
@@ -358,15 +359,45 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
     rng = np.random.default_rng(seed)
     ref = _reference(pts, min(1.0, FIT_POINTS / k), rng)
     kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
-    tree = cKDTree(ref)
+    tree = _fit_tree(ref)
     out = np.empty_like(moving)
     normals = np.empty_like(moving)
+    # The rows in the order of cells as wide as the fits' radius: consecutive queries then visit the
+    # same leaves of the tree (in the scan's own order, random for a resampled scan, each query
+    # fetches its leaves anew).  Each row's fit is its own, so the result is the same bit for bit.
+    order = spatial_order(moving, PROJECTION_RADIUS * noise.sigma)
     for start in range(0, moving.shape[0], chunk):
-        p = moving[start:start + chunk]
+        at = order[start:start + chunk]
+        p = moving[at]
         centroid, normal, _, _ = _plane_fits(p, ref, kk, tree, residuals=False)
-        out[start:start + chunk] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
-        normals[start:start + chunk] = normal
+        out[at] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
+        normals[at] = normal
     return SurfaceProjection(out, normals, int(k), int(ref.shape[0] + moving.shape[0] * kk))
+
+
+def _fit_tree(points: np.ndarray) -> cKDTree:
+    """The k-d tree of the plane fits' reference points.
+
+    Split at the midpoint of each cell's extent, not at the median
+    (``balanced_tree=False``): the same nearest neighbours, built in about
+    two thirds of the time (0.26 against 0.41 CPU-s for 10^6 points).
+    """
+    return cKDTree(points, balanced_tree=False)
+
+
+def spatial_order(points: np.ndarray, cell: float) -> np.ndarray:
+    """A permutation of the rows of ``points`` that visits them cell by cell (cubes of side ``cell``).
+
+    Lexicographic in the cells' integer coordinates: rows of one cell
+    are consecutive, and consecutive cells adjacent along the last axis.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] == 0:
+        return np.arange(0)
+    if not np.isfinite(cell) or cell <= 0:
+        return np.arange(pts.shape[0])
+    index = np.floor((pts - pts.min(axis=0)) / cell).astype(np.int64)
+    return np.lexsort((index[:, 2], index[:, 1], index[:, 0]))
 
 
 def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0,

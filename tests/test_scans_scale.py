@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 from gatv import Rotor, register_scans
-from gatv.scans import FIT_POINTS, NOISE_SAMPLE, VOTE_POINTS, surface_tokens
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gatv.scans import (FIT_POINTS, NOISE_SAMPLE, VOTE_POINTS, project_to_surface, scan_noise, spatial_order,
+                        surface_tokens)
 
 
 def _bumpy(rng, n, noise):
@@ -85,3 +89,32 @@ def test_a_large_scan_is_projected_only_where_the_vote_samples_and_alike():
     np.testing.assert_array_equal(sampled.normals, whole.normals)
     assert sampled.projection.work < whole.projection.work
     assert sampled.voted == whole.voted == 2 * VOTE_POINTS
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 300), st.floats(0.01, 2.0))
+def test_spatial_order_visits_every_row_once_cell_by_cell(seed, n, cell):
+    """A permutation; the ordered rows' cells are lexicographically non-decreasing (a cell's rows consecutive)."""
+    points = np.random.default_rng(seed).normal(size=(n, 3))
+    order = spatial_order(points, cell)
+    np.testing.assert_array_equal(np.sort(order), np.arange(n))
+    if n > 1:
+        index = np.floor((points[order] - points.min(axis=0)) / cell).astype(np.int64)
+        step = np.diff(index, axis=0)
+        first = np.argmax(step != 0, axis=1)  # the first axis on which consecutive cells differ
+        lead = step[np.arange(n - 1), first]
+        assert np.all(lead >= 0)
+
+
+def test_the_projection_of_rows_in_any_order_is_each_rows_own():
+    """Rows projected in a shuffled order (the fits run in spatial order) equal the whole scan's rows, bit for bit."""
+    rng = np.random.default_rng(11)
+    points = _bumpy(rng, 30000, 0.01)
+    noise = scan_noise(points, seed=2)
+    whole = project_to_surface(points, noise, seed=2)
+    rows = rng.permutation(points.shape[0])[:12000]
+    some = project_to_surface(points, noise, seed=2, rows=rows)
+    assert whole is not None and some is not None
+    np.testing.assert_array_equal(some.points, whole.points[rows])
+    np.testing.assert_array_equal(some.normals, whole.normals[rows])
+    assert not np.array_equal(some.points, points[rows])  # the rows did move onto the surface

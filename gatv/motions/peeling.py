@@ -326,6 +326,8 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
     pair stops being likelier than a random target point.  A motion's wider gate
     is used only when it brings in more pairs than random points would
     collect in the added shell (their expected number).  Poses are unchanged.
+    A motion left with fewer than the model's ``sample_size`` pairs keeps
+    its own, less the points the others took.
     """
     P = problem
     sigma = _support_weighted_noise(fits, noises)
@@ -348,10 +350,19 @@ def pool_noise(problem: Problem, fits: list[Fit], noises: list[float]) -> tuple[
         owner.append(np.full(c.shape[0], k))
     pairs, gain, owner = np.vstack(pairs), np.concatenate(gain), np.concatenate(owner)
     keep = assign_pairs(pairs, gain)
-    out = []
-    for k, fit in enumerate(fits):
-        c = _labelled(pairs, keep, owner, k)
-        out.append(Fit(fit.matrix, c) if c.shape[0] >= P.model.sample_size else fit)
+    labelled = [_labelled(pairs, keep, owner, k) for k in range(len(fits))]
+    short = [c.shape[0] < P.model.sample_size for c in labelled]
+    out = [Fit(fit.matrix, c) for fit, c in zip(fits, labelled)]
+    # Too few pairs at the pooled gate: the motion keeps its own pairs, less
+    # the points the motions before it here took (one-to-one over all motions).
+    taken = [c for c, s in zip(labelled, short) if not s]
+    for k in np.flatnonzero(short):
+        c = fits[k].correspondences
+        if taken:
+            t = np.vstack(taken)
+            c = c[~(np.isin(c[:, 0], t[:, 0]) | np.isin(c[:, 1], t[:, 1]))]
+        out[k] = Fit(fits[k].matrix, c)
+        taken.append(c)
     return out, sigma
 
 

@@ -284,6 +284,12 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     settles (a ball's points deviate from any plane by 0.45 of its radius),
     and ``neighbours`` reaches the whole set.  Neighbourhoods above
     ``2 * FIT_POINTS`` points are drawn from a random subsample of the scan.
+    A scan of more than ``NOISE_SAMPLE * 2 * FIT_POINTS`` points starts the
+    doubling at the first neighbourhood drawn from at most that many (its
+    k-d tree then holds no more points than the fits gather); where that
+    step already settles, the steps below it are tried, each on a subsample
+    twice as dense, until one does not, and the doubling runs from 8 points
+    as for any scan once they would use every point.
 
     ``at``: rows of the points to centre the neighbourhoods on (for example
     the scan's surface points, :func:`surface_points`, so that clutter does
@@ -298,24 +304,73 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     if rows.size == 0:
         rows = np.arange(n)
     at = pts[rows[rng.choice(rows.size, min(rows.size, NOISE_SAMPLE), replace=False)]]
-    full_tree = None  # the whole scan's, built once for the neighbourhoods that use every point
+    # A scan of more points than the fits gather (NOISE_SAMPLE neighbourhoods of 2 FIT_POINTS) starts
+    # the doubling on a subsample of at most that many: its tree then costs no more than the fits.
+    # Where that first step already settles, the noise may be finer: the step below, on a subsample
+    # twice as dense, until one does not settle (the one above it is the answer); at every point
+    # (2 FIT_POINTS and below) the doubling from 8.  Each step's subsample is the doubling's own.
     k = 8
-    work = 0
-    while True:
-        k = min(k, n - 1)
-        share = min(1.0, 2 * FIT_POINTS / k)
-        ref = _reference(pts, share, rng)
-        if ref is not pts or full_tree is None:
-            work += ref.shape[0]  # a k-d tree built
-        if ref is pts and full_tree is None:
-            full_tree = _fit_tree(pts)
-        kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
-        work += at.shape[0] * kk
-        _, _, sd, radius = _plane_fits(at, ref, kk, full_tree if ref is pts else _fit_tree(ref), quadric=True)
-        sigma, r = float(np.median(sd)), float(np.median(radius))
-        if r >= NOISE_RADIUS * sigma or k >= n - 1:
-            return ScanNoise(sigma, int(k), r, int(work))
+    while k < n - 1 and n * min(1.0, 2 * FIT_POINTS / k) > NOISE_SAMPLE * 2 * FIT_POINTS:
         k *= 2
+    trees: dict = {}
+    work = 0
+    if k > 8:
+        noise, settled = _noise_step(pts, at, rng, k, trees)
+        work += noise.work
+        if not settled:  # on up from the first step
+            k *= 2
+        else:
+            while k // 2 > 2 * FIT_POINTS:  # down while the step below (on a subsample) settles
+                finer, below = _noise_step(pts, at, rng, k // 2, trees)
+                work += finer.work
+                if not below:
+                    return ScanNoise(noise.sigma, noise.neighbours, noise.radius, work)
+                noise, k = finer, k // 2
+            k = 8  # the steps below use every point: the doubling from 8
+    while True:
+        noise, settled = _noise_step(pts, at, rng, k, trees)
+        work += noise.work
+        if settled:
+            return ScanNoise(noise.sigma, noise.neighbours, noise.radius, work)
+        k *= 2
+
+
+def _noise_step(pts: np.ndarray, at: np.ndarray, rng: np.random.Generator, k: int,
+                trees: dict) -> tuple[ScanNoise, bool]:
+    """One step of :func:`scan_noise`'s doubling: the noise of ``k``-point neighbourhoods (``work``: this
+    step's), and whether it settled.
+
+    ``trees`` keeps the whole scan's k-d tree once built, and each step's subsample: drawn from ``rng``
+    in the doubling's order (512, 1,024, ... points) whatever order the steps run in, so that a step's
+    subsample, and its noise, are those of the doubling from 8.
+    """
+    n = pts.shape[0]
+    k = min(k, n - 1)
+    if 2 * FIT_POINTS >= k:
+        ref = pts
+    else:
+        step = 8  # the doubling's first step on a subsample
+        while step <= 2 * FIT_POINTS:
+            step *= 2
+        while step < 2 * k:
+            if min(step, n - 1) not in trees:
+                trees[min(step, n - 1)] = _reference(pts, 2 * FIT_POINTS / min(step, n - 1), rng)
+            step *= 2
+        ref = trees[k]
+    work = 0
+    if ref is pts and "all" not in trees:
+        trees["all"] = _fit_tree(pts)  # the whole scan's, built once for the neighbourhoods that use every point
+        work += n
+    if ref is pts:
+        tree = trees["all"]
+    else:
+        tree = _fit_tree(ref)
+        work += ref.shape[0]
+    kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
+    work += at.shape[0] * kk
+    _, _, sd, radius = _plane_fits(at, ref, kk, tree, quadric=True)
+    sigma, r = float(np.median(sd)), float(np.median(radius))
+    return ScanNoise(sigma, int(k), r, int(work)), r >= NOISE_RADIUS * sigma or k >= n - 1
 
 
 @dataclass(frozen=True, eq=False)

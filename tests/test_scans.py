@@ -160,6 +160,41 @@ def test_scan_noise_at_three_quarters_of_a_spacing():
     assert abs(scan_noise(pts, seed=32).sigma / sigma - 1.0) < 0.1
 
 
+def test_scan_noise_of_a_large_scan_starts_on_a_subsample():
+    """Past NOISE_SAMPLE * 2 FIT_POINTS points the doubling starts on a subsample of at most that many, each
+    step on the doubling's own subsample: the result is the doubling's from 8 points, bit for bit, both
+    where the noise (eight spacings) settles above that first step, there with less work than the doubling
+    less its k-d tree of every point, and where it (a third of a spacing) settles at the first step and the
+    steps below run on every point."""
+    from gatv.candidates import median_spacing
+    from gatv.scans import FIT_POINTS, NOISE_SAMPLE, _noise_step, scan_noise
+
+    n = NOISE_SAMPLE * 2 * FIT_POINTS + 44000
+    rng = np.random.default_rng(5)
+    clean, _ = _noisy_unit_sphere(rng, n, 0.0)
+    spacing = median_spacing(clean)
+    for spacings in (8.0, 0.3):
+        sigma = spacings * spacing
+        pts, _ = _noisy_unit_sphere(rng, n, sigma)
+        est = scan_noise(pts, seed=1)
+        draws = np.random.default_rng(1)
+        at = pts[draws.choice(n, NOISE_SAMPLE, replace=False)]
+        trees, k, work = {}, 8, 0
+        while True:  # the doubling from 8
+            ladder, settled = _noise_step(pts, at, draws, k, trees)
+            work += ladder.work
+            if settled:
+                break
+            k *= 2
+        assert (est.sigma, est.neighbours, est.radius) == (ladder.sigma, ladder.neighbours, ladder.radius)
+        if spacings > 1:
+            assert abs(est.sigma / sigma - 1.0) < 0.07
+            assert est.neighbours > 2 * FIT_POINTS
+            assert est.work < work - n
+        else:
+            assert est.neighbours <= 2 * FIT_POINTS
+
+
 def test_scan_noise_of_a_volume_reaches_the_whole_set():
     """Scattered points deviate from every plane by a share of the neighbourhood's size: no scale settles."""
     from gatv.scans import scan_noise

@@ -780,8 +780,7 @@ def passing_level(problem: Problem, fit: Fit, levels, n_tests: float) -> LevelCo
     (one-to-one), so a finer gate only drops pairs.  ``None`` when no level
     passes.
     """
-    counts = level_counts(problem, fit, levels, n_tests)
-    return counts[-1] if counts and counts[-1].support >= counts[-1].level else None
+    return _passed(level_counts(problem, fit, levels, n_tests))
 
 
 def level_counts(problem: Problem, fit: Fit, levels, n_tests: float) -> list[LevelCount]:
@@ -806,7 +805,17 @@ def level_counts(problem: Problem, fit: Fit, levels, n_tests: float) -> list[Lev
 
 def closest_count(counts) -> LevelCount | None:
     """The count of ``counts`` (:class:`LevelCount`) nearest its level, by ``support / level``."""
-    return max(counts, key=lambda c: c.support / max(c.level, 1e-300), default=None)
+    return max(counts, key=lambda c: _ratio(c.support, c.level), default=None)
+
+
+def _passed(counts: list[LevelCount]) -> LevelCount | None:
+    """The last of :func:`level_counts`' ``counts`` when it reaches its level (the first that passes)."""
+    return counts[-1] if counts and counts[-1].support >= counts[-1].level else None
+
+
+def _ratio(support: float, level: float) -> float:
+    """``support / level``, the closeness to passing that the verdicts of failed searches compare."""
+    return support / max(float(level), 1e-300)
 
 
 def beats_chance_at_some_level(problem: Problem, fit: Fit, levels, n_tests: float) -> bool:
@@ -1159,7 +1168,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         counts = level_counts(
                             problem, refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), g),
                             levels[:level + 1], n_judge_tests)
-                        if counts[-1].support < counts[-1].level:
+                        if _passed(counts) is None:
                             _refused(rec, closest_count(counts))
                             continue
                     judged = judge(problem, matrix, tol, sigma=sigma, max_candidates=max_candidates)
@@ -1173,7 +1182,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                     if final > threshold:
                         # At its own gate or a finer level's (a true motion's pairs stay tight).
                         counts = level_counts(problem, fit, levels[:level + 1], n_final)
-                        passed = counts[-1] if counts[-1].support >= counts[-1].level else None
+                        passed = _passed(counts)
                         if passed is None:
                             _refused(rec, closest_count(counts))
                             continue
@@ -1225,14 +1234,14 @@ def search_verdict(tried: list) -> Verdict:
             figures.append((r["best_support"], float(r["threshold"]), r.get("n_tests", 1.0)))
     if not figures:
         return chance_verdict(0, 0.0, 1.0, method="poisson")
-    support, level, n_tests = max(figures, key=lambda f: f[0] / max(float(f[1]), 1e-300))
+    support, level, n_tests = max(figures, key=lambda f: _ratio(f[0], f[1]))
     return chance_verdict(support, level, n_tests, method="poisson")
 
 
 def _refused(rec: dict, count: LevelCount) -> None:
     """Keep in ``rec["refused"]`` the refused trial's test nearest its level (:func:`search_verdict`)."""
     old = rec.get("refused")
-    if old is None or count.support / max(count.level, 1e-300) > old["support"] / max(old["level"], 1e-300):
+    if old is None or _ratio(count.support, count.level) > _ratio(old["support"], old["level"]):
         rec["refused"] = {"support": int(count.support), "level": float(count.level),
                           "n_tests": float(count.n_tested)}
 

@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 
 from . import stages
 from ._fit_kernels import kabsch3
+from ._icp_kernels import KDTree, TargetGrid, plane_icp, screen_icp
 from ._validation import (
     as_points,
     check_fraction,
@@ -576,34 +577,17 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
 
     Stops after ``iterations``, or once a step moves the source by less
     than ``tol`` gates (its rotation at the farthest pair plus its
-    translation).  Returns ``(rotation, translation)``.
+    translation).  ``tree``: a :class:`gatv._icp_kernels.KDTree` of
+    ``target`` when the caller refines against it often (built otherwise).
+    Runs in one numba kernel (:func:`gatv._icp_kernels.plane_icp`).
+    Returns ``(rotation, translation)``.
     """
-    tree = cKDTree(target) if tree is None else tree
-    R = np.array(rotation, dtype=np.float64)
-    t = np.array(translation, dtype=np.float64)
-    huber = 0.3 * gate
-    for _ in range(iterations):
-        moved = source @ R.T + t
-        dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
-        ok = np.isfinite(dist)
-        if ok.sum() < 6:
-            break
-        p, q, n = moved[ok], target[j[ok]], target_normals[j[ok]]
-        c = p.mean(axis=0)
-        r = np.einsum("ij,ij->i", p - q, n)
-        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
-        A = np.hstack([np.cross(p - c, n), n]) * np.sqrt(w)[:, None]
-        b = -r * np.sqrt(w)
-        # The normal equations: a 6x6 system in place of the (n, 6) one (least squares of minimum
-        # norm, so a slide along a plane or a spin about an axis stays zero).
-        x, *_ = np.linalg.lstsq(np.einsum("ij,ik->jk", A, A), np.einsum("ij,i->j", A, b), rcond=None)
-        omega, delta = x[:3], x[3:]
-        Rinc = Rotor.from_rotvec(omega).as_matrix()
-        R = Rinc @ R
-        t = Rinc @ (t - c) + c + delta
-        if np.linalg.norm(omega) * np.abs(p - c).max() + np.linalg.norm(delta) < tol * gate:
-            break
-    return R, t
+    if not isinstance(tree, KDTree):
+        tree = KDTree(target)
+    return plane_icp(np.ascontiguousarray(source, dtype=np.float64), tree.points,
+                     np.ascontiguousarray(target_normals, dtype=np.float64), *tree.nodes,
+                     np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),
+                     float(gate), int(iterations), float(tol))
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -749,10 +733,11 @@ def register_surfaces(
     RigidMotion
         ``target ≈ source @ rotation.T + translation``; ``correspondences``
         index the input points (one-to-one nearest pairs within the final
-        gate, on the points kept as surface).  ``info`` has the voxel size
-        and stage timings (``t_<stage>`` wall and ``cpu_<stage>`` process
-        seconds from the call's start at each of :data:`STAGES`' ends); ``noise`` (the two scans' noise, root mean
-        square), ``scan_noise`` (each scan's, :func:`scan_noise`),
+        gate, on the points kept as surface).  ``info`` has the voxel size,
+        the target surface's median spacing (``target_spacing``) and stage
+        timings (``t_<stage>`` wall and ``cpu_<stage>`` process seconds from
+        the call's start at each of :data:`STAGES`' ends); ``noise`` (the
+        two scans' noise, root mean square), ``scan_noise`` (each scan's, :func:`scan_noise`),
         ``projected`` (the points of each scan's plane fits, 0 when it was
         not projected, :func:`project_to_surface`) and ``residual_noise``
         (the point-to-plane residuals of the final pairs, per scan, as
@@ -812,7 +797,7 @@ def register_surfaces(
     flat = thickness(on)
     # As thin as the pairs' own residuals (on noise-free data: flat to rounding, far below the
     # exact pipeline's finest tolerance of 1e-6 spacings): a plane, along which any slide fits.
-    if flat <= PLANE_THICKNESS * max(residual, 1e-6 * median_spacing(Ys)):
+    if flat <= PLANE_THICKNESS * max(residual, 1e-6 * match.info["target_spacing"]):
         info.update(thickness=flat, residual_noise=residual)
         return stages.failure(RIGID, (f"degenerate: the {on.shape[0]} supporting points lie on one plane "
                                       f"(thickness {flat:.3g}, residual {residual:.3g}), along which any slide "
@@ -969,8 +954,12 @@ class SourceFrame:
     @classmethod
     def of(cls, X: np.ndarray, tree: cKDTree | None = None) -> "SourceFrame":
         tree = cKDTree(X) if tree is None else tree
-        normals = local_scatter(X, X, min(12, X.shape[0]), tree).normals
-        neighbours = tree.query(X, k=min(VERDICT_NEIGHBOURS, X.shape[0]))[1].reshape(X.shape[0], -1)
+        k = min(VERDICT_NEIGHBOURS, X.shape[0])
+        # One query: the normals' 12 nearest are the first 12 of the VERDICT_NEIGHBOURS nearest.
+        neighbours = tree.query(X, k=k, workers=get_num_threads())[1].reshape(X.shape[0], -1)
+        local = X[neighbours[:, :min(12, X.shape[0])]]
+        local -= local.mean(axis=1)[:, None, :]
+        normals = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))[1][:, :, 0]
         return cls(normals, neighbours, tree)
 
 
@@ -1015,20 +1004,25 @@ class WrongDraws:
     point-to-point ICP at the ``voxel`` gate on :data:`VERDICT_SCREEN` source points (their *ranks*: the
     screen points within the gate at its end); the ``n_polished`` best, in the order of their ranks, go
     through ``polish(R, t) -> (R, t, gate, _)`` when first asked for.  ``screen_target``: the target
-    points the screen pairs with, with their k-d tree (``(points, tree)``; by default ``Ys`` and
-    ``tree``): :func:`match_surfaces` passes its voxel grid's centroids, where the search itself
-    matched (3,318 points against the scan's 40,256 on bun000).
+    points the screen pairs with (by default ``Ys``): :func:`match_surfaces` passes its voxel grid's
+    centroids, where the search itself matched (3,318 points against the scan's 40,256 on bun000).
+    Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screen_icp`, equal to
+    :func:`point_icp` with ``fit=kabsch3``), draws in parallel.
     """
 
     def __init__(self, Xs, Ys, target_normals, tree: cKDTree, frame: SourceFrame, *, polish, voxel: float,
                  rng: np.random.Generator, n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED,
-                 screen_target: tuple[np.ndarray, cKDTree] | None = None):
+                 screen_target: np.ndarray | None = None):
         self.Xs, self.Ys, self.target_normals, self.tree, self.frame = Xs, Ys, target_normals, tree, frame
         self.polish = polish
         starts = tangent_motions(Xs, Ys, n_draws, rng, source_tree=frame.tree, target_tree=tree)
         screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
-        Yq, tq = (Ys, tree) if screen_target is None else screen_target
-        ranks = np.array([point_icp(screen, Yq, tq, R, t, voxel, fit=kabsch3)[2] for R, t in starts], np.int64)
+        Yq = Ys if screen_target is None else screen_target
+        # Every draw's point_icp(screen, Yq, ..., voxel, fit=kabsch3) in one kernel (draws in parallel).
+        grid = TargetGrid(Yq, voxel)
+        ranks = screen_icp(np.ascontiguousarray(screen, dtype=np.float64), grid.target, grid.start, grid.order,
+                           grid.origin, grid.cell, grid.dims, np.array([R for R, _ in starts]).reshape(-1, 3, 3),
+                           np.array([t for _, t in starts]).reshape(-1, 3), float(voxel), 10)[2]
         order = np.argsort(ranks, kind="stable")[::-1][:n_polished]
         #: The draws kept for polishing, best screened first, and their ranks (descending).
         self.starts = [starts[k] for k in order]
@@ -1254,11 +1248,6 @@ ADAPTIVE_BATCH = 64
 #: agree, tells it apart (11,053 against 7,400 points on bun090<-bun045).
 PARTIAL_TRIALS = 32
 
-#: Leaf size of the target's k-d tree that the polish and the verdict query (scipy's default: 16):
-#: larger leaves make the many queries of points off the surface (the verdict's wrong draws) cheaper;
-#: the neighbours found are the same.
-QUERY_LEAFSIZE = 32
-
 #: Smallest voxel of :func:`match_surfaces`, in median point spacings of the
 #: more coarsely sampled scan: a voxel holds a few of its points (about four
 #: on a surface), so both scans' voxel centroids are local means of their
@@ -1346,7 +1335,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     if voxel is None:
         voxel = matching_voxel(Xs, Ys, n_points, target_spacing=target_spacing)
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
-    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])))
+    info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])), target_spacing=target_spacing)
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:
         return SurfaceMatch(None, None, voxel, none, 0, dict(info, reason="too few voxels"))
     nx, ny = _normals(Xd), _normals(Yd)
@@ -1363,7 +1352,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         budget = min(budget, max_triples)
     P = stages.prepare(Xd, Yd, RIGID)
     fine = 3.0 * target_spacing
-    tree = cKDTree(Ys, leafsize=QUERY_LEAFSIZE)
+    tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
     rng_sub = np.random.default_rng(seed)
     sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
     coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
@@ -1382,7 +1371,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     wrong_draws = functools.cache(lambda: WrongDraws(Xs, Ys, target_normals, tree, source_frame(),
                                                        polish=verdict_polish, voxel=voxel,
                                                        rng=np.random.default_rng([seed, VERDICT_STREAM]),
-                                                       screen_target=(Yd, cKDTree(Yd, leafsize=QUERY_LEAFSIZE))))
+                                                       screen_target=Yd))
 
     def on_surface(R, t, g) -> int:
         """Source points within ``g`` of a target point whose normals agree with its (:func:`surface_support`)."""
@@ -1397,7 +1386,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         if refine:
             while True:
                 moving = points if points is not None else sub if g <= fine else coarse
-                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree, iterations=iterations,
+                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree,
+                                             iterations=iterations,
                                              tol=1e-9 if g <= fine or points is not None else COARSE_STEP)
                 if g <= fine:
                     break
@@ -1406,11 +1396,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             return R, t, g, None
         if count == "normals":
             return R, t, g, on_surface(R, t, g)
-        dist, _ = tree.query(Xs @ R.T + t, k=1, distance_upper_bound=g)
         # Source points on the target's surface (within the gate): a measure
         # that does not favour a motion for landing on the very sample
         # points (the one-to-one pairs do).
-        return R, t, g, int(np.count_nonzero(np.isfinite(dist)))
+        return R, t, g, int(np.count_nonzero(tree.nearest(Xs @ R.T + t, g) >= 0))
 
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""

@@ -35,8 +35,8 @@ def parse_nonrigid():
 #: Kernels a cold run of the whole suite compiles, called once on tiny input through
 #: the wrappers the product uses (so with the product's argument types), in the
 #: order the suite first needs them: the congruent-triple search (test_batch), the
-#: stick pass (test_catadioptric_motions), similar triples (test_peeling), the
-#: eigen solver (test_voting), and the ball pass last (test_affine2d, the first
+#: stick pass (test_catadioptric_motions), similar triples (test_peeling), the scans
+#: pipeline's k-d tree and ICP kernels, the eigen solver (test_voting), and the ball pass last (test_affine2d, the first
 #: file, compiles it itself).
 _COMPILE_AHEAD = """
 import numpy as np
@@ -54,6 +54,13 @@ trial_motions(x, index, eps=0.01, max_triples=8, rng=rng, wide=2, sequential=Tru
               source_normals=normals, target_normals=normals, max_enumerated=4)
 vote(x, 0.3, normals, saliency=np.ones(40))  # the stick pass alone
 similar_trial_motions(x, index, eps=0.01, max_triples=2, rng=rng)
+from gatv._icp_kernels import KDTree, TargetGrid, plane_icp, screen_icp
+tree = KDTree(x)
+tree.query(x, k=1, distance_upper_bound=0.1)
+plane_icp(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9)
+grid = TargetGrid(x, 0.1)
+screen_icp(x, grid.target, grid.start, grid.order, grid.origin, grid.cell, grid.dims, np.eye(3)[None],
+           np.zeros((1, 3)), 0.1, 2)
 eig3_batch(np.zeros((2, 6)), np.empty((2, 3)), np.empty((2, 3, 3)))
 vote(x, 0.3)
 """

@@ -1,0 +1,365 @@
+"""Numba twins of the scans pipeline's short ICP screens (:func:`gatv.scans.point_icp`).
+
+The verdict of the scans pipeline screens every one of its wrong draws by a
+short point-to-point ICP on a thousand source points against the target's
+voxel centroids (:class:`gatv.scans.WrongDraws`); in numpy each iteration
+is a k-d tree query and a fit with their call overheads.  Here one kernel
+runs every draw's whole ICP, draws in parallel, nearest targets looked up
+in a dense grid of the voxel centroids.  Pure functions over contiguous
+float64 arrays; each is checked against its numpy reference in
+``tests/test_scans_kernels.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ._fit_kernels import kabsch3
+from .models.rigid.congruent_kernels import build_grid, nearest_in_grid
+
+
+class TargetGrid:
+    """A dense grid of target points for nearest lookups within ``radius`` (cells of ``radius``: a
+    lookup visits at most 3 x 3 x 3 of them)."""
+
+    def __init__(self, target: np.ndarray, radius: float):
+        self.target = np.ascontiguousarray(target, dtype=np.float64)
+        lo = self.target.min(axis=0)
+        ext = np.maximum(self.target.max(axis=0) - lo, 1e-12)
+        # At most ~128 cells a side (2M cells): a finer radius visits more cells' points, not more cells.
+        self.cell = max(float(radius), float(ext.max()) / 128.0)
+        self.dims = np.maximum(np.ceil(ext / self.cell).astype(np.int64), 1)
+        self.origin = lo.astype(np.float64)
+        self.radius = float(radius)
+        self.start, self.order = build_grid(self.target, self.origin, self.cell, self.dims)
+
+
+@njit(cache=True)
+def _icp_one(X, Y, start, order, origin, cell, dims, R, t, gate, iterations, moved, idx):
+    """One point-to-point ICP within ``gate`` from ``(R, t)``; returns ``(R, t, support)`` as
+    :func:`gatv.scans.point_icp` (``moved`` and ``idx``: scratch of ``X``'s length)."""
+    n = X.shape[0]
+    for _ in range(iterations + 1):
+        cnt = 0
+        for i in range(n):
+            for a in range(3):
+                moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
+            j = nearest_in_grid(moved[i], Y, start, order, origin, cell, dims, gate)
+            idx[i] = j
+            if j >= 0:
+                cnt += 1
+        if _ == iterations or cnt < 3:
+            return R, t, cnt
+        src = np.empty((cnt, 3))
+        dst = np.empty((cnt, 3))
+        k = 0
+        for i in range(n):
+            if idx[i] >= 0:
+                src[k] = X[i]
+                dst[k] = Y[idx[i]]
+                k += 1
+        R_new, t_new = kabsch3(src, dst)
+        if np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-9 * gate:
+            return R, t, cnt
+        R, t = R_new, t_new
+    return R, t, 0  # not reached
+
+
+@njit(cache=True, parallel=True)
+def screen_icp(X, Y, start, order, origin, cell, dims, rotations, translations, gate, iterations):
+    """:func:`gatv.scans.point_icp` from each of ``rotations``, ``translations`` (draws in parallel).
+
+    Returns ``(rotations, translations, supports)``: the motion each ICP
+    reached and its points of ``X`` within ``gate`` of a point of ``Y``
+    (the grid ``start, order, origin, cell, dims`` of ``Y``,
+    :class:`TargetGrid`, cells at least ``gate``).
+    """
+    m = rotations.shape[0]
+    n = X.shape[0]
+    out_R = np.empty_like(rotations)
+    out_t = np.empty_like(translations)
+    support = np.empty(m, np.int64)
+    for k in prange(m):
+        moved = np.empty((n, 3))
+        idx = np.empty(n, np.int64)
+        R, t, c = _icp_one(X, Y, start, order, origin, cell, dims, rotations[k].copy(), translations[k].copy(),
+                           gate, iterations, moved, idx)
+        out_R[k] = R
+        out_t[k] = t
+        support[k] = c
+    return out_R, out_t, support
+
+
+# ------------------------------------------------------------------ k-d tree
+#: Most points of a k-d tree leaf (:func:`kdtree_build`).
+LEAF_SIZE = 16
+#: Entries of a query's node stack: a search keeps at most one deferred node a level (and the median split
+#: halves every level: 2⁶⁰ points).
+STACK = 128
+
+
+@njit(cache=True)
+def kdtree_build(points, leafsize):
+    """A balanced k-d tree of ``points`` (split at the median of the widest axis).
+
+    Returns ``(order, lo, hi, axis, split, left, right)``: node ``k`` holds
+    ``order[lo[k]:hi[k]]``; an inner node splits on ``axis[k]`` at
+    ``split[k]`` into ``left[k]`` (at most ``split``) and ``right[k]``; a
+    leaf has ``axis[k] == -1``.  Node 0 is the root.
+    """
+    n = points.shape[0]
+    order = np.arange(n)
+    cap = 2 * (n // max(leafsize, 1) + 1) + 1
+    cap = 2 * cap
+    lo = np.empty(cap, np.int64)
+    hi = np.empty(cap, np.int64)
+    axis = np.full(cap, -1, np.int64)
+    split = np.zeros(cap)
+    left = np.full(cap, -1, np.int64)
+    right = np.full(cap, -1, np.int64)
+    lo[0], hi[0] = 0, n
+    count = 1
+    stack = np.empty(cap, np.int64)
+    top = 0
+    stack[0] = 0
+    top = 1
+    while top > 0:
+        top -= 1
+        k = stack[top]
+        a, b = lo[k], hi[k]
+        if b - a <= leafsize:
+            continue
+        best, width = 0, -1.0
+        for d in range(3):
+            mn, mx = np.inf, -np.inf
+            for s in range(a, b):
+                v = points[order[s], d]
+                mn = min(mn, v)
+                mx = max(mx, v)
+            if mx - mn > width:
+                best, width = d, mx - mn
+        if width <= 0.0:
+            continue  # every point equal: a leaf however many
+        keys = np.empty(b - a)
+        for s in range(a, b):
+            keys[s - a] = points[order[s], best]
+        perm = np.argsort(keys, kind="mergesort")
+        seg = order[a:b].copy()
+        for s in range(b - a):
+            order[a + s] = seg[perm[s]]
+        mid = (a + b) // 2
+        axis[k] = best
+        split[k] = points[order[mid], best]
+        lo[count], hi[count] = a, mid
+        lo[count + 1], hi[count + 1] = mid, b
+        left[k], right[k] = count, count + 1
+        stack[top] = count
+        stack[top + 1] = count + 1
+        top += 2
+        count += 2
+    return order, lo[:count], hi[:count], axis[:count], split[:count], left[:count], right[:count]
+
+
+@njit(cache=True)
+def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds):
+    """Index of the point of ``points`` nearest ``p`` closer than ``radius`` (or -1), as
+    ``cKDTree.query(p, distance_upper_bound=radius)``.
+
+    ``box``: (2, 3) the points' bounding box.  A node is skipped when its
+    box is no closer than the best found: each deferred node keeps its
+    box's offset from ``p`` along each axis (Arya & Mount's incremental
+    distance).  ``stack``, ``offsets`` (:data:`STACK`, 3), ``bounds``:
+    scratch of :data:`STACK` entries.
+    """
+    best = -1
+    bd = radius * radius
+    lb = 0.0
+    for a in range(3):
+        off = max(box[0, a] - p[a], 0.0, p[a] - box[1, a])
+        offsets[0, a] = off
+        lb += off * off
+    stack[0] = 0
+    bounds[0] = lb
+    top = 1
+    while top > 0:
+        top -= 1
+        k = stack[top]
+        lb = bounds[top]
+        if lb >= bd:
+            continue
+        d = axis[k]
+        if d < 0:
+            for s in range(lo[k], hi[k]):
+                j = order[s]
+                dx = points[j, 0] - p[0]
+                dy = points[j, 1] - p[1]
+                dz = points[j, 2] - p[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < bd:
+                    bd = d2
+                    best = j
+            continue
+        diff = p[d] - split[k]
+        near, far = (left[k], right[k]) if diff < 0.0 else (right[k], left[k])
+        o0, o1, o2 = offsets[top, 0], offsets[top, 1], offsets[top, 2]
+        old = offsets[top, d]
+        # The far child's box is at least |diff| off along d.
+        far_lb = lb - old * old + diff * diff
+        stack[top] = far
+        bounds[top] = far_lb
+        offsets[top, d] = abs(diff)
+        stack[top + 1] = near
+        bounds[top + 1] = lb
+        offsets[top + 1, 0] = o0
+        offsets[top + 1, 1] = o1
+        offsets[top + 1, 2] = o2
+        top += 2
+    return best
+
+
+class KDTree:
+    """A k-d tree for the numba kernels (:func:`kdtree_build`): nearest points within a bound.
+
+    ``query(x, k=1, distance_upper_bound=r)`` answers as
+    :meth:`scipy.spatial.cKDTree.query` does (distances, and ``inf`` and the
+    point count where none is closer than ``r``), in a parallel kernel; other
+    ``k`` go to a :class:`scipy.spatial.cKDTree` of the same points, built
+    when first asked for.
+    """
+
+    def __init__(self, points: np.ndarray, leafsize: int = LEAF_SIZE):
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        if self.points.ndim != 2 or self.points.shape[1] != 3 or self.points.shape[0] < 1:
+            raise ValueError(f"Expected `points` of shape (N, 3), N >= 1, got {self.points.shape}.")
+        #: ``(order, lo, hi, axis, split, left, right, box)``: the kernels' arguments after ``points``.
+        self.nodes = (*kdtree_build(self.points, int(leafsize)),
+                      np.stack([self.points.min(axis=0), self.points.max(axis=0)]))
+        self._scipy = None
+
+    @property
+    def data(self) -> np.ndarray:
+        """The points (as ``cKDTree.data``)."""
+        return self.points
+
+    @property
+    def n(self) -> int:
+        """The point count (as ``cKDTree.n``)."""
+        return int(self.points.shape[0])
+
+    def nearest(self, queries: np.ndarray, radius: float) -> np.ndarray:
+        """Index of each query's nearest point closer than ``radius``, or -1."""
+        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        return kdtree_query(q, self.points, *self.nodes, float(radius))
+
+    def query(self, x, k=1, distance_upper_bound=np.inf, **options):
+        """``(distances, indices)`` as :meth:`scipy.spatial.cKDTree.query`."""
+        if k != 1:
+            if self._scipy is None:
+                from scipy.spatial import cKDTree
+
+                self._scipy = cKDTree(self.points)
+            return self._scipy.query(x, k=k, distance_upper_bound=distance_upper_bound, **options)
+        x = np.asarray(x, dtype=np.float64)
+        j = self.nearest(x, distance_upper_bound)
+        d = np.full(j.shape[0], np.inf)
+        ok = j >= 0
+        d[ok] = np.sqrt(((x.reshape(-1, 3)[ok] - self.points[j[ok]]) ** 2).sum(axis=1))
+        j[~ok] = self.n
+        return d.reshape(x.shape[:-1]), j.reshape(x.shape[:-1])
+
+
+@njit(cache=True, parallel=True)
+def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, radius):
+    """:func:`kdtree_nearest` of every row of ``queries`` (in parallel)."""
+    n = queries.shape[0]
+    out = np.empty(n, np.int64)
+    chunk = 256
+    for c in prange((n + chunk - 1) // chunk):
+        stack = np.empty(STACK, np.int64)
+        offsets = np.empty((STACK, 3))
+        bounds = np.empty(STACK)
+        for i in range(c * chunk, min(n, (c + 1) * chunk)):
+            out[i] = kdtree_nearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
+                                    offsets, bounds)
+    return out
+
+
+# ------------------------------------------------------------------ point-to-plane ICP
+@njit(cache=True)
+def rotvec_matrix(w):
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues; the identity below 1e-300)."""
+    theta = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    R = np.eye(3)
+    if theta < 1e-300:
+        return R
+    a = w / theta
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return R + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+@njit(cache=True)
+def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
+    """Point-to-plane ICP inside ``gate``: :func:`gatv.scans.refine_point_to_plane` with its nearest
+    targets from the k-d tree ``order, ..., box`` of ``Y`` (:class:`KDTree`); ``N``: ``Y``'s unit normals.
+
+    Each iteration minimises ``sum w ((R x + t - y) · n_y)²`` linearised in a small rotation about the
+    pairs' centroid (Huber weights at 0.3 ``gate``), its 6 x 6 normal equations solved for least squares
+    of minimum norm.  Stops after ``iterations``, when fewer than six points pair, or once a step moves
+    the source by less than ``tol`` gates.  Returns ``(R, t)``.
+    """
+    n = X.shape[0]
+    idx = np.empty(n, np.int64)
+    moved = np.empty((n, 3))
+    stack = np.empty(STACK, np.int64)
+    offsets = np.empty((STACK, 3))
+    bounds = np.empty(STACK)
+    R = R.copy()
+    t = t.copy()
+    huber = 0.3 * gate
+    rcond = 6.0 * np.finfo(np.float64).eps  # numpy's lstsq default for a 6 x 6 system
+    for _ in range(iterations):
+        cnt = 0
+        c = np.zeros(3)
+        for i in range(n):
+            for a in range(3):
+                moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
+            j = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets,
+                               bounds)
+            idx[i] = j
+            if j >= 0:
+                cnt += 1
+                c += moved[i]
+        if cnt < 6:
+            break
+        c /= cnt
+        M = np.zeros((6, 6))
+        v = np.zeros(6)
+        row = np.empty(6)
+        reach = 0.0
+        for i in range(n):
+            j = idx[i]
+            if j < 0:
+                continue
+            px, py, pz = moved[i, 0] - c[0], moved[i, 1] - c[1], moved[i, 2] - c[2]
+            nx, ny, nz = N[j, 0], N[j, 1], N[j, 2]
+            r = (moved[i, 0] - Y[j, 0]) * nx + (moved[i, 1] - Y[j, 1]) * ny + (moved[i, 2] - Y[j, 2]) * nz
+            w = 1.0 if abs(r) <= huber else huber / max(abs(r), 1e-300)
+            row[0] = py * nz - pz * ny
+            row[1] = pz * nx - px * nz
+            row[2] = px * ny - py * nx
+            row[3], row[4], row[5] = nx, ny, nz
+            for a in range(6):
+                v[a] -= w * row[a] * r
+                for b in range(6):
+                    M[a, b] += w * row[a] * row[b]
+            reach = max(reach, abs(px), abs(py), abs(pz))
+        x = np.linalg.lstsq(M, v, rcond)[0]
+        omega = x[:3].copy()
+        delta = x[3:].copy()
+        Rinc = rotvec_matrix(omega)
+        R = Rinc @ R
+        t = Rinc @ (t - c) + c + delta
+        if np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate:
+            break
+    return R, t

@@ -1,0 +1,155 @@
+"""The scans pipeline's numba kernels (:mod:`gatv._icp_kernels`) against their numpy references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from gatv._fit_kernels import kabsch3
+from gatv._icp_kernels import KDTree, TargetGrid, kdtree_build, plane_icp, rotvec_matrix, screen_icp
+from gatv.ga import Rotor
+from gatv.scans import point_icp, refine_point_to_plane
+
+
+def _surface(rng, n, noise=0.0):
+    """A bumpy sheet of ``n`` points with its unit normals."""
+    u, v = rng.uniform(-1.0, 1.0, (2, n))
+    z = 0.3 * np.sin(2.0 * u) * np.cos(3.0 * v)
+    normals = np.stack([-0.6 * np.cos(2.0 * u) * np.cos(3.0 * v), 0.9 * np.sin(2.0 * u) * np.sin(3.0 * v),
+                        np.ones(n)], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    pts = np.stack([u, v, z], axis=1) + rng.normal(0.0, noise, (n, 3))
+    return pts, normals
+
+
+def reference_plane_icp(source, target, target_normals, rotation, translation, gate, iterations=30, tol=1e-9):
+    """The numpy point-to-plane ICP that :func:`gatv._icp_kernels.plane_icp` replaces (scipy's k-d tree)."""
+    tree = cKDTree(target)
+    R = np.array(rotation, dtype=np.float64)
+    t = np.array(translation, dtype=np.float64)
+    huber = 0.3 * gate
+    for _ in range(iterations):
+        moved = source @ R.T + t
+        dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        if ok.sum() < 6:
+            break
+        p, q, n = moved[ok], target[j[ok]], target_normals[j[ok]]
+        c = p.mean(axis=0)
+        r = np.einsum("ij,ij->i", p - q, n)
+        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-300))
+        A = np.hstack([np.cross(p - c, n), n]) * np.sqrt(w)[:, None]
+        b = -r * np.sqrt(w)
+        x, *_ = np.linalg.lstsq(np.einsum("ij,ik->jk", A, A), np.einsum("ij,i->j", A, b), rcond=None)
+        omega, delta = x[:3], x[3:]
+        Rinc = Rotor.from_rotvec(omega).as_matrix()
+        R = Rinc @ R
+        t = Rinc @ (t - c) + c + delta
+        if np.linalg.norm(omega) * np.abs(p - c).max() + np.linalg.norm(delta) < tol * gate:
+            break
+    return R, t
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), radius=st.floats(0.01, 3.0),
+       duplicates=st.booleans(), leaf=st.integers(1, 20))
+def test_kdtree_finds_the_nearest_point_within_the_bound_as_scipy(seed, n, radius, duplicates, leaf):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    if duplicates:  # repeated points and a flat coordinate: splits on ties
+        pts = np.vstack([pts, pts[: n // 2]])
+        pts[:, 2] = np.round(pts[:, 2], 1)
+    queries = rng.normal(scale=1.5, size=(300, 3))
+    tree = KDTree(pts, leafsize=leaf)
+    d_ref, j_ref = cKDTree(pts).query(queries, k=1, distance_upper_bound=radius)
+    d, j = tree.query(queries, k=1, distance_upper_bound=radius)
+    assert np.array_equal(np.isfinite(d), np.isfinite(d_ref))
+    hit = np.isfinite(d_ref)
+    # The same distance (ties may pick another of several equally near points).
+    np.testing.assert_allclose(d[hit], d_ref[hit], rtol=0, atol=1e-12)
+    assert np.all(j[~hit] == pts.shape[0])
+    assert np.allclose(np.linalg.norm(queries[hit] - pts[j[hit]], axis=1), d_ref[hit], atol=1e-12)
+
+
+def test_kdtree_nodes_partition_the_points():
+    pts = np.random.default_rng(3).normal(size=(1000, 3))
+    order, lo, hi, axis, split, left, right = kdtree_build(pts, 16)
+    assert sorted(order) == list(range(1000))
+    leaves = axis < 0
+    assert np.all(hi[leaves] - lo[leaves] <= 16)
+    # The leaves tile the order once; every inner node's children split it at the split value.
+    assert (hi[leaves] - lo[leaves]).sum() == 1000
+    for k in np.flatnonzero(~leaves):
+        a = axis[k]
+        assert np.all(pts[order[lo[left[k]]:hi[left[k]]], a] <= split[k])
+        assert np.all(pts[order[lo[right[k]]:hi[right[k]]], a] >= split[k])
+
+
+def test_kdtree_other_k_are_scipys():
+    pts = np.random.default_rng(4).normal(size=(200, 3))
+    d, j = KDTree(pts).query(pts[:5], k=3)
+    d_ref, j_ref = cKDTree(pts).query(pts[:5], k=3)
+    assert np.array_equal(j, j_ref) and np.allclose(d, d_ref)
+
+
+@settings(max_examples=20, deadline=None)
+@given(w=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3))
+def test_rotvec_matrix_is_the_rotors(w):
+    w = np.array(w)
+    np.testing.assert_allclose(rotvec_matrix(w), Rotor.from_rotvec(w).as_matrix(), atol=1e-14)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 40.0))
+def test_screen_icp_is_point_icp_for_every_draw(seed, angle):
+    rng = np.random.default_rng(seed)
+    Y, _ = _surface(rng, 600)
+    X = _surface(rng, 300)[0]
+    rotations = Rotation.from_rotvec(rng.normal(size=(12, 3)) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
+    translations = rng.normal(0.0, 0.1, (12, 3))
+    gate = 0.15
+    grid = TargetGrid(Y, gate)
+    Rk, tk, sk = screen_icp(X, grid.target, grid.start, grid.order, grid.origin, grid.cell, grid.dims,
+                            rotations, translations, gate, 10)
+    tree = cKDTree(Y)
+    for k in range(12):
+        R, t, s = point_icp(X, Y, tree, rotations[k], translations[k], gate, fit=kabsch3)
+        assert s == sk[k]
+        np.testing.assert_allclose(Rk[k], R, atol=1e-9)
+        np.testing.assert_allclose(tk[k], t, atol=1e-9)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 10.0), noise=st.floats(0.0, 0.01))
+def test_plane_icp_is_the_numpy_point_to_plane_icp(seed, angle, noise):
+    rng = np.random.default_rng(seed)
+    Y, N = _surface(rng, 1500, noise)
+    X = _surface(rng, 500, noise)[0]
+    R0 = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
+    t0 = rng.normal(0.0, 0.02, 3)
+    for gate, iterations, tol in [(0.2, 30, 1e-9), (0.05, 10, 1e-3)]:
+        R_ref, t_ref = reference_plane_icp(X, Y, N, R0, t0, gate, iterations, tol)
+        R, t = refine_point_to_plane(X, Y, N, R0, t0, gate, iterations=iterations, tol=tol)
+        np.testing.assert_allclose(R, R_ref, atol=1e-9)
+        np.testing.assert_allclose(t, t_ref, atol=1e-9)
+
+
+def test_plane_icp_recovers_a_small_motion_of_a_surface():
+    rng = np.random.default_rng(7)
+    Y, N = _surface(rng, 4000)
+    R_true = Rotation.from_rotvec([0.03, -0.02, 0.04]).as_matrix()
+    t_true = np.array([0.02, -0.01, 0.015])
+    X = (_surface(rng, 1000)[0] - t_true) @ R_true  # Y ≈ R_true X + t_true, sampled apart
+    tree = KDTree(Y)
+    R, t = plane_icp(X, tree.points, N, *tree.nodes, np.eye(3), np.zeros(3), 0.2, 50, 1e-9)
+    assert np.degrees(np.arccos(np.clip((np.trace(R @ R_true.T) - 1) / 2, -1, 1))) < 0.2
+    assert np.linalg.norm(t - t_true) < 5e-3
+
+
+def test_kdtree_rejects_points_not_in_3d():
+    with pytest.raises(ValueError, match="points"):
+        KDTree(np.zeros((4, 2)))

@@ -363,3 +363,23 @@ def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate,
         if np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate:
             break
     return R, t
+
+
+@njit(cache=True, parallel=True)
+def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotations, translations, gates,
+                   iterations, tols):
+    """:func:`plane_icp` from each of ``rotations``, ``translations`` through every gate of ``gates`` in
+    turn (``iterations`` and ``tols[g]`` at gate ``g``), the starts in parallel: the coarse-to-fine polish of
+    several motions at once.  Returns ``(rotations, translations)``."""
+    m = rotations.shape[0]
+    out_R = np.empty_like(rotations)
+    out_t = np.empty_like(translations)
+    for k in prange(m):
+        R = rotations[k].copy()
+        t = translations[k].copy()
+        for g in range(gates.shape[0]):
+            R, t = plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gates[g], iterations,
+                             tols[g])
+        out_R[k] = R
+        out_t[k] = t
+    return out_R, out_t

@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from . import stages
 from ._fit_kernels import kabsch3
-from ._icp_kernels import KDTree, TargetGrid, plane_icp, screen_icp
+from ._icp_kernels import KDTree, TargetGrid, plane_icp, plane_icp_many, screen_icp
 from ._validation import (
     as_points,
     check_fraction,
@@ -1007,14 +1007,18 @@ class WrongDraws:
     points the screen pairs with (by default ``Ys``): :func:`match_surfaces` passes its voxel grid's
     centroids, where the search itself matched (3,318 points against the scan's 40,256 on bun000).
     Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screen_icp`, equal to
-    :func:`point_icp` with ``fit=kabsch3``), draws in parallel.
+    :func:`point_icp` with ``fit=kabsch3``), draws in parallel.  ``polish_many(motions) -> [(R, t), ...]``:
+    ``polish`` of several motions at once (in parallel); draws are then polished as many at a time as numba
+    has threads, and :func:`surface_verdict` polishes its motion's start with the first
+    :data:`VERDICT_MIN_WRONG` draws.
     """
 
     def __init__(self, Xs, Ys, target_normals, tree: cKDTree, frame: SourceFrame, *, polish, voxel: float,
                  rng: np.random.Generator, n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED,
-                 screen_target: np.ndarray | None = None):
+                 screen_target: np.ndarray | None = None, polish_many=None):
         self.Xs, self.Ys, self.target_normals, self.tree, self.frame = Xs, Ys, target_normals, tree, frame
         self.polish = polish
+        self.polish_many = polish_many
         starts = tangent_motions(Xs, Ys, n_draws, rng, source_tree=frame.tree, target_tree=tree)
         screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
         Yq = Ys if screen_target is None else screen_target
@@ -1038,10 +1042,23 @@ class WrongDraws:
 
     def polished(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``i``-th best screened draw, polished (polishing every better one first, once)."""
-        while len(self._polished) <= i:
-            R, t, _, _ = self.polish(*self.starts[len(self._polished)])
-            self._polished.append((R, t))
+        if len(self._polished) <= i:
+            # With polish_many, as many at once as numba has threads: they polish in parallel.
+            self.polish_with(max(i + 1, len(self._polished) + (get_num_threads() if self.polish_many else 1)))
         return self._polished[i]
+
+    def polish_with(self, k: int, others=()) -> list:
+        """Polish the ``k`` best screened draws (those not polished yet) and the motions ``others`` (``(R, t)``
+        pairs) in one ``polish_many`` call when given (in parallel), else one by one; returns ``others``
+        polished."""
+        todo = list(self.starts[len(self._polished):max(len(self._polished), min(k, len(self.starts)))])
+        motions = todo + list(others)
+        if self.polish_many is not None and motions:
+            done = self.polish_many(motions)
+        else:
+            done = [self.polish(R, t)[:2] for R, t in motions]
+        self._polished.extend(done[:len(todo)])
+        return done[len(todo):]
 
     @property
     def n_polished(self) -> int:
@@ -1146,14 +1163,17 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     reach = gate + NOISE_REACH * float(noise)
     frame = SourceFrame.of(Xs) if frame is None else frame
     polished_support = found = surface_support(Xs, Ys, target_normals, tree, R0, t0, gates, reach, frame)
-    alike = None
-    if start is not None:
-        Ra, ta, _, _ = polish(*start)
-        alike = surface_support(Xs, Ys, target_normals, tree, Ra, ta, gates, reach, frame)
-        found = np.minimum(found, alike)
     if draws is None:
         draws = WrongDraws(Xs, Ys, target_normals, tree, frame, polish=polish, voxel=voxel, rng=rng,
                            n_draws=n_draws, n_polished=n_polished)
+    alike = None
+    if start is not None:
+        # Polished with the draws a sequential verdict counts at least (at once, in parallel, where the
+        # draws polish many at a time).
+        first = VERDICT_MIN_WRONG if sure is not None and draws.polish_many is not None else 0
+        (Ra, ta), = draws.polish_with(first, [start])
+        alike = surface_support(Xs, Ys, target_normals, tree, Ra, ta, gates, reach, frame)
+        found = np.minimum(found, alike)
     c = Xs.mean(axis=0)
 
     def judged(wrong, extreme=True):
@@ -1366,12 +1386,25 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     def verdict_polish(R, t):
         return polish(R, t, sample, VERDICT_ITERATIONS, False)
 
+    def verdict_polish_many(motions) -> list:
+        """``verdict_polish`` of each ``(R, t)`` of ``motions``, in parallel (one numba kernel)."""
+        if not refine:
+            return [(np.asarray(R, np.float64), np.asarray(t, np.float64)) for R, t in motions]
+        levels = [gate]
+        while levels[-1] > fine:
+            levels.append(max(fine, levels[-1] / 2.0))
+        Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, np.ascontiguousarray(target_normals),
+                                *tree.nodes, np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3),
+                                np.array([t for _, t in motions], np.float64).reshape(-1, 3),
+                                np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9))
+        return list(zip(Rs, ts))
+
     # The verdict's wrong draws do not depend on the motion judged: drawn, screened and polished once for
     # every attempt's verdict (as many as the verdicts ask for).
     wrong_draws = functools.cache(lambda: WrongDraws(Xs, Ys, target_normals, tree, source_frame(),
                                                        polish=verdict_polish, voxel=voxel,
                                                        rng=np.random.default_rng([seed, VERDICT_STREAM]),
-                                                       screen_target=Yd))
+                                                       screen_target=Yd, polish_many=verdict_polish_many))
 
     def on_surface(R, t, g) -> int:
         """Source points within ``g`` of a target point whose normals agree with its (:func:`surface_support`)."""

@@ -491,6 +491,31 @@ def test_wrong_draws_are_polished_once_for_every_verdict():
                                                   for R in (R_wrong, np.eye(3)))
 
 
+def test_draws_polished_many_at_a_time_give_the_same_verdict():
+    """``WrongDraws(polish_many=)`` (match_surfaces' parallel polish) polishes several draws at a time and
+    the motion's start with the first VERDICT_MIN_WRONG: the same verdicts, figure for figure, as one by one."""
+    from gatv.scans import VERDICT_MIN_WRONG, VERDICT_SURE, SourceFrame, WrongDraws
+
+    case = _verdict_case(4)
+    src, tgt, normals, tree, polish = case
+    batches = []
+
+    def many(motions):
+        batches.append(len(motions))
+        return [polish(R, t)[:2] for R, t in motions]
+
+    R_wrong = Rotor.from_axis_angle([0.2, 1.0, 0.3], np.radians(50.0)).as_matrix()
+    for R, start in ((np.eye(3), (np.eye(3), np.zeros(3))), (R_wrong, (R_wrong, np.zeros(3)))):
+        draws = WrongDraws(src, tgt, normals, tree, SourceFrame.of(src), polish=polish, voxel=0.3,
+                           rng=np.random.default_rng(7), n_draws=48, polish_many=many)
+        batches.clear()
+        together = _judge(case, R, np.zeros(3), draws=draws, sure=VERDICT_SURE, start=start)
+        alone = _judge(case, R, np.zeros(3), sure=VERDICT_SURE, start=start)
+        assert together[0].to_dict() == alone[0].to_dict() and together[1] == alone[1]
+        assert batches[0] == VERDICT_MIN_WRONG + 1  # the start and the first draws, in one call
+        assert draws.n_polished >= together[1]["polished"]
+
+
 def test_a_rival_counts_first_and_the_verdict_tells_the_right_motion():
     """A rival (match_surfaces' distinct motion nearly as well supported) counts as a wrong motion before
     the draws: the right motion still passes against a wrong rival (its points sit at the noise at every

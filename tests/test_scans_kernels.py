@@ -10,7 +10,15 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from gatv._fit_kernels import kabsch3
-from gatv._icp_kernels import KDTree, TargetGrid, kdtree_build, plane_icp, rotvec_matrix, screen_icp
+from gatv._icp_kernels import (
+    KDTree,
+    TargetGrid,
+    kdtree_build,
+    plane_icp,
+    plane_icp_many,
+    rotvec_matrix,
+    screen_icp,
+)
 from gatv.ga import Rotor
 from gatv.scans import point_icp, refine_point_to_plane
 
@@ -153,3 +161,21 @@ def test_plane_icp_recovers_a_small_motion_of_a_surface():
 def test_kdtree_rejects_points_not_in_3d():
     with pytest.raises(ValueError, match="points"):
         KDTree(np.zeros((4, 2)))
+
+
+def test_plane_icp_many_is_plane_icp_through_the_gates_for_each_start():
+    rng = np.random.default_rng(11)
+    Y, N = _surface(rng, 2000)
+    X = _surface(rng, 400)[0]
+    tree = KDTree(Y)
+    rotations = Rotation.from_rotvec(rng.normal(size=(5, 3)) * 0.1).as_matrix()
+    translations = rng.normal(0.0, 0.05, (5, 3))
+    gates = np.array([0.3, 0.15, 0.08])
+    tols = np.array([1e-3, 1e-9, 1e-9])
+    Rs, ts = plane_icp_many(X, tree.points, N, *tree.nodes, rotations, translations, gates, 7, tols)
+    for k in range(5):
+        R, t = rotations[k], translations[k]
+        for g, tol in zip(gates, tols):
+            R, t = plane_icp(X, tree.points, N, *tree.nodes, R, t, g, 7, tol)
+        np.testing.assert_array_equal(Rs[k], R)
+        np.testing.assert_array_equal(ts[k], t)

@@ -1198,8 +1198,10 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
         if not on_the_motion(R, t):
             wrong.append(draws.supports(i, gates, reach))
             per_gate = judged(wrong)
-            # More draws only raise the gain's levels: once every gate's is reached, the motion has failed.
-            if not any(v for v, _ in judged(wrong, extreme=False)):
+            # More draws only raise the gain's levels: once every gate's is reached, the motion has failed
+            # (the levels without the extreme-value excess; a motion not judged alone has no other).
+            plain = judged(wrong, extreme=False) if start is not None and n_searched == 0 else per_gate
+            if not any(v for v, _ in plain):
                 break
             # Sequential: far enough over the best screened wrong draws, the motion passes without the rest.
             if (sure is not None and len(wrong) - n_searched >= VERDICT_MIN_WRONG

@@ -49,6 +49,7 @@ from ._fit_kernels import kabsch3
 from ._icp_kernels import KDTree, TargetGrid, plane_icp, plane_icp_many, screen_icp
 from ._validation import (
     as_points,
+    as_vectors,
     check_fraction,
     check_int,
     check_positive,
@@ -582,12 +583,22 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
     Runs in one numba kernel (:func:`gatv._icp_kernels.plane_icp`).
     Returns ``(rotation, translation)``.
     """
-    if not isinstance(tree, KDTree):
-        tree = KDTree(target)
-    return plane_icp(np.ascontiguousarray(source, dtype=np.float64), tree.points,
-                     np.ascontiguousarray(target_normals, dtype=np.float64), *tree.nodes,
-                     np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),
-                     float(gate), int(iterations), float(tol))
+    X = as_points(source, "source")
+    Y = as_points(target, "target")
+    N = as_vectors(target_normals, "target_normals", Y.shape[0])
+    R = np.array(rotation, dtype=np.float64)
+    t = np.array(translation, dtype=np.float64).reshape(-1)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise InputError(f"Expected `rotation` a finite (3, 3) matrix, got shape {R.shape}.")
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise InputError(f"Expected `translation` a finite 3-vector, got shape {t.shape}.")
+    gate = check_positive(gate, "gate")
+    iterations = check_int(iterations, "iterations", 0)
+    if not np.isfinite(tol) or tol < 0:
+        raise InputError(f"Expected `tol` a finite number >= 0, got {tol!r}.")
+    if not isinstance(tree, KDTree) or tree.points.shape != Y.shape:
+        tree = KDTree(Y)
+    return plane_icp(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol))
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -1351,6 +1362,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     """
     t0 = _clock()
     report = progress if progress is not None else (lambda fraction, message="": None)
+    # C-ordered float64 for the numba kernels (one specialisation each)
+    Xs, Ys = (np.ascontiguousarray(a, dtype=np.float64) for a in (Xs, Ys))
     info: dict = {}
     none = np.empty((0, 2), np.int64)
     target_spacing = median_spacing(Ys)
@@ -1375,6 +1388,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     P = stages.prepare(Xd, Yd, RIGID)
     fine = 3.0 * target_spacing
     tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
+    normals_c = np.ascontiguousarray(target_normals, dtype=np.float64)
     rng_sub = np.random.default_rng(seed)
     sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
     coarse = sub if sub.shape[0] <= coarse_points else sub[rng_sub.choice(sub.shape[0], coarse_points,
@@ -1395,7 +1409,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         levels = [gate]
         while levels[-1] > fine:
             levels.append(max(fine, levels[-1] / 2.0))
-        Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, np.ascontiguousarray(target_normals),
+        Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, normals_c,
                                 *tree.nodes, np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3),
                                 np.array([t for _, t in motions], np.float64).reshape(-1, 3),
                                 np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9))
@@ -1421,9 +1435,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         if refine:
             while True:
                 moving = points if points is not None else sub if g <= fine else coarse
-                R, t = refine_point_to_plane(moving, Ys, target_normals, R, t, g, tree=tree,
-                                             iterations=iterations,
-                                             tol=1e-9 if g <= fine or points is not None else COARSE_STEP)
+                # refine_point_to_plane's kernel, its inputs checked once by the caller
+                R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.asarray(R, np.float64),
+                                 np.asarray(t, np.float64), float(g), int(iterations),
+                                 1e-9 if g <= fine or points is not None else COARSE_STEP)
                 if g <= fine:
                     break
                 g = max(fine, g / 2.0)

@@ -179,3 +179,24 @@ def test_plane_icp_many_is_plane_icp_through_the_gates_for_each_start():
             R, t = plane_icp(X, tree.points, N, *tree.nodes, R, t, g, 7, tol)
         np.testing.assert_array_equal(Rs[k], R)
         np.testing.assert_array_equal(ts[k], t)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(target=np.zeros((0, 3))), "target"),
+    (dict(target_normals=np.zeros((5, 3))), "target_normals"),
+    (dict(rotation=np.eye(4)), "rotation"),
+    (dict(translation=[0.0, np.nan, 0.0]), "translation"),
+    (dict(gate=0.0), "gate"),
+    (dict(iterations=-1), "iterations"),
+    (dict(source=np.full((4, 3), np.nan)), "source"),
+])
+def test_refine_point_to_plane_names_a_bad_argument(bad, match):
+    from gatv.errors import InputError
+
+    rng = np.random.default_rng(0)
+    Y, N = _surface(rng, 50)
+    args = dict(source=Y[:20], target=Y, target_normals=N, rotation=np.eye(3), translation=np.zeros(3), gate=0.1)
+    args.update(bad)
+    gate, iterations = args.pop("gate"), args.pop("iterations", 30)
+    with pytest.raises(InputError, match=match):
+        refine_point_to_plane(*args.values(), gate, iterations=iterations)

@@ -1024,7 +1024,7 @@ class WrongDraws:
     :data:`VERDICT_MIN_WRONG` draws.
     """
 
-    def __init__(self, Xs, Ys, target_normals, tree: cKDTree, frame: SourceFrame, *, polish, voxel: float,
+    def __init__(self, Xs, Ys, target_normals, tree: cKDTree | KDTree, frame: SourceFrame, *, polish, voxel: float,
                  rng: np.random.Generator, n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED,
                  screen_target: np.ndarray | None = None, polish_many=None):
         self.Xs, self.Ys, self.target_normals, self.tree, self.frame = Xs, Ys, target_normals, tree, frame
@@ -1436,8 +1436,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             while True:
                 moving = points if points is not None else sub if g <= fine else coarse
                 # refine_point_to_plane's kernel, its inputs checked once by the caller
-                R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.asarray(R, np.float64),
-                                 np.asarray(t, np.float64), float(g), int(iterations),
+                R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.ascontiguousarray(R, np.float64),
+                                 np.ascontiguousarray(t, np.float64), float(g), int(iterations),
                                  1e-9 if g <= fine or points is not None else COARSE_STEP)
                 if g <= fine:
                     break

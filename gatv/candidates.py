@@ -9,7 +9,7 @@ rotation, when there is one).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import get_num_threads, njit
 from scipy.spatial import cKDTree
 
 from ._validation import check_finite_array, check_memory
@@ -51,7 +51,7 @@ def median_spacing(points) -> float:
     check_finite_array(p, "points")
     if p.shape[0] < 2:
         return 1.0
-    d, _ = cKDTree(p).query(p, k=2)
+    d, _ = cKDTree(p).query(p, k=2, workers=get_num_threads())  # numba's threads: a batch worker's share
     nn = d[:, 1]
     pos = nn[nn > 0]
     if pos.size:

@@ -21,8 +21,9 @@ clutter) is resampled to ``N`` points: random points of the view, each moved
 by isotropic Gaussian noise of ``--upsample-noise`` mm (default 0.5 mm, the
 bunny scanner's resolution), and each row runs in a fresh process whose peak
 resident memory (column ``peak MiB``: the whole process, imports and the
-warm-up call included) is reported: the 10⁶-point rows
-(``--upsample 1000000``).
+warm-up call included; ``VmHWM``, the process's own, not ``ru_maxrss``,
+which a spawned process inherits from its parent) is reported: the
+10⁶-point rows (``--upsample 1000000``).
 With ``--noise 1,2,4`` each row also runs with Gaussian noise on every point
 of both views (before clutter), its standard deviation the given percentage
 of the source view's RMS radius about its centroid (1% is 0.56 mm on the
@@ -40,8 +41,18 @@ Methods, on the same inputs and in the same run:
 * ``o3d-fgr`` — Open3D Fast Global Registration on the same features, then
   the same ICP.
 * ``kiss`` — KISS-Matcher (``kiss-matcher`` on the package index: Faster-PFH,
-  ROBIN pruning, GNC) at the same voxel, then the same ICP.  It takes its
-  voxel by hand; the scans are scaled to a 100-unit diagonal for it.
+  ROBIN pruning, GNC), then the same ICP.  It takes its voxel by hand; the
+  scans are scaled to a 100-unit diagonal for it.  Its voxel is chosen by a
+  small sweep (``--kiss-voxel-share sweep``, the default): each share of
+  ``KISS_SWEEP`` of the target's diagonal on ``SWEEP_PAIRS`` (the table's
+  bunny pairs with target and source swapped, not rows of the table) at 0
+  and 30% clutter; the share with the most successes, then the least median
+  time, runs the table (the sweep's own table is printed first).
+
+Each method's rows run in a fresh process of its own (without
+``--scheduler``), and the summary reports that process's resident peak
+(``peak MiB``: its imports and all its rows), so that the methods' memory
+compares.
 
 Sets sampled differently (``--pairs``, not run by default): ``res2<-bun045``
 registers the bun045 scan to the bunny's reconstruction decimated to res2
@@ -64,7 +75,8 @@ within 0.3° and 1 mm (UWA, a few times its pseudo ground truth's tolerance).
 Usage::
 
     python benchmarks/scans.py [--seed 0] [--clutter 0,0.3,0.5] [--overlap 0.4] [--noise 0,2,4] [--upsample N]
-                               [--methods gatv,o3d-ransac,o3d-fgr,kiss] [--out benchmarks/results]
+                               [--methods gatv,o3d-ransac,o3d-fgr,kiss] [--kiss-voxel-share sweep|S]
+                               [--out benchmarks/results]
                                [--scheduler local|ADDRESS] [--stages]
 
 ``--stages`` adds a table of the CPU seconds of each stage of gatv's scans
@@ -74,7 +86,6 @@ pipeline (``info["cpu_<stage>"]``) per row; the CSV has them always.
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 from pathlib import Path
@@ -92,6 +103,7 @@ from _common import (  # noqa: E402
     median,
     o3d_polish,
     parse_list,
+    peak_rss_mib,
     write_csv,
 )
 
@@ -107,6 +119,14 @@ MESHES = ("res2", "res3", "res4")
 STAGES = ("prepare", "trials", "judge", "polish", "verdict")
 #: Success tolerances (degrees, millimetres) per dataset.
 TOLERANCE = {"bunny": (1.0, 2.0), "uwa": (0.3, 1.0), "mesh": (2.0, 2.0)}
+#: KISS-Matcher's voxel, as shares of the target's bounding-box diagonal, tried by ``--kiss-voxel-share
+#: sweep`` (on the bunny's 0.2 m diagonal: 2, 3, 5 and 8 mm).
+KISS_SWEEP = (1 / 100, 1 / 67, 1 / 40, 1 / 25)
+#: The pairs the sweep runs on: not rows of the table (the table's pairs with target and source swapped:
+#: the four bunny scans are all the shared data has).
+SWEEP_PAIRS = ("bun045<-bun000", "bun090<-bun045")
+#: The clutter levels of the sweep.
+SWEEP_CLUTTER = (0.0, 0.3)
 
 
 def load(name: str):
@@ -271,6 +291,46 @@ def _fresh_process(task, noise_mm):
         return pool.submit(_row_with_noise, (task, noise_mm)).result()
 
 
+def _rows_of_a_method(tasks: list) -> tuple[list, float]:
+    """``[run_row(task) for task in tasks]`` (one method's rows) and this process's peak memory (MiB)."""
+    rows = [run_row(task) for task in tasks]
+    return rows, peak_rss_mib()
+
+
+def rows_by_method(tasks: list) -> tuple[list, dict]:
+    """Every method's rows in a fresh process of its own: the rows in the order of ``tasks`` and each
+    method's peak resident memory (MiB: the whole process, its imports and all its rows)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    methods = list(dict.fromkeys(task[4] for task in tasks))
+    done, peak = {}, {}
+    for method in methods:
+        mine = [k for k, task in enumerate(tasks) if task[4] == method]
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            rows, peak[method] = pool.submit(_rows_of_a_method, [tasks[k] for k in mine]).result()
+        done.update(zip(mine, rows))
+    return [done[k] for k in range(len(tasks))], peak
+
+
+def sweep_kiss_voxel(seed: int) -> tuple[float, list]:
+    """KISS-Matcher's voxel share chosen on :data:`SWEEP_PAIRS` at :data:`SWEEP_CLUTTER`: the share of
+    :data:`KISS_SWEEP` with the most successes, then the least median time.  Returns the share and the
+    sweep's table rows."""
+    table, best = [], None
+    for share in KISS_SWEEP:
+        rows = [run_row((name, clutter, None, 0.0, "kiss", seed + k, share, None))
+                for clutter in SWEEP_CLUTTER for k, name in enumerate(SWEEP_PAIRS)]
+        if any("not installed" in r.get("error", "") for r in rows):
+            return 1 / 40, []
+        wins = sum(bool(r.get("success")) for r in rows)
+        t = median([r["time_s"] for r in rows if "time_s" in r])
+        table.append([f"1/{round(1 / share)}", f"{wins}/{len(rows)}", fmt(t, 2)])
+        if best is None or (wins, -(t or 0.0)) > (best[1], -(best[2] or 0.0)):
+            best = (share, wins, t)
+    return best[0], table
+
+
 def warm_up() -> None:
     """Compile gatv's kernels once per process (the main one, or each Dask worker), outside the timed rows."""
     if _WARM:
@@ -324,7 +384,7 @@ def run_row(task: tuple) -> dict:
     estimate = extra.get("noise")
     if sigma > 0 and estimate is not None:
         row["noise_ratio"] = float(estimate) / sigma
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    peak = peak_rss_mib()
     return dict(row, rotation_error_deg=rot, centroid_error_mm=centre, time_s=seconds, cpu_s=cpu, peak_mib=peak,
                 points=(len(source), len(target)),
                 success=bool(extra.get("ok", True)) and rot <= tol_deg and centre <= tol_mm,
@@ -352,6 +412,9 @@ def main(argv=None) -> int:
     parser.add_argument("--upsample-noise", type=float, default=0.5, metavar="MM")
     parser.add_argument("--o3d-voxel-share", type=float, default=1 / 40,
                         help="Open3D's voxel as a share of the target's bounding-box diagonal")
+    parser.add_argument("--kiss-voxel-share", default="sweep",
+                        help="KISS-Matcher's voxel as a share of the target's diagonal, or 'sweep' (default): "
+                             "the best of KISS_SWEEP on SWEEP_PAIRS, pairs not in the table")
     parser.add_argument("--stages", action="store_true",
                         help="also print the CPU seconds of each stage of gatv's scans pipeline per row")
     add_scheduler_argument(parser)
@@ -367,14 +430,30 @@ def main(argv=None) -> int:
         return 0
     if "gatv" in args.methods and not args.upsample:
         warm_up()
-    tasks = [(name, clutter, args.overlap, noise, method, args.seed + k, args.o3d_voxel_share, args.upsample)
+    kiss_share, sweep = args.o3d_voxel_share, []
+    if "kiss" in args.methods:
+        if args.kiss_voxel_share == "sweep":
+            kiss_share, sweep = sweep_kiss_voxel(args.seed)
+        else:
+            kiss_share = float(args.kiss_voxel_share)
+    tasks = [(name, clutter, args.overlap, noise, method, args.seed + k,
+              kiss_share if method == "kiss" else args.o3d_voxel_share, args.upsample)
              for noise in args.noise for clutter in args.clutter for k, name in enumerate(names)
              for method in args.methods]
+    peaks: dict = {}
     if args.upsample:
         _UPSAMPLE_NOISE[0] = args.upsample_noise
         rows = [_fresh_process(task, args.upsample_noise) for task in tasks]
+    elif args.scheduler is None:
+        rows, peaks = rows_by_method(tasks)
     else:
         rows = map_trials(run_row, tasks, scheduler=args.scheduler)
+    if sweep:
+        print(f"KISS-Matcher's voxel (share of the target's diagonal) swept on {', '.join(SWEEP_PAIRS)} at "
+              f"{', '.join(f'{c:.0%}' for c in SWEEP_CLUTTER)} clutter (not rows of the table): "
+              f"1/{round(1 / kiss_share)} chosen\n")
+        print(markdown_table(["voxel share", "successes", "median time (s)"], sweep, align="lrr"))
+        print()
     for r in rows:
         if "error" in r:
             print(f"  {r['pair']} clutter {r['clutter']:.0%} {r['method']}: {r['error']}", file=sys.stderr)
@@ -403,17 +482,21 @@ def main(argv=None) -> int:
                          + ("r" if noisy else "") + "l"))
     print()
     summary = [["method", *(["noise"] if noisy else []), "clutter", "successes", "median time (s)", "max time (s)",
-                "median CPU (s)"]]
+                "median CPU (s)", "peak MiB"]]
     for method in args.methods:
         for noise in args.noise:
             for clutter in args.clutter:
                 cell = [r for r in rows if r["method"] == method and r["clutter"] == clutter and r["noise"] == noise]
                 times = [r["time_s"] for r in cell if "time_s" in r]
+                peak = peaks.get(method, max((r["peak_mib"] for r in cell if big and "peak_mib" in r), default=None))
                 summary.append([method, *([f"{noise:g}%"] if noisy else []), f"{clutter:.0%}",
                                 f"{sum(bool(r.get('success')) for r in cell)}/{len(cell)}", fmt(median(times), 2),
-                                fmt(max(times) if times else None, 2), fmt(median(r.get("cpu_s") for r in cell), 2)])
-    print(markdown_table(summary[0], summary[1:], align="l" + ("r" if noisy else "") + "lrrrr"))
-    print("CPU: process time of the call, all threads added up (Open3D and numba both use threads).")
+                                fmt(max(times) if times else None, 2), fmt(median(r.get("cpu_s") for r in cell), 2),
+                                fmt(peak, 0)])
+    print(markdown_table(summary[0], summary[1:], align="l" + ("r" if noisy else "") + "lrrrrr"))
+    print("CPU: process time of the call, all threads added up (Open3D and numba both use threads).  Peak MiB: "
+          + ("the row's own process" if big else "the resident peak of the method's own process (its imports and "
+             "every row of the run)" if peaks else "not measured (Dask)") + ".")
     staged = [r for r in rows if "cpu_prepare" in r]
     if args.stages and staged:
         print("\nCPU seconds per stage of gatv's scans pipeline (gatv.scans.STAGES; rest: from the verdict's end "

@@ -383,3 +383,33 @@ def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotati
         out_R[k] = R
         out_t[k] = t
     return out_R, out_t
+
+
+# ------------------------------------------------------------------ the verdict's local heights
+@njit(cache=True, parallel=True)
+def local_heights(moved, idx, Y, N, moved_normals, neighbours, agreement):
+    """Each moved source point's *local height* over its nearest target sample's tangent plane
+    (:func:`gatv.scans.surface_support`): where its normal (``moved_normals``) agrees with the sample's
+    (``|cos| >= agreement``), the mean over its ``neighbours`` (rows of ``moved``, itself among them) that
+    have a nearest sample (``idx >= 0``) of their offset from that sample along this point's sample's
+    normal, in absolute value; ``inf`` where it has no sample or the normals disagree."""
+    n = moved.shape[0]
+    k = neighbours.shape[1]
+    h = np.full(n, np.inf)
+    for i in prange(n):
+        j = idx[i]
+        if j < 0:
+            continue
+        nx, ny, nz = N[j, 0], N[j, 1], N[j, 2]
+        if abs(moved_normals[i, 0] * nx + moved_normals[i, 1] * ny + moved_normals[i, 2] * nz) < agreement:
+            continue
+        s = 0.0
+        c = 0
+        for m in range(k):
+            q = neighbours[i, m]
+            jq = idx[q]
+            if jq >= 0:
+                s += (moved[q, 0] - Y[jq, 0]) * nx + (moved[q, 1] - Y[jq, 1]) * ny + (moved[q, 2] - Y[jq, 2]) * nz
+                c += 1
+        h[i] = abs(s) / max(c, 1)
+    return h

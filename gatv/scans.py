@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from . import stages
 from ._fit_kernels import kabsch3
-from ._icp_kernels import KDTree, TargetGrid, plane_icp, plane_icp_many, screen_icp
+from ._icp_kernels import KDTree, TargetGrid, local_heights, plane_icp, plane_icp_many, screen_icp
 from ._validation import (
     as_points,
     as_vectors,
@@ -989,20 +989,16 @@ def surface_support(X, Y, normals, tree, R, t, gates, reach, frame: SourceFrame)
     two surfaces that a wrong motion lays tangentially onto each other,
     smooth over that neighbourhood, stays.
     """
-    moved = X @ R.T + t
+    moved = np.ascontiguousarray(X @ R.T + t)
     d, j = tree.query(moved, k=1, distance_upper_bound=max(reach, gates[0]))
-    near = np.isfinite(d)
-    j = np.where(near, j, 0)
-    n = normals[j]
-    agree = near & (np.abs(np.einsum("ij,ij->i", frame.normals @ R.T, n)) >= NORMAL_AGREEMENT)
-    off = np.where(near[:, None], moved - Y[j], 0.0)
-    # Each neighbour's offset from its own nearest sample, along this point's normal (where the normals agree:
-    # elsewhere a point does not count).
-    rows = np.flatnonzero(agree)
-    nb = frame.neighbours[rows]
-    heights = np.einsum("ikj,ij->ik", off[nb], n[rows])
-    h = np.abs(heights.sum(axis=1)) / np.maximum(near[nb].sum(axis=1), 1)
-    return np.array([np.count_nonzero(d[rows] <= gates[0])] + [np.count_nonzero(h <= g) for g in gates[1:]])
+    idx = np.where(np.isfinite(d), j, -1).astype(np.int64)
+    # Each neighbour's offset from its own nearest sample, along this point's sample's normal, averaged
+    # (inf where the normals disagree: such a point does not count).
+    h = local_heights(moved, idx, np.ascontiguousarray(Y, dtype=np.float64),
+                      np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(frame.normals @ R.T),
+                      np.ascontiguousarray(frame.neighbours, dtype=np.int64), NORMAL_AGREEMENT)
+    agree = np.isfinite(h)
+    return np.array([np.count_nonzero(agree & (d <= gates[0]))] + [np.count_nonzero(h <= g) for g in gates[1:]])
 
 
 class WrongDraws:

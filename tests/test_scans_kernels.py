@@ -200,3 +200,39 @@ def test_refine_point_to_plane_names_a_bad_argument(bad, match):
     gate, iterations = args.pop("gate"), args.pop("iterations", 30)
     with pytest.raises(InputError, match=match):
         refine_point_to_plane(*args.values(), gate, iterations=iterations)
+
+
+def reference_surface_support(X, Y, normals, tree, R, t, gates, reach, frame):
+    """The numpy :func:`gatv.scans.surface_support` that :func:`gatv._icp_kernels.local_heights` replaces."""
+    from gatv.scans import NORMAL_AGREEMENT
+
+    moved = X @ R.T + t
+    d, j = tree.query(moved, k=1, distance_upper_bound=max(reach, gates[0]))
+    near = np.isfinite(d)
+    j = np.where(near, j, 0)
+    n = normals[j]
+    agree = near & (np.abs(np.einsum("ij,ij->i", frame.normals @ R.T, n)) >= NORMAL_AGREEMENT)
+    off = np.where(near[:, None], moved - Y[j], 0.0)
+    rows = np.flatnonzero(agree)
+    nb = frame.neighbours[rows]
+    heights = np.einsum("ikj,ij->ik", off[nb], n[rows])
+    h = np.abs(heights.sum(axis=1)) / np.maximum(near[nb].sum(axis=1), 1)
+    return np.array([np.count_nonzero(d[rows] <= gates[0])] + [np.count_nonzero(h <= g) for g in gates[1:]])
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 30.0), noise=st.floats(0.0, 0.02))
+def test_surface_support_counts_as_its_numpy_reference(seed, angle, noise):
+    from gatv.scans import SourceFrame, surface_support
+
+    rng = np.random.default_rng(seed)
+    Y, N = _surface(rng, 2000, noise)
+    X = _surface(rng, 800, noise)[0]
+    R = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
+    t = rng.normal(0.0, 0.05, 3)
+    frame = SourceFrame.of(X)
+    gates = [0.1 / 2.0**k for k in range(5)]
+    for tree in (cKDTree(Y), KDTree(Y)):
+        got = surface_support(X, Y, N, tree, R, t, gates, 0.12, frame)
+        want = reference_surface_support(X, Y, N, cKDTree(Y), R, t, gates, 0.12, frame)
+        assert np.array_equal(got, want)

@@ -33,6 +33,7 @@ from ..fitting import kabsch
 from ..ga import eq41_length_residual
 from ..registration import register as rigid_register
 from ..voting import default_sigma, extract_surfaces, vote
+from .affine_patch import affine_patch
 from .hypotheses import (
     affine_residuals,
     anneal,
@@ -567,7 +568,8 @@ class LocalStart:
     """The *local* hypothesis: windows tried, and the grown matches of the best one.
 
     ``windows`` holds one record per window (its centre row, the rigid
-    search's angle and support, the grown matches' support and chance).
+    search's angle and support or the affine patch search's support, chance
+    and trials, the grown matches' support and chance).
     """
 
     pairs: np.ndarray
@@ -588,7 +590,13 @@ def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
     spacings, or ``3.5 noise`` when larger), their matches grown ring by ring by
     local affine maps (:func:`gatv.nonrigid.hypotheses.grow_rings`, which
     follows the bend) and polished, and the result verified against chance
-    (:func:`verify_matches`).  The first window whose grown matches count
+    (:func:`verify_matches`).  In a placed window (``settings.local_reach``) a patch that no
+    rigid motion fits is searched as an affine patch
+    (:func:`gatv.nonrigid.affine_patch.affine_patch`: a 4-point affine-invariant base, kept only
+    above the support of the other affine fits of the same patch): a warp with a large local
+    strain (the bcpd bunny shrinks a 40-row patch by up to 45% along one direction) leaves no
+    rigid patch within the rigid search's gate, and an affine one within a tenth of a spacing.
+    The first window whose grown matches count
     (as in :func:`choose_hypothesis`) ends the search; otherwise the best
     supported of ``LOCAL_WINDOWS`` windows is returned.  Wrong windows grow
     little: their matches have no consistent continuation.
@@ -616,11 +624,20 @@ def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
             rigid = rigid_register(X[patch], Y[near_y], model=settings.model, seed=settings.seed,
                                    noise=tolerance, max_triples=AUTO_RIGID_TRIPLES)
         except ValueError:  # a degenerate window (collinear points)
+            rigid = None
+        if rigid:
+            seeds = np.column_stack([patch[rigid.correspondences[:, 0]], near_y[rigid.correspondences[:, 1]]])
+            record.update(angle_deg=round(float(rigid.angle_deg), 2), rigid_support=int(rigid.support))
+        elif settings.local_reach is not None:
+            # placed rows under a local strain that no rigid patch fits: the affine patch search
+            found = affine_patch(X[patch], Y[near_y], gate, settings.strain)
+            record.update(affine_support=found.support, affine_chance=round(found.chance, 2),
+                          affine_trials=found.trials)
+            if found.pairs.shape[0] == 0:
+                continue
+            seeds = np.column_stack([patch[found.pairs[:, 0]], near_y[found.pairs[:, 1]]])
+        else:
             continue
-        if not rigid:
-            continue
-        seeds = np.column_stack([patch[rigid.correspondences[:, 0]], near_y[rigid.correspondences[:, 1]]])
-        record.update(angle_deg=round(float(rigid.angle_deg), 2), rigid_support=int(rigid.support))
         if seeds.shape[0] < 3:
             continue
         grown = polish(X, Y, tree, grow_rings(X, Y, tree, seeds, gate, settings.neighbours), gate)

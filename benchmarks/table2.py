@@ -36,7 +36,10 @@ data allow, computed on the same trials in the same run), the share of
 trials whose true pose, refined at some level's gate, beats the search's
 final chance level there (the "count ceiling %" column,
 :func:`gatv.registration.count_ceiling`: what a search that keeps no wrong
-motion could keep, whatever its trial motions), median and
+motion could keep, whatever its trial motions), the same with the
+likelihood-ratio test beside the count (the "LR ceiling %" column,
+``count_ceiling(..., likelihood=True)``: what a final test that weighs each
+pair by its likelihood ratio would keep; the search does not use it), median and
 maximum time per call (wall and CPU), and the median ratio of the noise ``gatv`` measured
 (``info["noise"]``) to the true one; writes ``table2_noise.csv`` and
 ``table2_noise_trials.csv``.  Each process first makes two untimed small
@@ -202,14 +205,17 @@ def noise_trial(task: tuple) -> dict:
     ok = bool(m) and paper_success(m.correspondences, trial.true_pairs) and angle < NOISE_MAX_ANGLE
     sigma = noise * rms_radius
     estimate = m.info.get("noise") if m else None
-    ml_ok = count_ok = 0
+    ml_ok = count_ok = lr_ok = 0
     if sigma > 0:
         ml_rotation, ml_pairs = maximum_likelihood(trial, sigma)
         ml_ok = int(paper_success(ml_pairs, trial.true_pairs)
                     and rotation_error_deg(ml_rotation, trial.rotation) < NOISE_MAX_ANGLE)
-        count_ok = int(count_ceiling(stages.prepare(trial.source, trial.target),
-                                     homogeneous(trial.rotation, trial.translation)))
+        P = stages.prepare(trial.source, trial.target)
+        truth = homogeneous(trial.rotation, trial.translation)
+        count_ok = int(count_ceiling(P, truth))
+        lr_ok = int(count_ok or count_ceiling(P, truth, likelihood=True))
     return {"f": f, "noise": noise, "trial": k, "success": int(ok), "ml_success": ml_ok, "count_ceiling": count_ok,
+            "lr_ceiling": lr_ok,
             "precision": precision, "recall": recall,
             "rotation_error_deg": angle, "time_s": seconds, "cpu_s": cpu,
             "noise_ratio": (estimate / sigma) if (estimate is not None and sigma > 0) else float("nan"),
@@ -224,7 +230,8 @@ def noise_table(args) -> int:
     tasks = [(f, nz, args.seed, k) for f in fractions for nz in args.noise for k in range(args.trials)]
     print(f"running {len(tasks)} calls ({args.trials} per cell)...", file=sys.stderr, flush=True)
     rows = map_trials(noise_trial, tasks, scheduler=args.scheduler)
-    headers = ["f", "noise (% of RMS radius)", "success %", "ML %", "count ceiling %", "median time (s)",
+    headers = ["f", "noise (% of RMS radius)", "success %", "ML %", "count ceiling %", "LR ceiling %",
+               "median time (s)",
                "max time (s)",
                "median CPU (s)", "max CPU (s)", "median noise estimate / truth", "median recall",
                "failures' reason"]
@@ -237,26 +244,29 @@ def noise_table(args) -> int:
             success = 100.0 * np.mean([r["success"] for r in cell])
             ml = 100.0 * np.mean([r["ml_success"] for r in cell]) if nz > 0 else float("nan")
             ceiling = 100.0 * np.mean([r["count_ceiling"] for r in cell]) if nz > 0 else float("nan")
+            lr_ceiling = 100.0 * np.mean([r["lr_ceiling"] for r in cell]) if nz > 0 else float("nan")
             cpus = [r["cpu_s"] for r in cell]
             table.append([f"{f:.2f}", f"{100 * nz:g}", f"{success:.0f}", "—" if nz == 0 else f"{ml:.0f}",
-                          "—" if nz == 0 else f"{ceiling:.0f}",
+                          "—" if nz == 0 else f"{ceiling:.0f}", "—" if nz == 0 else f"{lr_ceiling:.0f}",
                           fmt(median(times), 2),
                           fmt(max(times), 2), fmt(median(cpus), 2), fmt(max(cpus), 2),
                           fmt(median(r["noise_ratio"] for r in cell), 2),
                           fmt(median(r["recall"] for r in cell), 2), "; ".join(reasons)[:60] or "—"])
-            csv_rows.append([f, nz, len(cell), success, ml, ceiling, median(times), max(times),
+            csv_rows.append([f, nz, len(cell), success, ml, ceiling, lr_ceiling, median(times), max(times),
                              median(r["noise_ratio"] for r in cell), median(r["recall"] for r in cell)])
     print(f"Table 2 protocol with Gaussian noise on the inliers: {args.trials} trials per cell, seed "
           f"{args.seed}; success = at least half the true pairs and rotation error < {NOISE_MAX_ANGLE:g} deg; "
           "no noise= given; ML %: the maximum-likelihood pose from the true pose at the true noise, "
           "scored the same way (what the data allow); count ceiling %: the true pose, refined at some "
           "level's gate, beats the search's final chance level there (what a search that keeps no wrong "
-          "motion could keep, `gatv.registration.count_ceiling`)\n")
-    print(markdown_table(headers, table, align="rrrrrrrrrrrl"))
+          "motion could keep, `gatv.registration.count_ceiling`); LR ceiling %: the same with the "
+          "likelihood-ratio test beside the count (`count_ceiling(..., likelihood=True)`)\n")
+    print(markdown_table(headers, table, align="rrrrrrrrrrrrl"))
     print("\nCPU: process time of the call (numba's threads added up), a figure the machine's load "
           "changes less than the wall time.")
     out1 = write_csv(args.out / "table2_noise.csv",
-                     ["f", "noise", "trials", "success_pct", "ml_success_pct", "count_ceiling_pct", "median_time_s",
+                     ["f", "noise", "trials", "success_pct", "ml_success_pct", "count_ceiling_pct", "lr_ceiling_pct",
+                      "median_time_s",
                       "max_time_s",
                       "median_noise_ratio", "median_recall"], csv_rows)
     keys = list(rows[0]) if rows else []

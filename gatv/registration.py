@@ -505,7 +505,7 @@ def register_budget(P: stages.Problem, min_inlier_share: float = 0.04,
 
 
 def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: float = 0.04,
-                  confidence: float = 0.999) -> bool:
+                  confidence: float = 0.999, likelihood: bool = False) -> bool:
     """Whether the motion ``matrix`` (the truth, in a benchmark) could be kept by :func:`register`'s search.
 
     The search keeps a motion found at a tolerance level only when its
@@ -517,6 +517,11 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
     level is beyond any trial generator of this search (the count test's
     power, not the search's reach).  Optimistic: the density test, the judge
     and the sample that finds the motion are taken to succeed.
+
+    ``likelihood``: a level also passes on the likelihood-ratio test of the
+    motion cross-fitted at the level's gate (:func:`gatv.stages.likelihood_counts`, at the odds of
+    ``min_inlier_share``): what a final test that weighs each pair by its
+    likelihood ratio would keep (the search does not use it, design notes).
     """
     policy = P.model.search_policy()
     share, budget = register_budget(P, min_inlier_share, confidence)
@@ -526,6 +531,9 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
         fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)), stages.gate(tol))
         counts = stages.level_counts(P, fit, levels[:k + 1], n_final)
         if counts and counts[-1].support >= counts[-1].level:
+            return True
+        if likelihood and stages.likelihood_passes(
+                stages.likelihood_counts(P, matrix, stages.gate(tol), levels[:k + 1], n_final, share)) is not None:
             return True
     return False
 

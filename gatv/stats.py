@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from scipy.special import gammaln
 from scipy.stats import poisson
 
-__all__ = ["ALPHA", "ball_measure", "chance_count", "chance_support", "samples_needed"]
+__all__ = ["ALPHA", "ball_measure", "chance_count", "chance_support", "likelihood_level", "pair_scores",
+           "peak_ratios", "samples_needed", "score_cumulants"]
 
 #: Family-wise level of the chance tests: a wrong motion beats the chance
 #: level with at most this probability over all the tests counted.
@@ -84,3 +87,123 @@ def samples_needed(inlier_share: float, confidence: float = 0.999, sample_points
     if w >= 1.0:
         return 1
     return int(math.ceil(math.log1p(-confidence) / math.log1p(-w)))
+
+
+# ------------------------------------------------------- likelihood ratio
+def peak_ratios(sigma: float, density, odds: float, dim: int = 3) -> np.ndarray:
+    """``odds · φ_σ(0) / ρ``: a pair's likelihood ratio at residual 0 (:func:`pair_scores`).
+
+    ``φ_σ`` is the density of a true pair's residual ``x' − T(x)``, an
+    isotropic Gaussian of per-axis variance ``2 σ²`` (both points noisy),
+    ``φ_σ(0) = (4 π σ²)^{−d/2}``; ``ρ`` (``density``, per point) the target
+    points per unit measure where the motion puts the source point.
+    """
+    rho = np.asarray(density, dtype=np.float64)
+    return float(odds) / (np.maximum(rho, 1e-300) * (4.0 * np.pi * float(sigma) ** 2) ** (dim / 2.0))
+
+
+def pair_scores(residuals, sigma: float, density, odds: float, dim: int = 3) -> np.ndarray:
+    """Each pair's log likelihood ratio ``log(1 + odds · φ_σ(r) / ρ)`` (``r`` its residual norm).
+
+    The ratio of a point's likelihood when it is an inlier with prior odds
+    ``odds`` (its partner's residual Gaussian at the noise ``σ``,
+    :func:`peak_ratios`) or a chance neighbour (the target's local density
+    ``ρ``) to its likelihood as a chance neighbour alone: the mixture
+    likelihood of the rigid EM (:func:`gatv.stages.weighted_pose`) against
+    the uniform null, per point.  Never negative, and near 0 beyond a few
+    ``σ``: summed over a motion's pairs it weighs each by how tight it is,
+    where a count within one gate weighs the tight and the loose alike.
+    """
+    r = np.asarray(residuals, dtype=np.float64)
+    a = peak_ratios(sigma, density, odds, dim)
+    return np.log1p(a * np.exp(-(r * r) / (4.0 * float(sigma) ** 2)))
+
+
+#: Gauss–Legendre nodes of :func:`score_cumulants`' integral over ``t = sqrt(u)``.
+_NODES = 128
+
+
+def _score_grid(ratios, weights, odds: float, dim: int):
+    """The scores ``g`` on :func:`score_cumulants`' nodes, the nodes' weights and each ratio's factor."""
+    a = np.asarray(ratios, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    t_max = np.sqrt(np.log(max(float(a.max()), 1.0)) + 40.0)
+    x, q = np.polynomial.legendre.leggauss(_NODES)
+    t = 0.5 * t_max * (x + 1.0)
+    u = t * t
+    q = q * 0.5 * t_max * 2.0 * t ** (dim - 1)  # u^{d/2-1} du = 2 t^{d-1} dt
+    g = np.log1p(a[:, None] * np.exp(-u)[None, :])
+    pre = w * float(odds) / (a * np.exp(gammaln(dim / 2.0)))
+    return g, q, pre
+
+
+def _cumulants(theta: float, g, q, pre) -> tuple[float, float, float]:
+    e = np.exp(theta * g)
+    k0 = float(pre @ ((e - 1.0) @ q))
+    eg = e * g
+    return k0, float(pre @ (eg @ q)), float(pre @ ((eg * g) @ q))
+
+
+def score_cumulants(theta: float, ratios, weights, odds: float, dim: int = 3) -> tuple[float, float, float]:
+    """``K(θ), K'(θ), K''(θ)``: the cumulant generating function of a wrong motion's summed scores.
+
+    Under a wrong motion the target points around a moved source point
+    whose local density is ``ρ`` form a Poisson process of intensity ``ρ``
+    (the null of :func:`chance_count`, point by point).  Summing
+    :func:`pair_scores` over *every* target point around every source
+    point, not only its one-to-one partner, gives a compound Poisson sum,
+    never smaller than the one-to-one sum (the scores are not negative),
+    whose generating function is, with ``a`` the point's
+    :func:`peak_ratios` and ``u = r² / (4 σ²)``::
+
+        K(θ) = Σ_points (odds / (a Γ(d/2))) ∫₀^∞ ((1 + a e^{−u})^θ − 1) u^{d/2 − 1} du
+
+    (``K(1) = odds`` a point: the ratio's mean is 1).  ``ratios`` are the
+    distinct ``a`` and ``weights`` the points that have each.  The
+    integral is taken over ``t = sqrt(u)`` by Gauss–Legendre up to where
+    ``a e^{−u}`` is below ``e^{−40}``.
+    """
+    return _cumulants(float(theta), *_score_grid(ratios, weights, odds, dim))
+
+
+def likelihood_level(ratios, odds: float, n_tests: float = 1.0, alpha: float = ALPHA, *,
+                     dim: int = 3) -> float:
+    """The summed :func:`pair_scores` a wrong motion reaches with probability ``alpha / n_tests``.
+
+    ``ratios``: every source point's :func:`peak_ratios` under the motion
+    (its local target density).  The tail of the compound Poisson sum of
+    :func:`score_cumulants` at the saddle point ``θ`` (``K'(θ) = s``),
+    Bahadur–Rao: ``P(S ≥ s) ≈ exp(K(θ) − θ s) / (θ sqrt(2 π K''(θ)))``,
+    the prefactor taken as 1 where it would exceed it (Chernoff's bound,
+    which holds for any ``θ``).  The level solves ``P = alpha / n_tests``
+    (Newton's method on ``θ``, bracketed): the count test's Poisson
+    quantile (:func:`chance_count`) for a weighted count.  Ratios are
+    grouped to 2% before the integral.
+    """
+    a = np.asarray(ratios, dtype=np.float64).ravel()
+    a = a[np.isfinite(a) & (a > 0)]
+    if a.size == 0:
+        return 0.0
+    keys, weights = np.unique(np.round(np.log(a) * 50.0), return_counts=True)
+    grid = _score_grid(np.exp(keys / 50.0), weights, odds, dim)
+    target = np.log(max(float(n_tests), 1.0) / float(alpha))
+
+    def excess(theta):
+        k0, k1, k2 = _cumulants(theta, *grid)
+        prefactor = max(0.0, np.log(theta * np.sqrt(2.0 * np.pi * max(k2, 1e-300))))
+        return theta * k1 - k0 + prefactor - target, k1, k2
+
+    lo, hi, theta = 0.0, np.inf, 1.0
+    for _ in range(100):
+        h, k1, k2 = excess(theta)
+        if abs(h) <= 1e-6 * target:
+            break
+        if h < 0.0:
+            lo = theta
+        else:
+            hi = theta
+        step = theta - h / max(theta * k2, 1e-300)  # h'(θ) ≈ θ K''(θ)
+        if not lo < step < hi:
+            step = 2.0 * theta if hi == np.inf else 0.5 * (lo + hi)
+        theta = step
+    return float(k1)

@@ -110,8 +110,9 @@ def kdtree_build(points, leafsize):
     """
     n = points.shape[0]
     order = np.arange(n)
-    cap = 2 * (n // max(leafsize, 1) + 1) + 1
-    cap = 2 * cap
+    # A node splits only above leafsize points into halves of at least leafsize // 2 + 1 (or stays a leaf):
+    # at most 2 n / (leafsize // 2 + 1) nodes; this bound is over twice that.
+    cap = 4 * (n // max(leafsize, 1) + 1) + 2
     lo = np.empty(cap, np.int64)
     hi = np.empty(cap, np.int64)
     axis = np.full(cap, -1, np.int64)
@@ -121,7 +122,6 @@ def kdtree_build(points, leafsize):
     lo[0], hi[0] = 0, n
     count = 1
     stack = np.empty(cap, np.int64)
-    top = 0
     stack[0] = 0
     top = 1
     while top > 0:

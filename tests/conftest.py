@@ -104,3 +104,20 @@ def pytest_sessionfinish(session, exitstatus):
         if proc.poll() is None:
             proc.kill()
         proc.wait()
+
+
+@pytest.fixture(scope="session")
+def window_settings():
+    """``window_settings(**overrides)``: :class:`gatv.nonrigid.stages.Settings` of a local non-rigid
+    window (rigid local patches, growth on, no pre-alignment), the fields given overridden."""
+    from gatv.nonrigid.stages import Settings
+
+    def make(**kw):
+        base = dict(seed=0, max_displacement=None, max_candidates=None, max_pairs=1_500_000, noise=None,
+                    sigma=None, n_stick_passes=3, structure="auto", strain=0.35, gate=None, smoothing=None,
+                    neighbours=8, grow=True, prealign=False, memory_budget=None, model="rigid", local=True,
+                    parts=False)
+        base.update(kw)
+        return Settings(**base)
+
+    return make

@@ -119,18 +119,7 @@ def test_affine_patch_is_deterministic_and_bounded():
 
 
 # ------------------------------------------------------------------ in the local hypothesis
-def _window_settings(**kw):
-    from gatv.nonrigid.stages import Settings
-
-    base = dict(seed=0, max_displacement=None, max_candidates=None, max_pairs=1_500_000, noise=None,
-                sigma=None, n_stick_passes=3, structure="auto", strain=0.35, gate=None, smoothing=None,
-                neighbours=8, grow=True, prealign=False, memory_budget=None, model="rigid", local=True,
-                parts=False)
-    base.update(kw)
-    return Settings(**base)
-
-
-def test_a_placed_window_under_a_strain_no_rigid_patch_fits_is_grown_from_an_affine_patch():
+def test_a_placed_window_under_a_strain_no_rigid_patch_fits_is_grown_from_an_affine_patch(window_settings):
     """The target compressed by 40% along one axis of the surface (no 40-row patch fits rigidly
     within the rigid search's gate): inside a placed window the affine patch seeds the growth and
     every grown pair is right; the direct path (no reach) does not search affine patches."""
@@ -142,10 +131,10 @@ def test_a_placed_window_under_a_strain_no_rigid_patch_fits_is_grown_from_an_aff
     inv = np.argsort(perm)
     y = y[perm]
     reach = 3.0 * median_spacing(y)
-    placed = local_hypothesis(Problem.build(x, y, _window_settings(local_reach=reach)),
-                              _window_settings(local_reach=reach))
+    placed = local_hypothesis(Problem.build(x, y, window_settings(local_reach=reach)),
+                              window_settings(local_reach=reach))
     assert placed.pairs.shape[0] >= 0.9 * len(x)
     assert np.array_equal(inv[placed.pairs[:, 0]], placed.pairs[:, 1])
     assert any(w.get("affine_support", 0) > 0 for w in placed.windows)
-    free = local_hypothesis(Problem.build(x, y, _window_settings()), _window_settings())
+    free = local_hypothesis(Problem.build(x, y, window_settings()), window_settings())
     assert not any("affine_support" in w for w in free.windows)

@@ -599,18 +599,7 @@ def test_bunny_turned_and_scaled_sampled_80_80_with_the_defaults():
     assert np.mean(np.linalg.norm(y[tgt] - y[src], axis=1) <= h) >= 0.95
 
 
-def _window_settings(**kw):
-    from gatv.nonrigid.stages import Settings
-
-    base = dict(seed=0, max_displacement=None, max_candidates=None, max_pairs=1_500_000, noise=None,
-                sigma=None, n_stick_passes=3, structure="auto", strain=0.35, gate=None, smoothing=None,
-                neighbours=8, grow=True, prealign=False, memory_budget=None, model="rigid", local=True,
-                parts=False)
-    base.update(kw)
-    return Settings(**base)
-
-
-def test_local_patches_of_a_placed_window_search_only_the_targets_within_its_margin():
+def test_local_patches_of_a_placed_window_search_only_the_targets_within_its_margin(window_settings):
     """Inside a placed window (``local_reach``: the window's margin) each local patch is searched
     against the targets within that reach of it only.  The target holds the source's partners,
     twisted (so no patch moves exactly rigidly), and, 60 units away, an exact copy of the source:
@@ -622,9 +611,9 @@ def test_local_patches_of_a_placed_window_search_only_the_targets_within_its_mar
     near = deform.twist(x, 40.0)
     y = np.vstack([near, x + [0.0, 0.0, 60.0]])
     reach = 3.0 * median_spacing(near)
-    free = local_hypothesis(Problem.build(x, y, _window_settings()), _window_settings())
-    placed = local_hypothesis(Problem.build(x, y, _window_settings(local_reach=reach)),
-                              _window_settings(local_reach=reach))
+    free = local_hypothesis(Problem.build(x, y, window_settings()), window_settings())
+    placed = local_hypothesis(Problem.build(x, y, window_settings(local_reach=reach)),
+                              window_settings(local_reach=reach))
     # the whole target: the exact copy wins
     assert free.pairs.shape[0] > 0 and np.mean(free.pairs[:, 1] >= len(x)) > 0.5
     # within the reach: only the twisted partners, and every one right

@@ -34,6 +34,15 @@ def _surface(rng, n, noise=0.0):
     return pts, normals
 
 
+def _pair(rng, n_target, n_source, noise, angle, shift):
+    """A target sheet with its normals, a source sheet sampled apart, and a motion of about ``angle``
+    degrees about a random axis and a translation of ``shift`` per axis: ``(Y, N, X, R, t)``."""
+    Y, N = _surface(rng, n_target, noise)
+    X = _surface(rng, n_source, noise)[0]
+    R = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
+    return Y, N, X, R, rng.normal(0.0, shift, 3)
+
+
 def reference_plane_icp(source, target, target_normals, rotation, translation, gate, iterations=30, tol=1e-9):
     """The numpy point-to-plane ICP that :func:`gatv._icp_kernels.plane_icp` replaces (scipy's k-d tree)."""
     tree = cKDTree(target)
@@ -134,11 +143,7 @@ def test_screen_icp_is_point_icp_for_every_draw(seed, angle):
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 10.0), noise=st.floats(0.0, 0.01))
 def test_plane_icp_is_the_numpy_point_to_plane_icp(seed, angle, noise):
-    rng = np.random.default_rng(seed)
-    Y, N = _surface(rng, 1500, noise)
-    X = _surface(rng, 500, noise)[0]
-    R0 = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
-    t0 = rng.normal(0.0, 0.02, 3)
+    Y, N, X, R0, t0 = _pair(np.random.default_rng(seed), 1500, 500, noise, angle, 0.02)
     for gate, iterations, tol in [(0.2, 30, 1e-9), (0.05, 10, 1e-3)]:
         R_ref, t_ref = reference_plane_icp(X, Y, N, R0, t0, gate, iterations, tol)
         R, t = refine_point_to_plane(X, Y, N, R0, t0, gate, iterations=iterations, tol=tol)
@@ -225,11 +230,7 @@ def reference_surface_support(X, Y, normals, tree, R, t, gates, reach, frame):
 def test_surface_support_counts_as_its_numpy_reference(seed, angle, noise):
     from gatv.scans import SourceFrame, surface_support
 
-    rng = np.random.default_rng(seed)
-    Y, N = _surface(rng, 2000, noise)
-    X = _surface(rng, 800, noise)[0]
-    R = Rotation.from_rotvec(rng.normal(size=3) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
-    t = rng.normal(0.0, 0.05, 3)
+    Y, N, X, R, t = _pair(np.random.default_rng(seed), 2000, 800, noise, angle, 0.05)
     frame = SourceFrame.of(X)
     gates = [0.1 / 2.0**k for k in range(5)]
     for tree in (cKDTree(Y), KDTree(Y)):

@@ -230,11 +230,16 @@ def local_scatter(reference: np.ndarray, queries: np.ndarray, k: int, tree: cKDT
         raise InputError(f"Expected `k` between 1 and the {reference.shape[0]} reference points, got {k}.")
     tree = cKDTree(reference) if tree is None else tree
     dist, nb = tree.query(queries, k=k, workers=workers)
+    return LocalScatter(*_scatter_of(reference, nb), dist[:, -1])
+
+
+def _scatter_of(reference: np.ndarray, nb: np.ndarray):
+    """``(centroids, offsets, eigenvalues, axes)`` of :class:`LocalScatter` for the neighbour rows ``nb``."""
     local = reference[nb]
     centroid = local.mean(axis=1)
     local -= centroid[:, None, :]  # in place: ``local`` is the gather's own copy
     values, axes = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
-    return LocalScatter(centroid, local, values, axes, dist[:, -1])
+    return centroid, local, values, axes
 
 
 def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | None = None, *,
@@ -968,9 +973,7 @@ class SourceFrame:
         k = min(VERDICT_NEIGHBOURS, X.shape[0])
         # One query: the normals' 12 nearest are the first 12 of the VERDICT_NEIGHBOURS nearest.
         neighbours = tree.query(X, k=k, workers=get_num_threads())[1].reshape(X.shape[0], -1)
-        local = X[neighbours[:, :min(12, X.shape[0])]]
-        local -= local.mean(axis=1)[:, None, :]
-        normals = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))[1][:, :, 0]
+        normals = _scatter_of(X, neighbours[:, :min(12, X.shape[0])])[3][:, :, 0]
         return cls(normals, neighbours, tree)
 
 
@@ -1384,6 +1387,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     P = stages.prepare(Xd, Yd, RIGID)
     fine = 3.0 * target_spacing
     tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
+    # The polish's gates: a voxel, halved down to three point spacings (the last).
+    levels = [gate]
+    while levels[-1] > fine:
+        levels.append(max(fine, levels[-1] / 2.0))
     normals_c = np.ascontiguousarray(target_normals, dtype=np.float64)
     rng_sub = np.random.default_rng(seed)
     sub = Xs if Xs.shape[0] <= FINE_SAMPLE else Xs[rng_sub.choice(Xs.shape[0], FINE_SAMPLE, replace=False)]
@@ -1402,9 +1409,6 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         """``verdict_polish`` of each ``(R, t)`` of ``motions``, in parallel (one numba kernel)."""
         if not refine:
             return [(np.asarray(R, np.float64), np.asarray(t, np.float64)) for R, t in motions]
-        levels = [gate]
-        while levels[-1] > fine:
-            levels.append(max(fine, levels[-1] / 2.0))
         Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, normals_c,
                                 *tree.nodes, np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3),
                                 np.array([t for _, t in motions], np.float64).reshape(-1, 3),
@@ -1429,15 +1433,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         ``count="normals"``: those whose normals agree too, :func:`on_surface`)."""
         g = gate
         if refine:
-            while True:
+            for g in levels:
                 moving = points if points is not None else sub if g <= fine else coarse
                 # refine_point_to_plane's kernel, its inputs checked once by the caller
                 R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.ascontiguousarray(R, np.float64),
                                  np.ascontiguousarray(t, np.float64), float(g), int(iterations),
                                  1e-9 if g <= fine or points is not None else COARSE_STEP)
-                if g <= fine:
-                    break
-                g = max(fine, g / 2.0)
         if not count:
             return R, t, g, None
         if count == "normals":

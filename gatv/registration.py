@@ -528,12 +528,12 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
     levels = stages.tolerance_levels(P, None, policy.schedule)
     n_final = float(budget) * policy.max_matches
     for k, tol in enumerate(levels):
-        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)), stages.gate(tol))
-        counts = stages.level_counts(P, fit, levels[:k + 1], n_final)
-        if counts and counts[-1].support >= counts[-1].level:
+        g = stages.gate(tol)
+        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)), g)
+        if stages.passing_level(P, fit, levels[:k + 1], n_final) is not None:
             return True
         if likelihood and stages.likelihood_passes(
-                stages.likelihood_counts(P, matrix, stages.gate(tol), levels[:k + 1], n_final, share)) is not None:
+                stages.likelihood_counts(P, matrix, g, levels[:k + 1], n_final, share)) is not None:
             return True
     return False
 

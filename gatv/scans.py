@@ -1483,8 +1483,16 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             # Tensor voting judges the best trials on the downsampled sets.
             report(0.7, "tensor voting")
             tol = gate / 3.5  # so that the judge's gate is one voxel
-            fits = [j.fit for j in (stages.judge(P, m, tol, max_candidates=4) for m in trials.matrices)
-                    if j is not None]
+            judged, calls = [], 0
+            for m in trials.matrices:
+                # A trial within the judge's reach of a motion judged already is that motion found again.
+                if not any(stages.judged_alike(j, P, m, tol) for j in judged):
+                    calls += 1
+                    j = stages.judge(P, m, tol, max_candidates=4)
+                    if j is not None:
+                        judged.append(j)
+            info["judged"] = calls  # of the trials' n_judged best
+            fits = [j.fit for j in judged]
         if not fits:
             return SurfaceMatch(None, None, voxel, none, 0,
                                 dict(info, reason="tensor voting found no consistent plane"))

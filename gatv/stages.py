@@ -58,6 +58,7 @@ __all__ = [
     "grow_tolerance",
     "joint_spaces",
     "judge",
+    "judged_alike",
     "level_counts",
     "likelihood_counts",
     "likelihood_passes",
@@ -711,6 +712,28 @@ def judge(problem: Problem, matrix: np.ndarray, tolerance: float, *, sigma: floa
     if fit is None:
         return None
     return Judged(fit, len(tokens), sig)
+
+
+def judged_alike(judged: Judged, problem: Problem, matrix: np.ndarray, tolerance: float) -> bool:
+    """Whether the trial motion ``matrix`` is the hypothesis ``judged`` already resolved, at the judge's scale.
+
+    :func:`judge` votes on every pair within 2σ of a trial's moved source
+    points (:func:`candidate_tokens`) and keeps the pairs within the gate
+    ``g`` of its fit.  A trial that moves every source point within
+    ``2σ − g`` of where ``judged``'s fit puts it has each of those kept pairs
+    among its own candidates, around the same dense cluster of tokens: judging
+    it votes on the same evidence again (the best trials of a congruent
+    search are mostly one motion found from several triples).  σ is
+    ``judged.sigma``, the scale :func:`judge` derives from ``problem`` and
+    ``tolerance`` alone.
+    """
+    reach = 2.0 * judged.sigma - gate(tolerance)
+    if reach <= 0.0:
+        return False
+    A, t = split_matrix(matrix)
+    B, s = split_matrix(judged.fit.matrix)
+    gap = problem.source @ (A - B).T + (t - s)
+    return float(np.max(np.einsum("ij,ij->i", gap, gap))) <= reach * reach
 
 
 # ------------------------------------------------------------------- search

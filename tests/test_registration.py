@@ -492,3 +492,37 @@ def test_trials_drawn_stay_bounded_as_the_noise_grows(seed, noise):
     assert work <= max_work + chunk
     assert any(r.get("stopped") == "work bound" for r in tried) or all(
         r["triples"] == c for r, c in zip(records, caps))
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), share=st.floats(0.0, 1.0))
+def test_a_trial_judged_alike_holds_every_pair_the_judged_fit_kept_within_its_reach(seed, share):
+    """``judged_alike``: a trial that moves every source point within 2σ − g of a judged fit's position has
+    that fit's kept pairs among its own candidates (within the judge's reach); a distinct motion is not
+    alike, and a fit is alike to itself."""
+    from gatv import stages
+    from gatv.models.base import homogeneous
+
+    src, tgt, R, t, _ = _scene(30.0, n=60, n_out=60, seed=seed % 1000)
+    P = stages.prepare(src, tgt)
+    tol = 0.01
+    j = stages.judge(P, homogeneous(R, t), tol)
+    assert j is not None and j.fit.support >= 50
+    assert stages.judged_alike(j, P, j.fit.matrix, tol)
+    reach = 2.0 * j.sigma - stages.gate(tol)
+    # A trial off the fit by a small rotation about the source's centroid, scaled to ``share`` of the reach.
+    c = P.source.mean(axis=0)
+    A, b = j.fit.matrix[:3, :3], j.fit.matrix[:3, 3]
+    spin = Rotor.from_axis_angle((0.3, -1.0, 0.4), 1.0).as_matrix()
+    off = np.linalg.norm((P.source - c) @ (spin - np.eye(3)).T, axis=1).max()
+    spin = Rotor.from_axis_angle((0.3, -1.0, 0.4), share * reach / off).as_matrix()  # small angle: ≈ share·reach
+    trial = homogeneous(A @ spin, A @ (c - spin @ c) + b)
+    moved = P.source @ trial[:3, :3].T + trial[:3, 3]
+    gap = np.linalg.norm(moved - (P.source @ A.T + b), axis=1).max()
+    assert stages.judged_alike(j, P, trial, tol) == (gap <= reach)
+    if gap <= reach:
+        near = stages.candidate_tokens(P, trial, 2.0 * j.sigma, P.target.shape[0])
+        assert set(map(tuple, j.fit.correspondences.tolist())) <= set(map(tuple, near.pairs.tolist()))
+    # Another motion (90° away) is not the same hypothesis.
+    turn = Rotor.from_axis_angle((1.0, 0.0, 0.0), np.pi / 2).as_matrix()
+    assert not stages.judged_alike(j, P, homogeneous(A @ turn, b), tol)

@@ -17,6 +17,7 @@ from numba import njit, prange
 
 from ._fit_kernels import kabsch3
 from .models.rigid.congruent_kernels import build_grid, nearest_in_grid
+from .voting._eigen import eig3_batch
 
 
 class TargetGrid:
@@ -218,14 +219,99 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
     return best
 
 
+@njit(cache=True)
+def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds,
+                    best_d, best_j):
+    """The ``k = best_d.shape[0]`` points of ``points`` nearest ``p`` closer than ``radius``, as
+    ``cKDTree.query(p, k, distance_upper_bound=radius)``: ``best_j`` their indices, nearest first (the
+    point count where fewer than ``k`` are that close), ``best_d`` their squared distances (``inf`` there).
+
+    The search of :func:`kdtree_nearest`, bounded by the ``k``-th nearest found so far (kept sorted by
+    insertion: ``k`` is a neighbourhood's size, a few tens).
+    """
+    k = best_d.shape[0]
+    n = points.shape[0]
+    r2 = radius * radius
+    for m in range(k):
+        best_d[m] = np.inf
+        best_j[m] = n
+    lb = 0.0
+    for a in range(3):
+        off = max(box[0, a] - p[a], 0.0, p[a] - box[1, a])
+        offsets[0, a] = off
+        lb += off * off
+    stack[0] = 0
+    bounds[0] = lb
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        lb = bounds[top]
+        if lb >= min(best_d[k - 1], r2):
+            continue
+        d = axis[node]
+        if d < 0:
+            for s in range(lo[node], hi[node]):
+                j = order[s]
+                dx = points[j, 0] - p[0]
+                dy = points[j, 1] - p[1]
+                dz = points[j, 2] - p[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < best_d[k - 1] and d2 < r2:
+                    m = k - 1
+                    while m > 0 and best_d[m - 1] > d2:
+                        best_d[m] = best_d[m - 1]
+                        best_j[m] = best_j[m - 1]
+                        m -= 1
+                    best_d[m] = d2
+                    best_j[m] = j
+            continue
+        diff = p[d] - split[node]
+        near, far = (left[node], right[node]) if diff < 0.0 else (right[node], left[node])
+        o0, o1, o2 = offsets[top, 0], offsets[top, 1], offsets[top, 2]
+        old = offsets[top, d]
+        far_lb = lb - old * old + diff * diff
+        stack[top] = far
+        bounds[top] = far_lb
+        offsets[top, d] = abs(diff)
+        stack[top + 1] = near
+        bounds[top + 1] = lb
+        offsets[top + 1, 0] = o0
+        offsets[top + 1, 1] = o1
+        offsets[top + 1, 2] = o2
+        top += 2
+
+
+@njit(cache=True, parallel=True)
+def kdtree_knn(queries, points, order, lo, hi, axis, split, left, right, box, radius, k):
+    """:func:`kdtree_knearest` of every row of ``queries`` (in parallel): ``(distances, indices)``, each
+    ``(n, k)``, as ``cKDTree.query(queries, k, distance_upper_bound=radius)``."""
+    n = queries.shape[0]
+    dist = np.empty((n, k))
+    idx = np.empty((n, k), np.int64)
+    chunk = 256
+    for c in prange((n + chunk - 1) // chunk):
+        stack = np.empty(STACK, np.int64)
+        offsets = np.empty((STACK, 3))
+        bounds = np.empty(STACK)
+        best_d = np.empty(k)
+        best_j = np.empty(k, np.int64)
+        for i in range(c * chunk, min(n, (c + 1) * chunk)):
+            kdtree_knearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
+                            offsets, bounds, best_d, best_j)
+            for m in range(k):
+                dist[i, m] = np.sqrt(best_d[m])
+                idx[i, m] = best_j[m]
+    return dist, idx
+
+
 class KDTree:
     """A k-d tree for the numba kernels (:func:`kdtree_build`): nearest points within a bound.
 
-    ``query(x, k=1, distance_upper_bound=r)`` answers as
-    :meth:`scipy.spatial.cKDTree.query` does (distances, and ``inf`` and the
-    point count where none is closer than ``r``), in a parallel kernel; other
-    ``k`` go to a :class:`scipy.spatial.cKDTree` of the same points, built
-    when first asked for.
+    ``query(x, k, distance_upper_bound=r)`` answers as
+    :meth:`scipy.spatial.cKDTree.query` does for an integer ``k`` (distances,
+    and ``inf`` and the point count where fewer are closer than ``r``; for
+    ``k > 1`` an ``(n, k)`` result, nearest first), in a parallel kernel.
     """
 
     def __init__(self, points: np.ndarray, leafsize: int = LEAF_SIZE):
@@ -235,7 +321,6 @@ class KDTree:
         #: ``(order, lo, hi, axis, split, left, right, box)``: the kernels' arguments after ``points``.
         self.nodes = (*kdtree_build(self.points, int(leafsize)),
                       np.stack([self.points.min(axis=0), self.points.max(axis=0)]))
-        self._scipy = None
 
     @property
     def data(self) -> np.ndarray:
@@ -254,13 +339,13 @@ class KDTree:
 
     def query(self, x, k=1, distance_upper_bound=np.inf, **options):
         """``(distances, indices)`` as :meth:`scipy.spatial.cKDTree.query`."""
-        if k != 1:
-            if self._scipy is None:
-                from scipy.spatial import cKDTree
-
-                self._scipy = cKDTree(self.points)
-            return self._scipy.query(x, k=k, distance_upper_bound=distance_upper_bound, **options)
         x = np.asarray(x, dtype=np.float64)
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise ValueError(f"Expected `k` to be a positive integer, got {k!r}.")
+        if k != 1:
+            q = np.ascontiguousarray(x).reshape(-1, 3)
+            d, j = kdtree_knn(q, self.points, *self.nodes, float(distance_upper_bound), int(k))
+            return d.reshape(x.shape[:-1] + (k,)), j.reshape(x.shape[:-1] + (k,))
         j = self.nearest(x, distance_upper_bound)
         d = np.full(j.shape[0], np.inf)
         ok = j >= 0
@@ -383,6 +468,50 @@ def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotati
         out_R[k] = R
         out_t[k] = t
     return out_R, out_t
+
+
+# ------------------------------------------------------------------ local planes
+@njit(cache=True, parallel=True)
+def neighbourhood_scatter(points, neighbours, m):
+    """``(N, 6)`` upper triangles ``(xx, xy, xz, yy, yz, zz)`` of each row's scatter matrix about the mean
+    of its first ``m`` ``neighbours`` (rows of ``points``): :func:`gatv.scans.local_scatter`'s matrix."""
+    n = neighbours.shape[0]
+    out = np.empty((n, 6))
+    for i in prange(n):
+        cx = cy = cz = 0.0
+        for a in range(m):
+            q = neighbours[i, a]
+            cx += points[q, 0]
+            cy += points[q, 1]
+            cz += points[q, 2]
+        cx /= m
+        cy /= m
+        cz /= m
+        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+        for a in range(m):
+            q = neighbours[i, a]
+            x = points[q, 0] - cx
+            y = points[q, 1] - cy
+            z = points[q, 2] - cz
+            s0 += x * x
+            s1 += x * y
+            s2 += x * z
+            s3 += y * y
+            s4 += y * z
+            s5 += z * z
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = s0, s1, s2, s3, s4, s5
+    return out
+
+
+def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, m: int) -> np.ndarray:
+    """``(N, 3)`` unit least-variance axes (unoriented) of each row's first ``m`` ``neighbours``: the normals
+    of their least-squares planes, as ``local_scatter(...).normals`` up to sign and rounding."""
+    scatter = neighbourhood_scatter(np.ascontiguousarray(points, dtype=np.float64),
+                                    np.ascontiguousarray(neighbours, dtype=np.int64), int(m))
+    vals = np.empty((scatter.shape[0], 3))
+    vecs = np.empty((scatter.shape[0], 3, 3))
+    eig3_batch(scatter, vals, vecs)
+    return np.ascontiguousarray(vecs[:, :, 2])  # eigenvalues descending: the last is the least variance
 
 
 # ------------------------------------------------------------------ the verdict's local heights

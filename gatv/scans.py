@@ -46,7 +46,15 @@ from scipy.spatial import cKDTree
 
 from . import stages
 from ._fit_kernels import kabsch3
-from ._icp_kernels import KDTree, TargetGrid, local_heights, plane_icp, plane_icp_many, screen_icp
+from ._icp_kernels import (
+    KDTree,
+    TargetGrid,
+    local_heights,
+    neighbourhood_normals,
+    plane_icp,
+    plane_icp_many,
+    screen_icp,
+)
 from ._validation import (
     as_points,
     as_vectors,
@@ -859,7 +867,7 @@ def aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def tangent_motions(source: np.ndarray, target: np.ndarray, n: int, rng: np.random.Generator, *,
-                    source_tree: cKDTree | None = None, target_tree: cKDTree | None = None,
+                    source_tree: cKDTree | KDTree | None = None, target_tree: cKDTree | KDTree | None = None,
                     k: int = 12) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` wrong but plausible rigid motions: a random source point onto a random target point,
     the source's surface normal there turned onto the target's (random sign), a random spin about it.
@@ -965,15 +973,15 @@ class SourceFrame:
     #: (N, VERDICT_NEIGHBOURS) rows of each point's nearest source points, itself first.
     neighbours: np.ndarray
     #: The source's k-d tree, when kept (the tangent wrong motions' source normals query it too).
-    tree: cKDTree | None = None
+    tree: cKDTree | KDTree | None = None
 
     @classmethod
-    def of(cls, X: np.ndarray, tree: cKDTree | None = None) -> "SourceFrame":
-        tree = cKDTree(X) if tree is None else tree
+    def of(cls, X: np.ndarray, tree: cKDTree | KDTree | None = None) -> "SourceFrame":
+        tree = KDTree(X) if tree is None else tree
         k = min(VERDICT_NEIGHBOURS, X.shape[0])
         # One query: the normals' 12 nearest are the first 12 of the VERDICT_NEIGHBOURS nearest.
         neighbours = tree.query(X, k=k, workers=get_num_threads())[1].reshape(X.shape[0], -1)
-        normals = _scatter_of(X, neighbours[:, :min(12, X.shape[0])])[3][:, :, 0]
+        normals = neighbourhood_normals(X, neighbours, min(12, X.shape[0]))
         return cls(normals, neighbours, tree)
 
 

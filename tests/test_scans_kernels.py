@@ -14,6 +14,7 @@ from gatv._icp_kernels import (
     KDTree,
     TargetGrid,
     kdtree_build,
+    neighbourhood_normals,
     plane_icp,
     plane_icp_many,
     rotvec_matrix,
@@ -106,11 +107,54 @@ def test_kdtree_nodes_partition_the_points():
         assert np.all(pts[order[lo[right[k]]:hi[right[k]]], a] >= split[k])
 
 
-def test_kdtree_other_k_are_scipys():
-    pts = np.random.default_rng(4).normal(size=(200, 3))
-    d, j = KDTree(pts).query(pts[:5], k=3)
-    d_ref, j_ref = cKDTree(pts).query(pts[:5], k=3)
-    assert np.array_equal(j, j_ref) and np.allclose(d, d_ref)
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), k=st.integers(2, 20),
+       radius=st.sampled_from([0.3, 1.0, np.inf]), duplicates=st.booleans(), leaf=st.integers(1, 20))
+def test_kdtree_k_nearest_are_scipys(seed, n, k, radius, duplicates, leaf):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    if duplicates:
+        pts = np.vstack([pts, pts[: n // 2]])
+        pts[:, 2] = np.round(pts[:, 2], 1)
+    queries = np.vstack([pts[:50], rng.normal(scale=1.5, size=(100, 3))])
+    d, j = KDTree(pts, leafsize=leaf).query(queries, k=k, distance_upper_bound=radius)
+    d_ref, j_ref = cKDTree(pts).query(queries, k=k, distance_upper_bound=radius)
+    assert d.shape == j.shape == (queries.shape[0], k)
+    # The same distances, nearest first, and as many found; ties may pick other equally near points.
+    assert np.array_equal(np.isfinite(d), np.isfinite(d_ref))
+    hit = np.isfinite(d_ref)
+    np.testing.assert_allclose(d[hit], d_ref[hit], rtol=0, atol=1e-12)
+    assert np.all(j[~hit] == pts.shape[0])
+    rows = np.nonzero(hit)[0]
+    assert np.allclose(np.linalg.norm(queries[rows] - pts[j[hit]], axis=1), d_ref[hit], atol=1e-12)
+    # Distinct points in each row.
+    assert all(len(set(r[f])) == int(f.sum()) for r, f in zip(j, hit))
+
+
+def test_kdtree_rejects_a_k_that_is_not_a_positive_integer():
+    tree = KDTree(np.random.default_rng(4).normal(size=(20, 3)))
+    for k in (0, 1.5, True):
+        with pytest.raises(ValueError, match="`k`"):
+            tree.query(np.zeros((1, 3)), k=k)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(3, 16), flat=st.floats(1e-4, 1.0))
+def test_neighbourhood_normals_are_the_local_planes(seed, m, flat):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(500, 3)) * np.array([1.0, 0.5, flat])
+    neighbours = cKDTree(pts).query(pts, k=m)[1]
+    got = neighbourhood_normals(pts, neighbours, m)
+    # numpy reference: the least-variance axis of each neighbourhood's scatter (as local_scatter)
+    local = pts[neighbours] - pts[neighbours].mean(axis=1, keepdims=True)
+    values, axes = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
+    want = axes[:, :, 0]
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)
+    # Up to sign; where the two least variances nearly tie, the axis is not defined: compare the variance.
+    var = np.einsum("nki,ni->nk", local, got)
+    np.testing.assert_allclose((var ** 2).sum(axis=1), values[:, 0], rtol=1e-8, atol=1e-12 * values[:, 2].max())
+    clear = values[:, 1] > 1.01 * values[:, 0] + 1e-12 * values[:, 2]
+    np.testing.assert_allclose(np.abs((got * want).sum(axis=1))[clear], 1.0, atol=1e-6)
 
 
 @settings(max_examples=20, deadline=None)

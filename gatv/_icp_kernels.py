@@ -101,8 +101,35 @@ STACK = 128
 
 
 @njit(cache=True)
+def _select(order, keys, lo, hi, k):
+    """Reorder ``order[lo:hi + 1]`` so that ``keys[order[k]]`` is its ``k``-th smallest key, no key before
+    it larger and none after it smaller (Hoare's selection, median-of-three pivots: linear time)."""
+    while hi > lo:
+        m = (lo + hi) // 2
+        a, b, c = keys[order[lo]], keys[order[m]], keys[order[hi]]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i, j = lo, hi
+        while i <= j:
+            while keys[order[i]] < pivot:
+                i += 1
+            while keys[order[j]] > pivot:
+                j -= 1
+            if i <= j:
+                order[i], order[j] = order[j], order[i]
+                i += 1
+                j -= 1
+        # order[lo:j+1] <= pivot <= order[i:hi+1], and order[j+1:i] equal the pivot.
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@njit(cache=True)
 def kdtree_build(points, leafsize):
-    """A balanced k-d tree of ``points`` (split at the median of the widest axis).
+    """A balanced k-d tree of ``points`` (split at the median of the widest axis, found by selection).
 
     Returns ``(order, lo, hi, axis, split, left, right)``: node ``k`` holds
     ``order[lo[k]:hi[k]]``; an inner node splits on ``axis[k]`` at
@@ -142,14 +169,8 @@ def kdtree_build(points, leafsize):
                 best, width = d, mx - mn
         if width <= 0.0:
             continue  # every point equal: a leaf however many
-        keys = np.empty(b - a)
-        for s in range(a, b):
-            keys[s - a] = points[order[s], best]
-        perm = np.argsort(keys, kind="mergesort")
-        seg = order[a:b].copy()
-        for s in range(b - a):
-            order[a + s] = seg[perm[s]]
         mid = (a + b) // 2
+        _select(order, points[:, best], a, b - 1, mid)
         axis[k] = best
         split[k] = points[order[mid], best]
         lo[count], hi[count] = a, mid

@@ -27,7 +27,7 @@ __all__ = [
 BYTES_PER_CANDIDATE_PAIR = 2 * 8 + 3 * 8 + 9 * 8 + 12 * 8
 
 
-def median_spacing(points) -> float:
+def median_spacing(points, *, tree=None) -> float:
     """Median distance from each point to its nearest other point (> 0).
 
     Duplicated points are left out of the median (their distance 0 says
@@ -37,6 +37,10 @@ def median_spacing(points) -> float:
     Parameters
     ----------
     points : (N, d) array_like or object with ``.points``
+    tree : optional
+        A k-d tree of ``points`` the caller holds (:class:`scipy.spatial.cKDTree`
+        or the scans pipeline's numba tree: anything with ``query(x, k=2)``);
+        built when omitted.
 
     Examples
     --------
@@ -51,7 +55,8 @@ def median_spacing(points) -> float:
     check_finite_array(p, "points")
     if p.shape[0] < 2:
         return 1.0
-    d, _ = cKDTree(p).query(p, k=2, workers=get_num_threads())  # numba's threads: a batch worker's share
+    tree = cKDTree(p) if tree is None else tree
+    d, _ = tree.query(p, k=2, workers=get_num_threads())  # numba's threads: a batch worker's share
     nn = d[:, 1]
     pos = nn[nn > 0]
     if pos.size:

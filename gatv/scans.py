@@ -1295,7 +1295,8 @@ PARTIAL_TRIALS = 32
 SAMPLING_VOXELS = 2.0
 
 
-def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int, *, target_spacing: float | None = None) -> float:
+def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int, *, target_spacing: float | None = None,
+                   source_spacing: float | None = None) -> float:
     """Voxel of :func:`match_surfaces`: about ``n_points`` occupied target cells, and at least
     :data:`SAMPLING_VOXELS` median spacings of the more coarsely sampled of the two scans.
 
@@ -1303,11 +1304,14 @@ def matching_voxel(Xs: np.ndarray, Ys: np.ndarray, n_points: int, *, target_spac
     mesh) have their congruent triples matched within a voxel: a voxel
     finer than the coarse scan's spacing leaves its points where they were
     sampled and the dense scan's centroids elsewhere, and no triple matches.
-    ``target_spacing``: ``median_spacing(Ys)`` when the caller has it.
+    ``target_spacing``, ``source_spacing``: ``median_spacing(Ys)`` and ``median_spacing(Xs)`` when the
+    caller has them.
     """
     if target_spacing is None:
         target_spacing = median_spacing(Ys)
-    coarse = max(median_spacing(Xs), target_spacing)
+    if source_spacing is None:
+        source_spacing = median_spacing(Xs)
+    coarse = max(source_spacing, target_spacing)
     return max(_voxel_for(Ys, int(n_points)), SAMPLING_VOXELS * coarse)
 
 
@@ -1373,9 +1377,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     Xs, Ys = (np.ascontiguousarray(a, dtype=np.float64) for a in (Xs, Ys))
     info: dict = {}
     none = np.empty((0, 2), np.int64)
-    target_spacing = median_spacing(Ys)
+    tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
+    source_tree = KDTree(Xs)  # the verdict's source neighbourhoods (SourceFrame)
+    target_spacing = median_spacing(Ys, tree=tree)
     if voxel is None:
-        voxel = matching_voxel(Xs, Ys, n_points, target_spacing=target_spacing)
+        voxel = matching_voxel(Xs, Ys, n_points, target_spacing=target_spacing,
+                               source_spacing=median_spacing(Xs, tree=source_tree))
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
     info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])), target_spacing=target_spacing)
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:
@@ -1394,7 +1401,6 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         budget = min(budget, max_triples)
     P = stages.prepare(Xd, Yd, RIGID)
     fine = 3.0 * target_spacing
-    tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
     # The polish's gates: a voxel, halved down to three point spacings (the last).
     levels = [gate]
     while levels[-1] > fine:
@@ -1408,7 +1414,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     # sample and for fewer iterations a gate (a wrong start wanders where a right one settles at once).
     sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
         rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
-    source_frame = functools.cache(lambda: SourceFrame.of(Xs))  # once for both attempts' verdicts
+    source_frame = functools.cache(lambda: SourceFrame.of(Xs, source_tree))  # once for both attempts' verdicts
 
     def verdict_polish(R, t):
         return polish(R, t, sample, VERDICT_ITERATIONS, False)

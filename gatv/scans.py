@@ -1453,6 +1453,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                 R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.ascontiguousarray(R, np.float64),
                                  np.ascontiguousarray(t, np.float64), float(g), int(iterations),
                                  1e-9 if g <= fine or points is not None else COARSE_STEP)
+        return counted(R, t, g, count)
+
+    def counted(R, t, g, count):
         if not count:
             return R, t, g, None
         if count == "normals":
@@ -1461,6 +1464,20 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # that does not favour a motion for landing on the very sample
         # points (the one-to-one pairs do).
         return R, t, g, int(np.count_nonzero(tree.nearest(Xs @ R.T + t, g) >= 0))
+
+    def polish_all(motions, count=True) -> list:
+        """``polish(R, t, count=count)`` of each ``(R, t)`` of ``motions``, the motions in parallel (one
+        numba kernel for the coarse gates' sample and one for the fine gate's)."""
+        if not refine or len(motions) < 2:
+            return [polish(R, t, count=count) for R, t in motions]
+        Rs = np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3)
+        ts = np.array([t for _, t in motions], np.float64).reshape(-1, 3)
+        for moving, gates, tol in ((coarse, [g for g in levels if g > fine], COARSE_STEP),
+                                   (sub, [g for g in levels if g <= fine], 1e-9)):
+            if gates:
+                Rs, ts = plane_icp_many(moving, tree.points, normals_c, *tree.nodes, Rs, ts,
+                                        np.array(gates, np.float64), 30, np.full(len(gates), tol))
+        return [counted(R, t, levels[-1], count) for R, t in zip(Rs, ts)]
 
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""
@@ -1522,13 +1539,14 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # The partial search compares rivals as it ranked them: by the points whose normals agree too (a
         # half-turn laid across a cropped target brings more points within the gate: 7,644 against 7,351).
         count = "normals" if partial else True
-        R, t, g, on = polish(best.matrix[:3, :3], best.matrix[:3, 3], count=count)
+        # The rivals (judged nearly as well) are polished too, with the best and at once (in parallel), and
+        # compared at full resolution.
+        polished = polish_all([(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]], count=count)
+        R, t, g, on = polished[0]
         start = best.matrix  # the trial the motion was polished from (the verdict polishes it as its draws)
         info["ambiguous"] = False
         rival_motion = None  # a distinct polished motion holding RIVAL_SHARE of the best's support
-        for rival in rivals:
-            # Judged nearly as well: polish it too and compare at full resolution.
-            Rr, tr, gr, on_r = polish(rival.matrix[:3, :3], rival.matrix[:3, 3], count=count)
+        for rival, (Rr, tr, gr, on_r) in zip(rivals, polished[1:]):
             if (rotation_angle_deg(Rr @ R.T) < 1.0
                     and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
                 continue  # polishing brought it onto the best motion

@@ -418,7 +418,7 @@ def _default_sigma(pts: np.ndarray, k: int, sample: int = 2000, seed: int = 0) -
     rng = np.random.default_rng(seed)
     q = pts if n <= sample else pts[rng.choice(n, size=sample, replace=False)]
     # an unbalanced, non-compact tree builds faster and answers the same exact queries
-    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(q, k=[k + 1])
+    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(q, k=[k + 1], workers=get_num_threads())
     d = d[:, 0]
     r = float(np.median(d))
     if r <= 0.0:

@@ -71,6 +71,9 @@ Scores: rotation error (degrees) and the error at the source's centroid
 (``|T_est(c) - T_true(c)|``, mm), which does not grow with the distance of
 the object from the sensor's origin.  Success: within 1° and 2 mm (bunny);
 within 0.3° and 1 mm (UWA, a few times its pseudo ground truth's tolerance).
+A method that returns no motion (gatv's falsy result, KISS-Matcher's
+"invalid") has no error (``—``; ``answered`` false in the CSV) and its
+note says "no motion": a miss, not a wrong motion.
 
 Usage::
 
@@ -378,8 +381,10 @@ def run_row(task: tuple) -> dict:
         return dict(row, error=f"{type(exc).__name__}: {' '.join(str(exc).split())[:120]}",
                     time_s=time.perf_counter() - start)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
-    rot = rotation_error_deg(R, R_true)
-    centre = mm * float(np.linalg.norm((R @ c + t) - (R_true @ c + t_true)))
+    answered = bool(extra.get("ok", True))
+    # No motion (gatv's "no motion", KISS-Matcher's "invalid") has no error: its R and t are placeholders.
+    rot = rotation_error_deg(R, R_true) if answered else float("nan")
+    centre = mm * float(np.linalg.norm((R @ c + t) - (R_true @ c + t_true))) if answered else float("nan")
     tol_deg, tol_mm = TOLERANCE[dataset]
     estimate = extra.get("noise")
     if sigma > 0 and estimate is not None:
@@ -387,7 +392,7 @@ def run_row(task: tuple) -> dict:
     peak = peak_rss_mib()
     return dict(row, rotation_error_deg=rot, centroid_error_mm=centre, time_s=seconds, cpu_s=cpu, peak_mib=peak,
                 points=(len(source), len(target)),
-                success=bool(extra.get("ok", True)) and rot <= tol_deg and centre <= tol_mm,
+                answered=answered, success=answered and rot <= tol_deg and centre <= tol_mm,
                 ambiguous=bool(extra.get("ambiguous", False)), pipeline=extra.get("pipeline", ""),
                 **{k: v for k, v in extra.items() if k.startswith("cpu_")})
 
@@ -464,7 +469,8 @@ def main(argv=None) -> int:
                *(["noise est"] if noisy else []), "note"]
     table = []
     for r in rows:
-        note = r.get("error", "") or ("ambiguous" if r.get("ambiguous") else "")
+        note = r.get("error", "") or "; ".join(
+            ([] if r.get("answered", True) else ["no motion"]) + (["ambiguous"] if r.get("ambiguous") else []))
         share = f"{r['overlap']:.0%}" if isinstance(r.get("overlap"), float) else ""
         table.append([r["pair"], share, *([f"{r['noise']:g}%"] if noisy else []), f"{r['clutter']:.0%}",
                       r["method"], fmt(r.get("rotation_error_deg"), 3), fmt(r.get("centroid_error_mm"), 2),
@@ -506,7 +512,7 @@ def main(argv=None) -> int:
                 for r in staged]
         print(markdown_table(["pair", "clutter", *STAGES, "rest", "call"], body, align="ll" + "r" * (len(STAGES) + 2)))
     keys = ["pair", "dataset", "clutter", "overlap", "noise", "method", "rotation_error_deg", "centroid_error_mm",
-            "time_s", "cpu_s", "peak_mib", "success", "ambiguous", "pipeline", "noise_ratio",
+            "time_s", "cpu_s", "peak_mib", "answered", "success", "ambiguous", "pipeline", "noise_ratio",
             *(f"cpu_{s}" for s in STAGES), "error"]
     suffix = ("" if args.overlap is None else f"_overlap{round(100 * args.overlap)}") + (
         "_noise" if noisy else "") + (f"_n{args.upsample}" if big else "")

@@ -183,6 +183,50 @@ def kdtree_build(points, leafsize):
     return order, lo[:count], hi[:count], axis[:count], split[:count], left[:count], right[:count]
 
 
+@njit(cache=True, inline="always")
+def _distance2(points, j, p):
+    """Squared distance from ``points[j]`` to ``p``."""
+    dx = points[j, 0] - p[0]
+    dy = points[j, 1] - p[1]
+    dz = points[j, 2] - p[2]
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
+def _push_root(p, box, stack, offsets, bounds):
+    """Start a search from ``p``: the root on the stack with its box's offsets from ``p`` along each axis
+    and their squared sum (the box's distance); returns the stack's height."""
+    lb = 0.0
+    for a in range(3):
+        off = max(box[0, a] - p[a], 0.0, p[a] - box[1, a])
+        offsets[0, a] = off
+        lb += off * off
+    stack[0] = 0
+    bounds[0] = lb
+    return 1
+
+
+@njit(cache=True, inline="always")
+def _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, bounds):
+    """Replace the inner ``node`` just popped from slot ``top`` (its box ``lb`` off ``p``) by its far child,
+    then its near child above it; returns the stack's height.  The far child's box is at least the
+    split's distance off along the split axis (Arya & Mount's incremental distance)."""
+    d = axis[node]
+    diff = p[d] - split[node]
+    near, far = (left[node], right[node]) if diff < 0.0 else (right[node], left[node])
+    o0, o1, o2 = offsets[top, 0], offsets[top, 1], offsets[top, 2]
+    old = offsets[top, d]
+    stack[top] = far
+    bounds[top] = lb - old * old + diff * diff
+    offsets[top, d] = abs(diff)
+    stack[top + 1] = near
+    bounds[top + 1] = lb
+    offsets[top + 1, 0] = o0
+    offsets[top + 1, 1] = o1
+    offsets[top + 1, 2] = o2
+    return top + 2
+
+
 @njit(cache=True)
 def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds):
     """Index of the point of ``points`` nearest ``p`` closer than ``radius`` (or -1), as
@@ -196,47 +240,22 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
     """
     best = -1
     bd = radius * radius
-    lb = 0.0
-    for a in range(3):
-        off = max(box[0, a] - p[a], 0.0, p[a] - box[1, a])
-        offsets[0, a] = off
-        lb += off * off
-    stack[0] = 0
-    bounds[0] = lb
-    top = 1
+    top = _push_root(p, box, stack, offsets, bounds)
     while top > 0:
         top -= 1
         k = stack[top]
         lb = bounds[top]
         if lb >= bd:
             continue
-        d = axis[k]
-        if d < 0:
+        if axis[k] < 0:
             for s in range(lo[k], hi[k]):
                 j = order[s]
-                dx = points[j, 0] - p[0]
-                dy = points[j, 1] - p[1]
-                dz = points[j, 2] - p[2]
-                d2 = dx * dx + dy * dy + dz * dz
+                d2 = _distance2(points, j, p)
                 if d2 < bd:
                     bd = d2
                     best = j
             continue
-        diff = p[d] - split[k]
-        near, far = (left[k], right[k]) if diff < 0.0 else (right[k], left[k])
-        o0, o1, o2 = offsets[top, 0], offsets[top, 1], offsets[top, 2]
-        old = offsets[top, d]
-        # The far child's box is at least |diff| off along d.
-        far_lb = lb - old * old + diff * diff
-        stack[top] = far
-        bounds[top] = far_lb
-        offsets[top, d] = abs(diff)
-        stack[top + 1] = near
-        bounds[top + 1] = lb
-        offsets[top + 1, 0] = o0
-        offsets[top + 1, 1] = o1
-        offsets[top + 1, 2] = o2
-        top += 2
+        top = _push_children(p, k, top, lb, axis, split, left, right, stack, offsets, bounds)
     return best
 
 
@@ -256,28 +275,17 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
     for m in range(k):
         best_d[m] = np.inf
         best_j[m] = n
-    lb = 0.0
-    for a in range(3):
-        off = max(box[0, a] - p[a], 0.0, p[a] - box[1, a])
-        offsets[0, a] = off
-        lb += off * off
-    stack[0] = 0
-    bounds[0] = lb
-    top = 1
+    top = _push_root(p, box, stack, offsets, bounds)
     while top > 0:
         top -= 1
         node = stack[top]
         lb = bounds[top]
         if lb >= min(best_d[k - 1], r2):
             continue
-        d = axis[node]
-        if d < 0:
+        if axis[node] < 0:
             for s in range(lo[node], hi[node]):
                 j = order[s]
-                dx = points[j, 0] - p[0]
-                dy = points[j, 1] - p[1]
-                dz = points[j, 2] - p[2]
-                d2 = dx * dx + dy * dy + dz * dz
+                d2 = _distance2(points, j, p)
                 if d2 < best_d[k - 1] and d2 < r2:
                     m = k - 1
                     while m > 0 and best_d[m - 1] > d2:
@@ -287,20 +295,7 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
                     best_d[m] = d2
                     best_j[m] = j
             continue
-        diff = p[d] - split[node]
-        near, far = (left[node], right[node]) if diff < 0.0 else (right[node], left[node])
-        o0, o1, o2 = offsets[top, 0], offsets[top, 1], offsets[top, 2]
-        old = offsets[top, d]
-        far_lb = lb - old * old + diff * diff
-        stack[top] = far
-        bounds[top] = far_lb
-        offsets[top, d] = abs(diff)
-        stack[top + 1] = near
-        bounds[top + 1] = lb
-        offsets[top + 1, 0] = o0
-        offsets[top + 1, 1] = o1
-        offsets[top + 1, 2] = o2
-        top += 2
+        top = _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, bounds)
 
 
 @njit(cache=True, parallel=True)

@@ -1329,7 +1329,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     of about ``n_points`` target cells (:func:`matching_voxel`),
     normal-pruned congruent triples (drawn for the share ``min_overlap`` of
     overlapping points with ``confidence``), tensor voting judging the
-    ``n_judged`` best trials, rivals polished and compared
+    ``n_judged`` best trials (a trial that a fit judged already explains,
+    :func:`gatv.stages.judged_alike`, is not judged again; ``info["judged"]``
+    counts the judge's calls), rivals polished with the best and compared
     (:data:`RIVAL_SHARE`), point-to-plane ICP with a gate shrinking from a
     voxel to three point spacings.  Options as
     in :func:`register_surfaces`; they are not checked again here.  The

@@ -281,3 +281,40 @@ def test_surface_support_counts_as_its_numpy_reference(seed, angle, noise):
         got = surface_support(X, Y, N, tree, R, t, gates, 0.12, frame)
         want = reference_surface_support(X, Y, N, cKDTree(Y), R, t, gates, 0.12, frame)
         assert np.array_equal(got, want)
+
+
+def reference_chance_support(source, target, gate, *, n_draws, polish, seed, sample, screen_points, final):
+    """:func:`gatv.motions.scans.chance_support` (tangent draws) with every ICP by the numpy
+    :func:`point_icp` (the code the screen kernel replaced there), Kabsch by ``kabsch3``."""
+    from gatv.scans import tangent_motions
+
+    X, Y = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    rng = np.random.default_rng(seed)
+    tree = cKDTree(Y)
+    sub = X if X.shape[0] <= sample else X[rng.choice(X.shape[0], sample, replace=False)]
+    starts = tangent_motions(X, Y, n_draws, rng, target_tree=tree)
+    if len(starts) > final and sub.shape[0] > screen_points:
+        screen = sub[rng.choice(sub.shape[0], screen_points, replace=False)]
+        ranks = [point_icp(screen, Y, tree, R, t, gate, polish, fit=kabsch3)[2] for R, t in starts]
+        starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:final]]
+    best = max(point_icp(sub, Y, tree, R, t, gate, polish, fit=kabsch3)[2] for R, t in starts)
+    return int(np.ceil(best * X.shape[0] / sub.shape[0]))
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), gate=st.floats(0.03, 0.2))
+def test_chance_support_is_its_numpy_reference(seed, gate):
+    from gatv.motions import scans as motion_scans
+
+    rng = np.random.default_rng(seed)
+    Y, _ = _surface(rng, 1500, 0.005)
+    X = np.vstack([_surface(rng, 900, 0.005)[0] @ Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix().T,
+                   rng.uniform(-1.0, 1.0, (300, 3))])
+    opts = dict(n_draws=24, polish=10, seed=seed % 1000)
+    # A sample over the screen's points: every draw screened, the best N_CHANCE_FINAL polished on it.
+    sample = motion_scans.CHANCE_SCREEN + 150
+    assert X.shape[0] > sample and opts["n_draws"] > motion_scans.N_CHANCE_FINAL
+    got = motion_scans.chance_support(X, Y, gate, sample=sample, **opts)
+    want = reference_chance_support(X, Y, gate, sample=sample, screen_points=motion_scans.CHANCE_SCREEN,
+                                    final=motion_scans.N_CHANCE_FINAL, **opts)
+    assert got == want > 0

@@ -60,6 +60,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm, poisson
 
 from .. import stages
+from .._icp_kernels import TargetGrid, screen_icp
 from .._validation import (
     check_fraction,
     check_int,
@@ -77,7 +78,6 @@ from ..scans import (
     local_scatter,
     match_surfaces,
     plane_noise,
-    point_icp,
     pooled_noise,
     surface_tokens,
     tangent_motions,
@@ -216,20 +216,27 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
         ib = rng.integers(0, Y.shape[0], n_draws)
         rots = _random_rotations(rng, n_draws)
         starts = [(R, q - R @ p) for R, p, q in zip(rots, X[ia], Y[ib])]
-    if polish and len(starts) > N_CHANCE_FINAL and sub.shape[0] > CHANCE_SCREEN:
+    if not starts:
+        return 0
+    if not polish:
+        best = max(int(np.count_nonzero(_support(sub, tree, R, t, gate))) for R, t in starts)
+        return int(np.ceil(best * scale))
+    # Each draw's point_icp(points, Y, ..., gate, polish) in one kernel, draws in parallel (nearest targets
+    # from a grid of Y; the fit is the numba Kabsch, point_icp's to rounding).
+    grid = TargetGrid(Y, gate)
+
+    def polished_supports(points, motions) -> np.ndarray:
+        return screen_icp(np.ascontiguousarray(points, dtype=np.float64), grid.target, grid.start, grid.order,
+                          grid.origin, grid.cell, grid.dims, np.array([R for R, _ in motions]).reshape(-1, 3, 3),
+                          np.array([t for _, t in motions]).reshape(-1, 3), float(gate), int(polish))[2]
+
+    if len(starts) > N_CHANCE_FINAL and sub.shape[0] > CHANCE_SCREEN:
         # Screen every draw on a smaller sample; only the best-ranked few are polished
         # and counted on the whole sample (the maximum is decided among them).
         screen = sub[rng.choice(sub.shape[0], CHANCE_SCREEN, replace=False)]
-        ranks = [point_icp(screen, Y, tree, R, t, gate, polish)[2] for R, t in starts]
+        ranks = polished_supports(screen, starts)
         starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:N_CHANCE_FINAL]]
-    best = 0
-    for R, t in starts:
-        if polish:
-            R, t, support = point_icp(sub, Y, tree, R, t, gate, polish)
-        else:
-            support = np.count_nonzero(_support(sub, tree, R, t, gate))
-        best = max(best, int(support))
-    return int(np.ceil(best * scale))
+    return int(np.ceil(int(polished_supports(sub, starts).max()) * scale))
 
 
 def _sphere_directions(n: int) -> np.ndarray:

@@ -60,7 +60,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm, poisson
 
 from .. import stages
-from .._icp_kernels import TargetGrid, screen_icp
+from .._icp_kernels import KDTree, TargetGrid, screen_icp
 from .._validation import (
     check_fraction,
     check_int,
@@ -168,7 +168,8 @@ def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     ], axis=1)
 
 
-def _support(X: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, gate: float, workers: int = 1) -> np.ndarray:
+def _support(X: np.ndarray, tree: cKDTree | KDTree, R: np.ndarray, t: np.ndarray, gate: float,
+             workers: int = 1) -> np.ndarray:
     """Which rows of ``X`` land within ``gate`` of a target point under ``(R, t)`` (``workers``: query threads)."""
     d, _ = tree.query(X @ R.T + t, k=1, distance_upper_bound=gate, workers=workers)
     return np.isfinite(d)
@@ -572,7 +573,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         sliver of some surface, not a plane of the scene).
         """
         tgt = np.flatnonzero(free_t)
-        tree = cKDTree(Y[tgt])
+        tree = KDTree(Y[tgt])  # the many nearest queries below (supports, displaced counts) in numba kernels
         inl = _support(X[src], tree, R, t, gate)
         support = int(np.count_nonzero(inl))
         searched = kind != "identity"

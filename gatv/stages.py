@@ -721,7 +721,7 @@ def judged_alike(judged: Judged, problem: Problem, matrix: np.ndarray, tolerance
     points (:func:`candidate_tokens`) and keeps the pairs within the gate
     ``g`` of its fit.  A trial that moves every source point within
     ``2σ − g`` of where ``judged``'s fit puts it has each of those kept pairs
-    among its own candidates, around the same dense cluster of tokens: judging
+    within its own candidates' reach, around the same dense cluster of tokens: judging
     it votes on the same evidence again (the best trials of a congruent
     search are mostly one motion found from several triples).  σ is
     ``judged.sigma``, the scale :func:`judge` derives from ``problem`` and

@@ -400,14 +400,62 @@ def rotvec_matrix(w):
 
 
 @njit(cache=True)
+def _plane_step(Y, N, moved, idx, R, t, gate, tol):
+    """One step of :func:`plane_icp` from the moved source points and their nearest targets ``idx`` (-1:
+    none within the gate): ``(R, t, stop)``, the motion unchanged and ``stop`` when fewer than six pair,
+    the motion updated and ``stop`` when the step moved the source by less than ``tol`` gates."""
+    n = moved.shape[0]
+    cnt = 0
+    c = np.zeros(3)
+    for i in range(n):
+        if idx[i] >= 0:
+            cnt += 1
+            c += moved[i]
+    if cnt < 6:
+        return R, t, True
+    c /= cnt
+    huber = 0.3 * gate
+    rcond = 6.0 * np.finfo(np.float64).eps  # numpy's lstsq default for a 6 x 6 system
+    M = np.zeros((6, 6))
+    v = np.zeros(6)
+    row = np.empty(6)
+    reach = 0.0
+    for i in range(n):
+        j = idx[i]
+        if j < 0:
+            continue
+        px, py, pz = moved[i, 0] - c[0], moved[i, 1] - c[1], moved[i, 2] - c[2]
+        nx, ny, nz = N[j, 0], N[j, 1], N[j, 2]
+        r = (moved[i, 0] - Y[j, 0]) * nx + (moved[i, 1] - Y[j, 1]) * ny + (moved[i, 2] - Y[j, 2]) * nz
+        w = 1.0 if abs(r) <= huber else huber / max(abs(r), 1e-300)
+        row[0] = py * nz - pz * ny
+        row[1] = pz * nx - px * nz
+        row[2] = px * ny - py * nx
+        row[3], row[4], row[5] = nx, ny, nz
+        for a in range(6):
+            v[a] -= w * row[a] * r
+            for b in range(6):
+                M[a, b] += w * row[a] * row[b]
+        reach = max(reach, abs(px), abs(py), abs(pz))
+    x = np.linalg.lstsq(M, v, rcond)[0]
+    omega = x[:3].copy()
+    delta = x[3:].copy()
+    Rinc = rotvec_matrix(omega)
+    R = Rinc @ R
+    t = Rinc @ (t - c) + c + delta
+    return R, t, np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate
+
+
+@njit(cache=True)
 def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
     """Point-to-plane ICP inside ``gate``: :func:`gatv.scans.refine_point_to_plane` with its nearest
     targets from the k-d tree ``order, ..., box`` of ``Y`` (:class:`KDTree`); ``N``: ``Y``'s unit normals.
 
     Each iteration minimises ``sum w ((R x + t - y) · n_y)²`` linearised in a small rotation about the
     pairs' centroid (Huber weights at 0.3 ``gate``), its 6 x 6 normal equations solved for least squares
-    of minimum norm.  Stops after ``iterations``, when fewer than six points pair, or once a step moves
-    the source by less than ``tol`` gates.  Returns ``(R, t)``.
+    of minimum norm (:func:`_plane_step`).  Stops after ``iterations``, when fewer than six points pair,
+    or once a step moves the source by less than ``tol`` gates.  Returns ``(R, t)``.  One thread (the
+    kernel of :func:`plane_icp_many`'s parallel starts); :func:`plane_icp_parallel` queries in parallel.
     """
     n = X.shape[0]
     idx = np.empty(n, np.int64)
@@ -417,51 +465,40 @@ def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate,
     bounds = np.empty(STACK)
     R = R.copy()
     t = t.copy()
-    huber = 0.3 * gate
-    rcond = 6.0 * np.finfo(np.float64).eps  # numpy's lstsq default for a 6 x 6 system
     for _ in range(iterations):
-        cnt = 0
-        c = np.zeros(3)
         for i in range(n):
             for a in range(3):
                 moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
-            j = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets,
-                               bounds)
-            idx[i] = j
-            if j >= 0:
-                cnt += 1
-                c += moved[i]
-        if cnt < 6:
+            idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack,
+                                    offsets, bounds)
+        R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
+        if stop:
             break
-        c /= cnt
-        M = np.zeros((6, 6))
-        v = np.zeros(6)
-        row = np.empty(6)
-        reach = 0.0
-        for i in range(n):
-            j = idx[i]
-            if j < 0:
-                continue
-            px, py, pz = moved[i, 0] - c[0], moved[i, 1] - c[1], moved[i, 2] - c[2]
-            nx, ny, nz = N[j, 0], N[j, 1], N[j, 2]
-            r = (moved[i, 0] - Y[j, 0]) * nx + (moved[i, 1] - Y[j, 1]) * ny + (moved[i, 2] - Y[j, 2]) * nz
-            w = 1.0 if abs(r) <= huber else huber / max(abs(r), 1e-300)
-            row[0] = py * nz - pz * ny
-            row[1] = pz * nx - px * nz
-            row[2] = px * ny - py * nx
-            row[3], row[4], row[5] = nx, ny, nz
-            for a in range(6):
-                v[a] -= w * row[a] * r
-                for b in range(6):
-                    M[a, b] += w * row[a] * row[b]
-            reach = max(reach, abs(px), abs(py), abs(pz))
-        x = np.linalg.lstsq(M, v, rcond)[0]
-        omega = x[:3].copy()
-        delta = x[3:].copy()
-        Rinc = rotvec_matrix(omega)
-        R = Rinc @ R
-        t = Rinc @ (t - c) + c + delta
-        if np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate:
+    return R, t
+
+
+@njit(cache=True, parallel=True)
+def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
+    """:func:`plane_icp` with each iteration's nearest-target queries in parallel (chunks of points; the
+    step that follows sums in the points' order, so the result is :func:`plane_icp`'s to the last bit)."""
+    n = X.shape[0]
+    idx = np.empty(n, np.int64)
+    moved = np.empty((n, 3))
+    R = R.copy()
+    t = t.copy()
+    chunk = 256
+    for _ in range(iterations):
+        for ch in prange((n + chunk - 1) // chunk):
+            stack = np.empty(STACK, np.int64)
+            offsets = np.empty((STACK, 3))
+            bounds = np.empty(STACK)
+            for i in range(ch * chunk, min(n, (ch + 1) * chunk)):
+                for a in range(3):
+                    moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
+                idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack,
+                                        offsets, bounds)
+        R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
+        if stop:
             break
     return R, t
 

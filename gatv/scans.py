@@ -51,8 +51,8 @@ from ._icp_kernels import (
     TargetGrid,
     local_heights,
     neighbourhood_normals,
-    plane_icp,
     plane_icp_many,
+    plane_icp_parallel,
     screen_icp,
 )
 from ._validation import (
@@ -593,7 +593,7 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
     than ``tol`` gates (its rotation at the farthest pair plus its
     translation).  ``tree``: a :class:`gatv._icp_kernels.KDTree` of
     ``target`` when the caller refines against it often (built otherwise).
-    Runs in one numba kernel (:func:`gatv._icp_kernels.plane_icp`).
+    Runs in one numba kernel (:func:`gatv._icp_kernels.plane_icp_parallel`, its queries in parallel).
     Returns ``(rotation, translation)``.
     """
     X = as_points(source, "source")
@@ -611,7 +611,7 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
         raise InputError(f"Expected `tol` a finite number >= 0, got {tol!r}.")
     if not isinstance(tree, KDTree) or tree.points.shape != Y.shape:
         tree = KDTree(Y)
-    return plane_icp(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol))
+    return plane_icp_parallel(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol))
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -1452,9 +1452,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             for g in levels:
                 moving = points if points is not None else sub if g <= fine else coarse
                 # refine_point_to_plane's kernel, its inputs checked once by the caller
-                R, t = plane_icp(moving, tree.points, normals_c, *tree.nodes, np.ascontiguousarray(R, np.float64),
-                                 np.ascontiguousarray(t, np.float64), float(g), int(iterations),
-                                 1e-9 if g <= fine or points is not None else COARSE_STEP)
+                R, t = plane_icp_parallel(moving, tree.points, normals_c, *tree.nodes,
+                                          np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64),
+                                          float(g), int(iterations),
+                                          1e-9 if g <= fine or points is not None else COARSE_STEP)
         return counted(R, t, g, count)
 
     def counted(R, t, g, count):

@@ -17,6 +17,7 @@ from gatv._icp_kernels import (
     neighbourhood_normals,
     plane_icp,
     plane_icp_many,
+    plane_icp_parallel,
     rotvec_matrix,
     screen_icp,
 )
@@ -318,3 +319,15 @@ def test_chance_support_is_its_numpy_reference(seed, gate):
     want = reference_chance_support(X, Y, gate, sample=sample, screen_points=motion_scans.CHANCE_SCREEN,
                                     final=motion_scans.N_CHANCE_FINAL, **opts)
     assert got == want > 0
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 20.0), n=st.integers(3, 1200),
+       gate=st.sampled_from([0.02, 0.1, 0.3]))
+def test_plane_icp_parallel_is_plane_icp_to_the_last_bit(seed, angle, n, gate):
+    Y, N, X, R0, t0 = _pair(np.random.default_rng(seed), 1500, n, 0.003, angle, 0.02)
+    tree = KDTree(Y)
+    for iterations, tol in [(30, 1e-9), (5, 1e-3)]:
+        R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol)
+        R2, t2 = plane_icp_parallel(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol)
+        assert np.array_equal(R1, R2) and np.array_equal(t1, t2)

@@ -446,6 +446,15 @@ def _plane_step(Y, N, moved, idx, R, t, gate, tol):
     return R, t, np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate
 
 
+@njit(cache=True, inline="always")
+def _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets,
+                   bounds):
+    """``moved[i] = R X[i] + t`` and ``idx[i]`` its nearest target within ``gate`` (-1: none)."""
+    for a in range(3):
+        moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
+    idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets, bounds)
+
+
 @njit(cache=True)
 def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
     """Point-to-plane ICP inside ``gate``: :func:`gatv.scans.refine_point_to_plane` with its nearest
@@ -467,10 +476,8 @@ def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate,
     t = t.copy()
     for _ in range(iterations):
         for i in range(n):
-            for a in range(3):
-                moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
-            idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack,
-                                    offsets, bounds)
+            _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, stack,
+                           offsets, bounds)
         R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
         if stop:
             break
@@ -493,10 +500,8 @@ def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R,
             offsets = np.empty((STACK, 3))
             bounds = np.empty(STACK)
             for i in range(ch * chunk, min(n, (ch + 1) * chunk)):
-                for a in range(3):
-                    moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
-                idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack,
-                                        offsets, bounds)
+                _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate,
+                               stack, offsets, bounds)
         R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
         if stop:
             break

@@ -1380,11 +1380,12 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     info: dict = {}
     none = np.empty((0, 2), np.int64)
     tree = KDTree(Ys)  # nearest targets in numba kernels (the polish's, the verdict's supports)
-    source_tree = KDTree(Xs)  # the verdict's source neighbourhoods (SourceFrame)
+    # The source's tree, when a spacing or the verdict's source neighbourhoods (SourceFrame) ask for it.
+    source_tree = functools.cache(lambda: KDTree(Xs))
     target_spacing = median_spacing(Ys, tree=tree)
     if voxel is None:
         voxel = matching_voxel(Xs, Ys, n_points, target_spacing=target_spacing,
-                               source_spacing=median_spacing(Xs, tree=source_tree))
+                               source_spacing=median_spacing(Xs, tree=source_tree()))
     Xd, Yd = voxel_downsample(Xs, voxel), voxel_downsample(Ys, voxel)
     info.update(voxel=voxel, n_downsampled=(int(Xd.shape[0]), int(Yd.shape[0])), target_spacing=target_spacing)
     if Xd.shape[0] < 3 or Yd.shape[0] < 3:
@@ -1416,7 +1417,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     # sample and for fewer iterations a gate (a wrong start wanders where a right one settles at once).
     sample = coarse if coarse.shape[0] <= VERDICT_SAMPLE else coarse[
         rng_sub.choice(coarse.shape[0], VERDICT_SAMPLE, replace=False)]
-    source_frame = functools.cache(lambda: SourceFrame.of(Xs, source_tree))  # once for both attempts' verdicts
+    source_frame = functools.cache(lambda: SourceFrame.of(Xs, source_tree()))  # once for both attempts' verdicts
 
     def verdict_polish(R, t):
         return polish(R, t, sample, VERDICT_ITERATIONS, False)

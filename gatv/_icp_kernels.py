@@ -20,22 +20,6 @@ from .models.rigid.congruent_kernels import build_grid, nearest_in_grid
 from .voting._eigen import eig3_batch
 
 
-class TargetGrid:
-    """A dense grid of target points for nearest lookups within ``radius`` (cells of ``radius``: a
-    lookup visits at most 3 x 3 x 3 of them)."""
-
-    def __init__(self, target: np.ndarray, radius: float):
-        self.target = np.ascontiguousarray(target, dtype=np.float64)
-        lo = self.target.min(axis=0)
-        ext = np.maximum(self.target.max(axis=0) - lo, 1e-12)
-        # At most ~128 cells a side (2M cells): a finer radius visits more cells' points, not more cells.
-        self.cell = max(float(radius), float(ext.max()) / 128.0)
-        self.dims = np.maximum(np.ceil(ext / self.cell).astype(np.int64), 1)
-        self.origin = lo.astype(np.float64)
-        self.radius = float(radius)
-        self.start, self.order = build_grid(self.target, self.origin, self.cell, self.dims)
-
-
 @njit(cache=True)
 def _icp_one(X, Y, start, order, origin, cell, dims, R, t, gate, iterations, moved, idx):
     """One point-to-point ICP within ``gate`` from ``(R, t)``; returns ``(R, t, support)`` as
@@ -74,7 +58,7 @@ def screen_icp(X, Y, start, order, origin, cell, dims, rotations, translations, 
     Returns ``(rotations, translations, supports)``: the motion each ICP
     reached and its points of ``X`` within ``gate`` of a point of ``Y``
     (the grid ``start, order, origin, cell, dims`` of ``Y``,
-    :class:`TargetGrid`, cells at least ``gate``).
+    :class:`gatv.models.rigid.congruent.TargetGrid`, cells at least ``gate``).
     """
     m = rotations.shape[0]
     n = X.shape[0]

@@ -48,7 +48,6 @@ from . import stages
 from ._fit_kernels import kabsch3
 from ._icp_kernels import (
     KDTree,
-    TargetGrid,
     local_heights,
     neighbourhood_normals,
     plane_icp_many,
@@ -65,7 +64,7 @@ from ._validation import (
     seed_int,
 )
 from .candidates import median_spacing
-from .models.rigid.congruent import TargetIndex, n_triples_needed, trial_motions
+from .models.rigid.congruent import TargetGrid, TargetIndex, n_triples_needed, trial_motions
 from .errors import InputError
 from .fitting import fit_rigid
 from .ga import Rotor, rotation_angle_deg
@@ -1041,7 +1040,7 @@ class WrongDraws:
         screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
         Yq = Ys if screen_target is None else screen_target
         # Every draw's point_icp(screen, Yq, ..., voxel, fit=kabsch3) in one kernel (draws in parallel).
-        grid = TargetGrid(Yq, voxel)
+        grid = TargetGrid.of(Yq, voxel)
         ranks = screen_icp(np.ascontiguousarray(screen, dtype=np.float64), grid.target, grid.start, grid.order,
                            grid.origin, grid.cell, grid.dims, np.array([R for R, _ in starts]).reshape(-1, 3, 3),
                            np.array([t for _, t in starts]).reshape(-1, 3), float(voxel), 10)[2]

@@ -54,8 +54,9 @@ trial_motions(x, index, eps=0.01, max_triples=8, rng=rng, wide=2, sequential=Tru
               source_normals=normals, target_normals=normals, max_enumerated=4)
 vote(x, 0.3, normals, saliency=np.ones(40))  # the stick pass alone
 similar_trial_motions(x, index, eps=0.01, max_triples=2, rng=rng)
-from gatv._icp_kernels import (KDTree, TargetGrid, local_heights, neighbourhood_normals, plane_icp, plane_icp_many,
+from gatv._icp_kernels import (KDTree, local_heights, neighbourhood_normals, plane_icp, plane_icp_many,
                                plane_icp_parallel, screen_icp)
+from gatv.models.rigid.congruent import TargetGrid
 tree = KDTree(x)
 local_heights(x, np.zeros(40, np.int64), x, normals, normals, np.zeros((40, 4), np.int64), 0.9)
 plane_icp_many(x, tree.points, normals, *tree.nodes, np.eye(3)[None], np.zeros((1, 3)), np.array([0.3]), 2,
@@ -65,7 +66,7 @@ tree.query(x, k=16)
 neighbourhood_normals(x, tree.query(x, k=12)[1], 12)
 plane_icp(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9)
 plane_icp_parallel(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9)
-grid = TargetGrid(x, 0.1)
+grid = TargetGrid.of(x, 0.1)
 screen_icp(x, grid.target, grid.start, grid.order, grid.origin, grid.cell, grid.dims, np.eye(3)[None],
            np.zeros((1, 3)), 0.1, 2)
 eig3_batch(np.zeros((2, 6)), np.empty((2, 3)), np.empty((2, 3, 3)))

@@ -12,7 +12,6 @@ from scipy.spatial.transform import Rotation
 from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
     KDTree,
-    TargetGrid,
     kdtree_build,
     neighbourhood_normals,
     plane_icp,
@@ -22,6 +21,7 @@ from gatv._icp_kernels import (
     screen_icp,
 )
 from gatv.ga import Rotor
+from gatv.models.rigid.congruent import TargetGrid
 from gatv.scans import point_icp, refine_point_to_plane
 
 
@@ -174,7 +174,7 @@ def test_screen_icp_is_point_icp_for_every_draw(seed, angle):
     rotations = Rotation.from_rotvec(rng.normal(size=(12, 3)) * np.deg2rad(angle) / np.sqrt(3)).as_matrix()
     translations = rng.normal(0.0, 0.1, (12, 3))
     gate = 0.15
-    grid = TargetGrid(Y, gate)
+    grid = TargetGrid.of(Y, gate)
     Rk, tk, sk = screen_icp(X, grid.target, grid.start, grid.order, grid.origin, grid.cell, grid.dims,
                             rotations, translations, gate, 10)
     tree = cKDTree(Y)

@@ -60,7 +60,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm, poisson
 
 from .. import stages
-from .._icp_kernels import KDTree, TargetGrid, screen_icp
+from .._icp_kernels import KDTree, screen_icp
 from .._validation import (
     check_fraction,
     check_int,
@@ -72,6 +72,7 @@ from ..candidates import median_spacing
 from ..errors import InputError
 from ..models.base import homogeneous
 from ..models.rigid import MODEL as RIGID
+from ..models.rigid.congruent import TargetGrid
 from ..peel_loop import Candidate, Judgement, Stop, peel_loop
 from ..scans import (
     PLANE_THICKNESS,
@@ -224,7 +225,7 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
         return int(np.ceil(best * scale))
     # Each draw's point_icp(points, Y, ..., gate, polish) in one kernel, draws in parallel (nearest targets
     # from a grid of Y; the fit is the numba Kabsch, point_icp's to rounding).
-    grid = TargetGrid(Y, gate)
+    grid = TargetGrid.of(Y, gate)
 
     def polished_supports(points, motions) -> np.ndarray:
         return screen_icp(np.ascontiguousarray(points, dtype=np.float64), grid.target, grid.start, grid.order,

@@ -36,6 +36,7 @@ __all__ = [
     "FIRST_BOX_MATCHES",
     "HALF_BOX_FROM",
     "MISS_RATE",
+    "TargetGrid",
     "TargetIndex",
     "TrialMotions",
     "TrialPool",
@@ -70,6 +71,38 @@ def n_triples_needed(inlier_share: float, confidence: float = 0.999) -> int:
     return samples_needed(inlier_share, confidence, 3)
 
 
+@dataclass(frozen=True, eq=False)
+class TargetGrid:
+    """Target points in a dense grid over their bounding box, for nearest lookups within ``radius``
+    (:func:`congruent_kernels.nearest_in_grid`): :class:`TargetIndex`'s scoring grid, and the scans
+    pipeline's ICP screens' (:func:`gatv._icp_kernels.screen_icp`)."""
+
+    target: np.ndarray
+    radius: float
+    #: The box's lower corner and its extent (at least 1e-12 along each axis).
+    origin: np.ndarray
+    extent: np.ndarray
+    cell: float
+    dims: np.ndarray
+    #: :func:`congruent_kernels.build_grid`'s runs of each cell and the points' order.
+    start: np.ndarray
+    order: np.ndarray
+
+    @classmethod
+    def of(cls, target: np.ndarray, radius: float, *, cell_radii: float = 1.0, max_side: int = 128) -> "TargetGrid":
+        """Cells ``cell_radii`` times ``radius`` (a lookup visits at most 3 x 3 x 3 of them at one radius, 2 x 2
+        x 2 at two), coarser where the box would need more than ``max_side`` a side: a finer radius then
+        visits more of a cell's points, not more cells."""
+        target = np.ascontiguousarray(target, dtype=np.float64)
+        lo = target.min(axis=0)
+        ext = np.maximum(target.max(axis=0) - lo, 1e-12)
+        cell = max(cell_radii * float(radius), float(ext.max()) / max_side)
+        dims = np.maximum(np.ceil(ext / cell).astype(np.int64), 1)
+        origin = lo.astype(np.float64)
+        start, order = _k.build_grid(target, origin, cell, dims)
+        return cls(target, float(radius), origin, ext, cell, dims, start, order)
+
+
 #: Most cells a side of :class:`TargetIndex`'s occupancy grid (2 MB at most).
 OCCUPANCY_CELLS = 128
 
@@ -90,18 +123,13 @@ class TargetIndex:
     def set_radius(self, radius: float) -> None:
         """Rebuild the scoring grid for a match radius."""
         target = self.target
-        lo = target.min(axis=0)
-        hi = target.max(axis=0)
-        ext = np.maximum(hi - lo, 1e-12)
         # Cells twice the radius (a lookup then visits at most 2 x 2 x 2 of
         # them), at most ~64 cells a side.
-        cell = max(2.0 * float(radius), float(ext.max()) / 64.0)
-        dims = np.maximum(np.ceil(ext / cell).astype(np.int64), 1)
-        self.radius = float(radius)
-        self.origin = lo.astype(np.float64)
-        self.cell = cell
-        self.dims = dims
-        self.start, self.order = _k.build_grid(target, self.origin, cell, dims)
+        grid = TargetGrid.of(target, radius, cell_radii=2.0, max_side=64)
+        ext = grid.extent
+        self.radius = grid.radius
+        self.origin, self.cell, self.dims = grid.origin, grid.cell, grid.dims
+        self.start, self.order = grid.start, grid.order
         self.volume = float(np.prod(ext + 2 * radius))
         # Occupancy of the target's balls (sure misses in one read), over the
         # box grown by the radius, cells half the radius (at most

@@ -1,13 +1,20 @@
-"""Numba twins of the scans pipeline's short ICP screens (:func:`gatv.scans.point_icp`).
+"""Numba kernels of the scans pipeline: its ICPs, its k-d tree, its local planes and heights.
 
-The verdict of the scans pipeline screens every one of its wrong draws by a
-short point-to-point ICP on a thousand source points against the target's
-voxel centroids (:class:`gatv.scans.WrongDraws`); in numpy each iteration
-is a k-d tree query and a fit with their call overheads.  Here one kernel
-runs every draw's whole ICP, draws in parallel, nearest targets looked up
-in a dense grid of the voxel centroids.  Pure functions over contiguous
-float64 arrays; each is checked against its numpy reference in
-``tests/test_scans_kernels.py``.
+* :func:`screen_icp`: the short point-to-point ICP screens of the
+  verdict's wrong draws (:class:`gatv.scans.WrongDraws`) and of
+  :func:`gatv.motions.scans.chance_support`, every draw's whole ICP in one
+  kernel, draws in parallel, nearest targets looked up in a dense grid
+  (:class:`gatv.models.rigid.congruent.TargetGrid`).
+* :class:`KDTree`: nearest and k-nearest points within a bound, as
+  ``cKDTree.query`` answers, in parallel kernels.
+* :func:`plane_icp`, :func:`plane_icp_parallel`, :func:`plane_icp_many`:
+  the point-to-plane polish (:func:`gatv.scans.refine_point_to_plane`) of
+  one motion, its queries in parallel, or of several motions in parallel.
+* :func:`neighbourhood_normals`, :func:`local_heights`: the verdict's
+  source normals and local heights (:func:`gatv.scans.surface_support`).
+
+Pure functions over contiguous float64 arrays; each is checked against its
+numpy (or scipy) reference in ``tests/test_scans_kernels.py``.
 """
 
 from __future__ import annotations

@@ -182,9 +182,15 @@ class Problem:
             others = np.ones(self.target.shape[0], bool)
             others[without] = False
             tree = cKDTree(self.target[others])
+        return self.density_radii(apply_matrix(matrix, self.source), tree)
+
+    def density_radii(self, points: np.ndarray, tree: cKDTree | None = None) -> np.ndarray:
+        """Radius of the ball around each of ``points`` that holds :data:`DENSITY_NEIGHBOURS` target points
+        (of ``tree``, default the whole target's; fewer where it has fewer)."""
+        tree = self.tree if tree is None else tree
         k = min(DENSITY_NEIGHBOURS, tree.n)
-        d, _ = tree.query(apply_matrix(matrix, self.source), k=k)
-        return np.maximum(d.reshape(len(self.source), -1)[:, -1], 1e-300)
+        d, _ = tree.query(points, k=k)
+        return np.maximum(d.reshape(len(points), -1)[:, -1], 1e-300)
 
     def landing_pairs(self, radii: np.ndarray, gate: float, n_target: int | None = None) -> float:
         """Pairs within ``gate`` a motion with :meth:`landing_radii` ``radii`` collects by chance,
@@ -900,9 +906,8 @@ def likelihood_counts(problem: Problem, matrix: np.ndarray, gate_radius: float, 
         pose = refine(rest, Fit(matrix, np.empty((0, 2), np.int64)), gate_radius).matrix
         moved[fold == f] = apply_matrix(pose, X[fold == f])
     moved = moved[scored]
+    radii = problem.density_radii(moved)
     k = min(DENSITY_NEIGHBOURS, problem.target.shape[0])
-    radii, _ = problem.tree.query(moved, k=k)
-    radii = np.maximum(radii.reshape(len(moved), -1)[:, -1], 1e-300)
     density = k / (ball_measure(1.0, d) * radii**d)  # k-nearest-neighbour density where each lands
     n_all = float(n_tests) * float(len(levels))
     counts = []

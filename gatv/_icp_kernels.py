@@ -10,8 +10,11 @@
 * :func:`plane_icp`, :func:`plane_icp_parallel`, :func:`plane_icp_many`:
   the point-to-plane polish (:func:`gatv.scans.refine_point_to_plane`) of
   one motion, its queries in parallel, or of several motions in parallel.
-* :func:`neighbourhood_normals`, :func:`local_heights`: the verdict's
-  source normals and local heights (:func:`gatv.scans.surface_support`).
+* :func:`neighbourhood_axes`, :func:`neighbourhood_normals`,
+  :func:`neighbourhood_noise`: local least-squares planes and the noise
+  about them (the scans' noise and projection onto their surface, the
+  verdict's source normals); :func:`local_heights`: the verdict's local
+  heights (:func:`gatv.scans.surface_support`).
 
 Pure functions over contiguous float64 arrays; each is checked against its
 numpy (or scipy) reference in ``tests/test_scans_kernels.py``.
@@ -522,9 +525,11 @@ def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotati
 # ------------------------------------------------------------------ local planes
 @njit(cache=True, parallel=True)
 def neighbourhood_scatter(points, neighbours, m):
-    """``(N, 6)`` upper triangles ``(xx, xy, xz, yy, yz, zz)`` of each row's scatter matrix about the mean
-    of its first ``m`` ``neighbours`` (rows of ``points``): :func:`gatv.scans.local_scatter`'s matrix."""
+    """``(centroids, scatter)``: ``(N, 3)`` the mean of each row's first ``m`` ``neighbours`` (rows of
+    ``points``) and ``(N, 6)`` the upper triangle ``(xx, xy, xz, yy, yz, zz)`` of their scatter matrix
+    about it: :func:`gatv.scans.local_scatter`'s centroids and matrix, without gathering the neighbours."""
     n = neighbours.shape[0]
+    centroids = np.empty((n, 3))
     out = np.empty((n, 6))
     for i in prange(n):
         cx = cy = cz = 0.0
@@ -548,19 +553,67 @@ def neighbourhood_scatter(points, neighbours, m):
             s3 += y * y
             s4 += y * z
             s5 += z * z
+        centroids[i, 0], centroids[i, 1], centroids[i, 2] = cx, cy, cz
         out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = s0, s1, s2, s3, s4, s5
-    return out
+    return centroids, out
+
+
+def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray, m: int):
+    """``(centroids, values, axes)``: the mean of each row's first ``m`` ``neighbours`` (rows of ``points``),
+    and the eigenvalues (descending) and unit eigenvectors (``axes[i, :, j]`` of ``values[i, j]``) of their
+    scatter about it: ``axes[:, :, 2]`` is the normal (unoriented) of their least-squares plane.  As
+    :func:`gatv.scans.local_scatter`'s (ascending there) up to sign and rounding."""
+    centroids, scatter = neighbourhood_scatter(np.ascontiguousarray(points, dtype=np.float64),
+                                               np.ascontiguousarray(neighbours, dtype=np.int64), int(m))
+    values = np.empty((scatter.shape[0], 3))
+    axes = np.empty((scatter.shape[0], 3, 3))
+    eig3_batch(scatter, values, axes)
+    return centroids, values, axes
 
 
 def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, m: int) -> np.ndarray:
     """``(N, 3)`` unit least-variance axes (unoriented) of each row's first ``m`` ``neighbours``: the normals
-    of their least-squares planes, as ``local_scatter(...).normals`` up to sign and rounding."""
-    scatter = neighbourhood_scatter(np.ascontiguousarray(points, dtype=np.float64),
-                                    np.ascontiguousarray(neighbours, dtype=np.int64), int(m))
-    vals = np.empty((scatter.shape[0], 3))
-    vecs = np.empty((scatter.shape[0], 3, 3))
-    eig3_batch(scatter, vals, vecs)
-    return np.ascontiguousarray(vecs[:, :, 2])  # eigenvalues descending: the last is the least variance
+    of their least-squares planes (:func:`neighbourhood_axes`)."""
+    return np.ascontiguousarray(neighbourhood_axes(points, neighbours, m)[2][:, :, 2])
+
+
+@njit(cache=True, parallel=True)
+def neighbourhood_noise(points, neighbours, m, centroids, axes, radius, quadric):
+    """Robust deviation of each row's first ``m`` ``neighbours`` (rows of ``points``) about its local
+    surface: ``1.4826 · median |r|`` of their residuals ``r`` along the normal ``axes[i, :, 2]`` from the
+    plane through ``centroids[i]``, or with ``quadric`` from the least-squares quadric over the tangent
+    plane (axes ``axes[i, :, 0]``, ``axes[i, :, 1]``, in units of ``radius[i]``, ridge 1e-9), scaled by
+    ``sqrt(m / (m - p))`` for the fit's ``p`` parameters (3 or 6): :func:`gatv.scans.scan_noise`'s fits.
+    ``axes``: :func:`neighbourhood_axes`'s (descending)."""
+    n = neighbours.shape[0]
+    sd = np.empty(n)
+    params = 6 if quadric else 3
+    factor = 1.4826 * np.sqrt(m / max(m - params, 1))
+    for i in prange(n):
+        h = np.empty(m)
+        nx, ny, nz = axes[i, 0, 2], axes[i, 1, 2], axes[i, 2, 2]
+        for a in range(m):
+            q = neighbours[i, a]
+            h[a] = ((points[q, 0] - centroids[i, 0]) * nx + (points[q, 1] - centroids[i, 1]) * ny
+                    + (points[q, 2] - centroids[i, 2]) * nz)
+        if quadric:
+            scale = max(radius[i], 1e-300)
+            basis = np.empty((m, 6))
+            for a in range(m):
+                q = neighbours[i, a]
+                x = points[q, 0] - centroids[i, 0]
+                y = points[q, 1] - centroids[i, 1]
+                z = points[q, 2] - centroids[i, 2]
+                u = (x * axes[i, 0, 0] + y * axes[i, 1, 0] + z * axes[i, 2, 0]) / scale
+                v = (x * axes[i, 0, 1] + y * axes[i, 1, 1] + z * axes[i, 2, 1]) / scale
+                basis[a, 0], basis[a, 1], basis[a, 2] = u * u, u * v, v * v
+                basis[a, 3], basis[a, 4], basis[a, 5] = u, v, 1.0
+            normal = basis.T @ basis + 1e-9 * np.eye(6)
+            rhs = basis.T @ (h / scale)
+            coef = np.linalg.solve(normal, rhs)
+            h = h - scale * (basis @ coef)
+        sd[i] = factor * np.median(np.abs(h))
+    return sd
 
 
 # ------------------------------------------------------------------ the verdict's local heights

@@ -49,6 +49,8 @@ from ._fit_kernels import kabsch3
 from ._icp_kernels import (
     KDTree,
     local_heights,
+    neighbourhood_axes,
+    neighbourhood_noise,
     neighbourhood_normals,
     plane_icp_many,
     plane_icp_parallel,
@@ -263,24 +265,18 @@ def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree
     (``p = 3``).  The radius is the distance to the farthest neighbour.
     Without ``residuals`` the sd is None (the projection needs only the planes).
     """
+    reference = np.ascontiguousarray(reference, dtype=np.float64)
+    k = check_int(k, "k", 1)
+    tree = cKDTree(reference) if tree is None else tree
     # numba's threads: a batch worker's share
-    fit = local_scatter(reference, points, k, tree, workers=get_num_threads())
-    centroid, local, vec, normal, radius = fit.centroids, fit.offsets, fit.axes, fit.normals, fit.radius
+    dist, nb = tree.query(points, k=k, workers=get_num_threads())
+    nb, radius = np.ascontiguousarray(nb.reshape(-1, k), dtype=np.int64), dist.reshape(-1, k)[:, -1]
+    # Accumulated in kernels, without gathering the (n, k, 3) neighbourhoods.
+    centroid, _, axes = neighbourhood_axes(reference, nb, k)  # descending: axes[:, :, 2] is the normal
+    normal = np.ascontiguousarray(axes[:, :, 2])
     if not residuals:
         return centroid, normal, None, radius
-    height = np.einsum("nki,ni->nk", local, normal)
-    params = 3
-    if quadric and k >= QUADRIC_POINTS:
-        # Heights over the tangent plane less a least-squares quadric: the surface's curvature is not noise.
-        scale = np.maximum(radius, 1e-300)[:, None]  # the fit in units of the neighbourhood's radius
-        u = np.einsum("nki,ni->nk", local, vec[:, :, 2]) / scale
-        v = np.einsum("nki,ni->nk", local, vec[:, :, 1]) / scale
-        A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=-1)
-        AtA = np.einsum("nki,nkj->nij", A, A) + 1e-9 * np.eye(6)
-        coef = np.linalg.solve(AtA, np.einsum("nki,nk->ni", A, height / scale)[..., None])[..., 0]
-        height = height - scale * np.einsum("nki,ni->nk", A, coef)
-        params = 6
-    sd = 1.4826 * np.median(np.abs(height), axis=1) * np.sqrt(k / max(k - params, 1))
+    sd = neighbourhood_noise(reference, nb, k, centroid, axes, radius, bool(quadric and k >= QUADRIC_POINTS))
     return centroid, normal, sd, radius
 
 

@@ -13,6 +13,8 @@ from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
     KDTree,
     kdtree_build,
+    neighbourhood_axes,
+    neighbourhood_noise,
     neighbourhood_normals,
     plane_icp,
     plane_icp_many,
@@ -156,6 +158,41 @@ def test_neighbourhood_normals_are_the_local_planes(seed, m, flat):
     np.testing.assert_allclose((var ** 2).sum(axis=1), values[:, 0], rtol=1e-8, atol=1e-12 * values[:, 2].max())
     clear = values[:, 1] > 1.01 * values[:, 0] + 1e-12 * values[:, 2]
     np.testing.assert_allclose(np.abs((got * want).sum(axis=1))[clear], 1.0, atol=1e-6)
+
+
+def _noise_reference(pts, neighbours, radius, quadric):
+    """numpy reference of :func:`neighbourhood_noise`: the residuals about each neighbourhood's plane, or
+    about the least-squares quadric over its tangent plane, in ``eigh``'s axes (as ``scan_noise`` fitted)."""
+    m = neighbours.shape[1]
+    local = pts[neighbours] - pts[neighbours].mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
+    height = np.einsum("nki,ni->nk", local, vec[:, :, 0])
+    if quadric:
+        scale = np.maximum(radius, 1e-300)[:, None]
+        u = np.einsum("nki,ni->nk", local, vec[:, :, 2]) / scale
+        v = np.einsum("nki,ni->nk", local, vec[:, :, 1]) / scale
+        A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=-1)
+        AtA = np.einsum("nki,nkj->nij", A, A) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(AtA, np.einsum("nki,nk->ni", A, height / scale)[..., None])[..., 0]
+        height = height - scale * np.einsum("nki,ni->nk", A, coef)
+    params = 6 if quadric else 3
+    return 1.4826 * np.median(np.abs(height), axis=1) * np.sqrt(m / max(m - params, 1))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(8, 64), noise=st.floats(1e-4, 0.1), quadric=st.booleans())
+def test_neighbourhood_noise_is_the_residuals_about_the_local_fit(seed, m, noise, quadric):
+    rng = np.random.default_rng(seed)
+    pts, _ = _surface(rng, 800, noise)
+    queries = pts[rng.choice(800, 100, replace=False)]
+    radius, neighbours = cKDTree(pts).query(queries, k=m)
+    radius = radius[:, -1]
+    centroids, values, axes = neighbourhood_axes(pts, neighbours, m)
+    np.testing.assert_allclose(centroids, pts[neighbours].mean(axis=1), rtol=0, atol=1e-14)
+    assert np.all(np.diff(values, axis=1) <= 0.0)  # descending
+    got = neighbourhood_noise(pts, neighbours, m, centroids, axes, radius, quadric)
+    want = _noise_reference(pts, neighbours, radius, quadric)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12)
 
 
 @settings(max_examples=20, deadline=None)

@@ -177,6 +177,40 @@ def test_stick_kernel_matches_reference(seed, n, sigma):
     np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * max(1.0, np.abs(ref).max()))
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=seeds, n=st.integers(20, 1500), spread=st.floats(0.05, 0.5))
+def test_a_dense_cluster_votes_in_private_chunks_as_in_race_free_ones(seed, n, spread):
+    """A cluster within a few voting radii (a judge's): its ball pass runs in chunks with accumulators of
+    their own, in parallel; the votes, the recorded neighbour lists and the surfaces extracted are those of
+    the race-free chunks up to rounding, and the same bit for bit on one thread or two."""
+    from numba import get_num_threads, set_num_threads
+
+    from gatv.voting import api
+
+    rng = np.random.default_rng(seed)
+    p = np.vstack([rng.normal(0.0, spread, (n, 3)), rng.normal(0.0, spread, (n // 3, 2)) @ [[1, 0, 0], [0, 1, 0]]])
+    sigma = 0.5
+    grid = api.Engine(p, sigma)
+    assert grid.cb_private is not None  # the case this test is about
+    private = extract_surfaces(p, sigma)
+    threads = get_num_threads()
+    set_num_threads(1)
+    try:
+        alone = extract_surfaces(p, sigma)
+    finally:
+        set_num_threads(threads)
+    np.testing.assert_array_equal(alone.ball.tensors, private.ball.tensors)
+    np.testing.assert_array_equal(alone.indices, private.indices)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(api, "_private", lambda *a: False)
+        assert api.Engine(p, sigma).cb_private is None
+        phased = extract_surfaces(p, sigma)
+    scale = np.abs(phased.ball.tensors).max()
+    np.testing.assert_allclose(private.ball.tensors, phased.ball.tensors, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(private.ball.n_votes, phased.ball.n_votes)
+    np.testing.assert_allclose(private.ball.tensors, _reference.ball_pass(p, sigma), rtol=0, atol=1e-10 * scale)
+
+
 def test_hashed_grid_for_huge_box_matches_reference():
     # two tight clusters 1e9 apart with σ = 1e-3: a dense grid would need ~1e36
     # cells; the hashed layout keeps O(N) memory and gives the same votes.
@@ -411,8 +445,10 @@ _CACHE_SCRIPT = textwrap.dedent(
     pts = np.random.default_rng(0).uniform(size=(10000, 3))
     b = vote(pts)
     vote(pts, b.sigma, b.normals, saliency=b.surfaceness)
+    vote(pts[:500] * 0.01, 1.0)  # a cluster within one voting radius: the private accumulators' pass
     stats = {}
-    for name, f in [("ball_pass", _passes.ball_pass), ("stick_pass", _passes.stick_pass),
+    for name, f in [("ball_pass", _passes.ball_pass), ("ball_pass_private", _passes.ball_pass_private),
+                    ("stick_pass", _passes.stick_pass),
                     ("bin", _grid._bin), ("sort", _grid._counting_sort)]:
         stats[name] = [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
     print(json.dumps(stats))

@@ -480,17 +480,24 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch, simd):
     """
     c0 = 0 if ch == 1 else ch
     c1 = min(ch + 2, nch)
-    if c0 < c1 and simd:
-        eig_rows_simd(acc, vals, e1, cb[c0], cb[c1])
-    elif c0 < c1:
-        for i in range(cb[c0], cb[c1]):
-            l1, l2, l3, ex, ey, ez = eig3_top(acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5])
-            vals[i, 0] = l1
-            vals[i, 1] = l2
-            vals[i, 2] = l3
-            e1[i, 0] = ex
-            e1[i, 1] = ey
-            e1[i, 2] = ez
+    if c0 < c1:
+        _eig_rows(acc, vals, e1, cb[c0], cb[c1], simd)
+
+
+@njit(cache=True, error_model="numpy", boundscheck=False)
+def _eig_rows(acc, vals, e1, i0, i1, simd):
+    """Eigen-analysis (:func:`eig3_top`) of the tokens ``i0 .. i1 - 1``; ``simd``: :func:`eig_rows_simd`."""
+    if simd:
+        eig_rows_simd(acc, vals, e1, i0, i1)
+        return
+    for i in range(i0, i1):
+        l1, l2, l3, ex, ey, ez = eig3_top(acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5])
+        vals[i, 0] = l1
+        vals[i, 1] = l2
+        vals[i, 2] = l3
+        e1[i, 0] = ex
+        e1[i, 1] = ey
+        e1[i, 2] = ez
 
 
 @njit(cache=True, error_model="numpy", boundscheck=False)
@@ -574,6 +581,40 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
                 _ball_task(2 * c + phase, phase, nch, record, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz,
                            hashed, mask, m, lo, h, r2, tab, tscale, cb, cap, simd, acc, vals, e1, counts, nbr,
                            rb, nstart, nup)
+
+
+@njit(cache=True, parallel=True, error_model="numpy", boundscheck=False)
+def ball_pass_private(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h, r2,
+                      tab, tscale, cb, nth, cap, simd, acc, vals, e1, counts, nbr, rb, nstart, nup):
+    """:func:`ball_pass` for a few tokens packed within a few voting radii (a judge's dense cluster): the
+    race-free chunks of cell layers would be one or two, and one thread would vote them all.
+
+    ``cb``: token bounds of chunks of any extent (a fixed count of them, whatever the threads ``nth``),
+    each voting into an accumulator of its own, in parallel; the accumulators are then added in chunk order,
+    so the result does not depend on the number of threads either.  Arguments and outputs otherwise as
+    :func:`ball_pass` (its ``rb``: the recording's slices of these chunks).
+    """
+    n = xs.shape[0]
+    nch = cb.shape[0] - 1
+    record = nstart.shape[0] == n
+    part_acc = np.zeros((nch, n, 6))
+    part_counts = np.zeros((nch, n), np.int64)
+    ctr = np.zeros(1, np.int64)  # the next chunk (dynamic scheduling: early tokens have more upper neighbours)
+    for _t in prange(nth):
+        while True:
+            ch = _fetch_add(ctr, 0, 1)
+            if ch >= nch:
+                break
+            _ball_task(ch, 0, nch, record, xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo, h,
+                       r2, tab, tscale, cb, cap, simd, part_acc[ch], vals, e1, part_counts[ch], nbr, rb, nstart,
+                       nup)
+    for ch in prange(nch):
+        for i in range(cb[ch], cb[ch + 1]):
+            for c in range(nch):
+                for a in range(6):
+                    acc[i, a] += part_acc[c, i, a]
+                counts[i] += part_counts[c, i]
+        _eig_rows(acc, vals, e1, cb[ch], cb[ch + 1], simd)
 
 
 @njit(cache=True, parallel=True, boundscheck=False)

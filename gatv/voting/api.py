@@ -85,6 +85,16 @@ GRID_SUBDIV = 1
 VOTING_BYTES_PER_TOKEN = 512
 #: Bytes per entry of the neighbour lists shared by a ball and a stick pass (int32).
 NL_BYTES_PER_PAIR = 4
+#: Tokens that make fewer race-free chunks than this (a cluster within a few voting radii: a phase of the
+#: ball pass would run one chunk, on one thread) are voted in :data:`PRIVATE_CHUNKS` chunks instead, each
+#: into an accumulator of its own (:func:`gatv.voting._passes.ball_pass_private`).
+PRIVATE_BELOW = 4
+#: A fixed count, so that the sums' order does not depend on the threads.
+PRIVATE_CHUNKS = 16
+#: Most tokens of such a pass (its accumulators: 29 MB at most).
+PRIVATE_MAX_TOKENS = 32768
+#: Bytes a token takes in each private accumulator (a tensor and a count).
+PRIVATE_BYTES_PER_TOKEN = 8 * (6 + 1)
 #: Bytes per entry of a thread's scratch buffers, sized by
 #: :func:`gatv.voting._passes.half_shell_capacity`: an int64 index, 7 stick
 #: inputs (4 offsets in the ball pass) and 6 outputs (float64).
@@ -216,13 +226,22 @@ def _chunks(grid: Grid) -> np.ndarray:
     """
     if grid.hashed:
         return np.array([0, grid.n], np.int64)
-    nx, ny, nz = grid.dims
-    m = grid.subdiv
-    # farthest key offset of an upper neighbour (no offset along a 1-cell axis)
-    reach = max(1, min(m, nz - 1) * nx * ny + min(m, ny - 1) * nx + min(m, nx - 1))
-    ncells = nx * ny * nz
-    keys = np.append(np.arange(0, ncells, reach), ncells)
+    keys = np.append(np.arange(0, int(np.prod(grid.dims)), _reach(grid.dims, grid.subdiv)), int(np.prod(grid.dims)))
     return np.ascontiguousarray(grid.start[keys])
+
+
+def _reach(dims, m: int) -> int:
+    """The farthest key offset of an upper neighbour (no offset along a 1-cell axis): a chunk's cell keys."""
+    nx, ny, nz = dims
+    return max(1, min(m, nz - 1) * nx * ny + min(m, ny - 1) * nx + min(m, nx - 1))
+
+
+def _private(n: int, dims, hashed: bool, m: int) -> bool:
+    """Whether the ball pass over ``n`` tokens on a grid of ``dims`` (in the kernels' axis order) votes into
+    private accumulators (:data:`PRIVATE_CHUNKS`): fewer race-free chunks (:func:`_chunks`) than
+    :data:`PRIVATE_BELOW`, and few enough tokens."""
+    n_chunks = 1 if hashed else -(-int(np.prod(dims)) // _reach(dims, m))
+    return n_chunks < PRIVATE_BELOW and n <= PRIVATE_MAX_TOKENS
 
 
 class Engine:
@@ -260,6 +279,10 @@ class Engine:
             self._inv = inv
         self.cb = _chunks(self.grid)
         g = self.grid
+        # A few race-free chunks (tokens packed within a few voting radii, a judge's dense cluster): the ball
+        # pass votes PRIVATE_CHUNKS chunks of tokens into accumulators of their own, in parallel.
+        few = _private(g.n, g.dims, g.hashed, g.subdiv)
+        self.cb_private = np.linspace(0, g.n, PRIVATE_CHUNKS + 1).round().astype(np.int64) if few else None
         self.cap = int(K.half_shell_capacity(g.start, g.dims[0], g.dims[1], g.dims[2], g.hashed, g.subdiv))
         # the kernels' per-thread buffers (indices, stick inputs and outputs:
         # SCRATCH_BYTES per entry) come out of the neighbour lists' share
@@ -303,9 +326,10 @@ class Engine:
             nstart, nup = np.empty(n, np.int64), np.empty(n, np.int64)
         else:
             nbr, nstart, nup = np.empty(0, np.int32), np.empty(0, np.int64), np.empty(0, np.int64)
-        self._K.ball_pass(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, self.cb, get_num_threads(), self.cap,
-                          self.simd, acc, vals, e1,
-                          cnt, nbr, self.cb * row, nstart, nup)
+        run = self._K.ball_pass if self.cb_private is None else self._K.ball_pass_private
+        cb = self.cb if self.cb_private is None else self.cb_private
+        run(g.xs, g.ys, g.zs, *self._cells(), tab, tscale, cb, get_num_threads(), self.cap, self.simd, acc, vals, e1,
+            cnt, nbr, cb * row, nstart, nup)
         self.lists = (nbr, nstart, nup) if row > 0 else None
         return self._back(acc, vals, e1, cnt)
 
@@ -352,6 +376,9 @@ def check_budget(points: np.ndarray, sigma: float, memory_budget) -> int:
     radius = voting_radius(sigma)
     _, _, dims, hashed, nkeys = grid_layout(points, radius, GRID_SUBDIV)
     nbytes = n * VOTING_BYTES_PER_TOKEN + 8 * (nkeys + 1)
+    big = int(np.argmax(dims))  # the kernels' axis order (Engine): the axis with the most cells last
+    if _private(n, tuple(dims[a] for a in range(3) if a != big) + (dims[big],), hashed, GRID_SUBDIV):
+        nbytes += n * PRIVATE_CHUNKS * PRIVATE_BYTES_PER_TOKEN
     check_memory(nbytes, f"Voting on {n} tokens", memory_budget)
     spare = memory_budget_limit(memory_budget) - nbytes
     return max(0, int(spare // NL_BYTES_PER_PAIR))

@@ -480,7 +480,8 @@ def register(
         return stages.failure(P.model, stages.search_failure(tried, time_limit), info)
     fit, tolerance = found.fit, found.tolerance
     if settle:
-        fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0])
+        fit, tolerance = stages.settle_noise(P, fit, levels, levels.index(tolerance), floor=levels[0],
+                                             remeasure=True)
     verdict = stages.found_verdict(found, fit.support)
     info["verdict"] = verdict.to_dict()
     info.update(tolerance=tolerance, noise=tolerance, sigma=found.judged.sigma,

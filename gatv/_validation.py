@@ -213,6 +213,15 @@ def check_positive(value, name: str, *, allow_none: bool = False) -> float | Non
     return value
 
 
+def check_nonnegative(value, name: str, *, hint: str = "") -> float:
+    """Return ``value`` as a finite float ``>= 0``, or raise naming ``name`` (``hint``: what it is)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and np.isfinite(float(value))
+    if not ok or float(value) < 0:
+        msg = f"Expected `{name}` to be a finite number >= 0{f' ({hint})' if hint else ''}, got {value!r}."
+        raise InputError(msg)
+    return float(value)
+
+
 def check_int(value, name: str, minimum: int, *, allow_none: bool = False) -> int | None:
     """Return ``value`` as an ``int >= minimum`` (or ``None`` when allowed), else raise."""
     if value is None and allow_none:

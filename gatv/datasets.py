@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._validation import check_nonnegative
 from ._validation import frozen_array as _frozen
 from .errors import InputError
 from .motion import rotation_angle_deg
@@ -201,9 +202,7 @@ def synthetic_trial(
         given = as_points(inliers, "inliers", min_points=3)
         n_inliers = given.shape[0]
     n = _check_count(n_inliers, "n_inliers", 3)
-    noise = float(noise)
-    if not np.isfinite(noise) or noise < 0:
-        raise InputError(f"Expected `noise` >= 0 (a share of the inlier RMS radius), got {noise!r}.")
+    noise = check_nonnegative(noise, "noise", hint="a share of the inlier RMS radius")
     if seed is None:
         msg = "Pass `seed` (an int or a numpy Generator) so that the trial is reproducible."
         raise InputError(msg)

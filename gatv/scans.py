@@ -61,6 +61,7 @@ from ._validation import (
     as_vectors,
     check_fraction,
     check_int,
+    check_nonnegative,
     check_positive,
     check_progress,
     seed_int,
@@ -602,8 +603,7 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
         raise InputError(f"Expected `translation` a finite 3-vector, got shape {t.shape}.")
     gate = check_positive(gate, "gate")
     iterations = check_int(iterations, "iterations", 0)
-    if not np.isfinite(tol) or tol < 0:
-        raise InputError(f"Expected `tol` a finite number >= 0, got {tol!r}.")
+    tol = check_nonnegative(tol, "tol")
     if not isinstance(tree, KDTree) or tree.points.shape != Y.shape:
         tree = KDTree(Y)
     return plane_icp_parallel(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol))

@@ -94,6 +94,12 @@ def test_bad_fraction(bad):
         table2_trial(bad, seed=0)
 
 
+@pytest.mark.parametrize("bad", [-0.01, np.nan, np.inf, "0.01", True, None])
+def test_bad_noise_is_named(bad):
+    with pytest.raises(ValueError, match="`noise` to be a finite number >= 0 .a share of the inlier RMS radius"):
+        table2_trial(0.5, noise=bad, seed=0)
+
+
 def test_seed_required_and_bad_inliers():
     with pytest.raises(ValueError, match="seed"):
         table2_trial(0.5)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validation import as_points, check_positive
+from .._validation import as_points, check_nonnegative, check_positive
 from .._validation import frozen_array as _frozen
 from ..datasets import outlier_count
 from ..errors import InputError
@@ -237,10 +237,7 @@ def elastic(points, amplitude: float, *, n_bumps: int = 6, width=None, seed=0) -
     (N, 3) ndarray of float
     """
     p = as_points(points, "points")
-    if isinstance(amplitude, bool) or not isinstance(amplitude, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(amplitude) or amplitude < 0:
-        msg = f"Expected `amplitude` to be a finite number >= 0, got {amplitude!r}."
-        raise InputError(msg)
+    amplitude = check_nonnegative(amplitude, "amplitude")
     if isinstance(n_bumps, bool) or not isinstance(n_bumps, (int, np.integer)) or n_bumps < 1:
         msg = f"Expected `n_bumps` to be an integer >= 1, got {n_bumps!r}."
         raise InputError(msg)
@@ -376,10 +373,7 @@ def nonrigid_trial(points, moved, outlier_fraction: float = 0.0, *, noise: float
     if x.shape != y.shape:
         msg = f"Expected `points` and `moved` to have the same shape, got {x.shape} and {y.shape}."
         raise InputError(msg)
-    if isinstance(noise, bool) or not isinstance(noise, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(noise) or noise < 0:
-        msg = f"Expected `noise` to be a finite number >= 0, got {noise!r}."
-        raise InputError(msg)
+    noise = check_nonnegative(noise, "noise")
     rng = np.random.default_rng(seed)
     n = x.shape[0]
     n_out = outlier_count(outlier_fraction, n)

@@ -20,7 +20,7 @@ from numba.extending import intrinsic
 from gatv.voting._simd import LANES, Ops
 from gatv.voting._simd import splat as splat_ir
 
-__all__ = ["eig3_top", "eig3_batch", "eig3_top_batch", "eig_rows_simd"]
+__all__ = ["eig3_top", "eig3_batch", "eig3_top_batch", "eig_rows", "eig_rows_simd"]
 
 _TWO_PI_3 = 2.0 * math.pi / 3.0
 
@@ -256,12 +256,19 @@ def eig3_top_batch(t6, vals, e1, simd=False):
     ``simd``: blocks of 256 tokens through :func:`eig_rows_simd`, as the
     fused passes do when :data:`gatv.voting._simd.SIMD` is on.
     """
-    if simd:
-        nb = (t6.shape[0] + 255) // 256
-        for b in prange(nb):
+    nb = (t6.shape[0] + 255) // 256
+    for b in prange(nb):
+        if simd:
             eig_rows_simd(t6, vals, e1, 256 * b, min(256 * (b + 1), t6.shape[0]))
-        return
-    for i in prange(t6.shape[0]):
+        else:
+            eig_rows(t6, vals, e1, 256 * b, min(256 * (b + 1), t6.shape[0]))
+
+
+@njit(cache=True)
+def eig_rows(t6, vals, e1, i0, i1):
+    """:func:`eig3_top` of the rows ``i0 .. i1 - 1`` of ``(N, 6)`` tensors into ``vals``, ``e1`` (the scalar
+    twin of :func:`eig_rows_simd`)."""
+    for i in range(i0, i1):
         l1, l2, l3, ex, ey, ez = eig3_top(t6[i, 0], t6[i, 1], t6[i, 2], t6[i, 3], t6[i, 4], t6[i, 5])
         vals[i, 0] = l1
         vals[i, 1] = l2

@@ -22,7 +22,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from gatv.voting._eigen import eig3_top, eig_rows_simd
+from gatv.voting._eigen import eig_rows, eig_rows_simd
 from gatv.voting._simd import LANES, Ops, lane_sums, row_vector_ptr
 from gatv.voting._simd import splat as splat_ir
 
@@ -486,18 +486,12 @@ def _eig_chunks(acc, vals, e1, cb, ch, nch, simd):
 
 @njit(cache=True, error_model="numpy", boundscheck=False)
 def _eig_rows(acc, vals, e1, i0, i1, simd):
-    """Eigen-analysis (:func:`eig3_top`) of the tokens ``i0 .. i1 - 1``; ``simd``: :func:`eig_rows_simd`."""
+    """Eigen-analysis (:func:`gatv.voting._eigen.eig_rows`) of the tokens ``i0 .. i1 - 1``; ``simd``:
+    :func:`eig_rows_simd`."""
     if simd:
         eig_rows_simd(acc, vals, e1, i0, i1)
-        return
-    for i in range(i0, i1):
-        l1, l2, l3, ex, ey, ez = eig3_top(acc[i, 0], acc[i, 1], acc[i, 2], acc[i, 3], acc[i, 4], acc[i, 5])
-        vals[i, 0] = l1
-        vals[i, 1] = l2
-        vals[i, 2] = l3
-        e1[i, 0] = ex
-        e1[i, 1] = ey
-        e1[i, 2] = ez
+    else:
+        eig_rows(acc, vals, e1, i0, i1)
 
 
 @njit(cache=True, error_model="numpy", boundscheck=False)
@@ -557,8 +551,8 @@ def ball_pass(xs, ys, zs, cix, ciy, ciz, start, nx, ny, nz, hashed, mask, m, lo,
     is included, so a lone token ends with the identity.  ``acc (N, 6)`` and
     ``counts (N,)`` must be zero on entry; they receive the tensors and the
     number of voters (self included); ``vals (N, 3)``, ``e1 (N, 3)`` receive
-    the eigen-analysis (:func:`eig3_top`).  ``cb``: token bounds of the chunks;
-    ``nth``: number of numba threads (passed in: calling
+    the eigen-analysis (:func:`gatv.voting._eigen.eig3_top`).  ``cb``: token
+    bounds of the chunks; ``nth``: number of numba threads (passed in: calling
     ``numba.get_num_threads`` here would make the function uncachable);
     ``cap``: :func:`half_shell_capacity`; ``simd``: the 8-lane scan, votes
     and eigen-analysis (pass :data:`gatv.voting._simd.SIMD`).

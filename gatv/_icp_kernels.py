@@ -7,6 +7,7 @@
   (:class:`gatv.models.rigid.congruent.TargetGrid`).
 * :class:`KDTree`: nearest and k-nearest points within a bound, as
   ``cKDTree.query`` answers, in parallel kernels.
+* :func:`occupied_cells`: the cells of a voxel grid that hold a point.
 * :func:`plane_icp`, :func:`plane_icp_parallel`, :func:`plane_icp_many`:
   the point-to-plane polish (:func:`gatv.scans.refine_point_to_plane`) of
   one motion, its queries in parallel, or of several motions in parallel.
@@ -84,6 +85,36 @@ def screen_icp(X, Y, start, order, origin, cell, dims, rotations, translations, 
         out_t[k] = t
         support[k] = c
     return out_R, out_t, support
+
+
+# ------------------------------------------------------------------ voxels
+@njit(cache=True)
+def occupied_cells(points, cell):
+    """The number of cubes ``floor(points / cell)`` that hold a point: ``len(np.unique(np.floor(points /
+    cell).astype(np.int64), axis=0))`` without the sort (an open-addressing table of the cells' integer
+    coordinates; collisions compare the whole coordinates, so the count is exact)."""
+    n = points.shape[0]
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    used = np.zeros(size, np.bool_)
+    keys = np.empty((size, 3), np.int64)
+    count = 0
+    for p in range(n):
+        i = np.int64(np.floor(points[p, 0] / cell))
+        j = np.int64(np.floor(points[p, 1] / cell))
+        k = np.int64(np.floor(points[p, 2] / cell))
+        h = ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
+        while used[h]:
+            if keys[h, 0] == i and keys[h, 1] == j and keys[h, 2] == k:
+                break
+            h = (h + 1) & mask
+        else:
+            used[h] = True
+            keys[h, 0], keys[h, 1], keys[h, 2] = i, j, k
+            count += 1
+    return count
 
 
 # ------------------------------------------------------------------ k-d tree

@@ -52,6 +52,7 @@ from ._icp_kernels import (
     neighbourhood_axes,
     neighbourhood_noise,
     neighbourhood_normals,
+    occupied_cells,
     plane_icp_many,
     plane_icp_parallel,
     screen_icp,
@@ -138,11 +139,12 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def _voxel_for(points: np.ndarray, n_points: int) -> float:
     """Voxel size leaving about ``n_points`` occupied cells (bisection in log scale)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
     ext = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     lo, hi = ext / 2000.0, ext / 2.0
     for _ in range(24):
         mid = np.sqrt(lo * hi)
-        n = len(_unique_cells(np.floor(points / mid).astype(np.int64)))
+        n = occupied_cells(points, mid)
         if n > n_points:
             lo = mid
         else:

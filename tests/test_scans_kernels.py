@@ -16,6 +16,7 @@ from gatv._icp_kernels import (
     neighbourhood_axes,
     neighbourhood_noise,
     neighbourhood_normals,
+    occupied_cells,
     plane_icp,
     plane_icp_many,
     plane_icp_parallel,
@@ -193,6 +194,17 @@ def test_neighbourhood_noise_is_the_residuals_about_the_local_fit(seed, m, noise
     got = neighbourhood_noise(pts, neighbours, m, centroids, axes, radius, quadric)
     want = _noise_reference(pts, neighbours, radius, quadric)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 3000), cell=st.floats(1e-3, 50.0),
+       spread=st.floats(1e-2, 1e6))
+def test_occupied_cells_counts_np_uniques_cells(seed, n, cell, spread):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0.0, spread, (n, 3))
+    pts[n // 2:] = pts[: n - n // 2]  # repeated points share their cell
+    want = len(np.unique(np.floor(pts / cell).astype(np.int64), axis=0))
+    assert occupied_cells(np.ascontiguousarray(pts), cell) == want
 
 
 @settings(max_examples=20, deadline=None)

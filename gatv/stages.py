@@ -633,12 +633,12 @@ def likelihood_pose(problem: Problem, fit: Fit, sigma: float, rounds: int = 8) -
     """:func:`weighted_pose` at the noise measured on its own pose: ``(fit, σ)``.
 
     The estimate ``sigma`` was measured on a pose refitted to the pairs of
-    a narrower gate, whose residuals that fit shrinks (Table 2 at 4%: 0.89
-    of the truth); the likelihood's pose at too small a noise weighs the
-    nearest targets too much.  Here the noise is measured again
-    (:func:`noise_from_residuals`, with the chance pairs) on the pairs of
-    the weighted pose within the final gate (:data:`FINAL_GATE` σ), which
-    that pose was not fitted to by hand; while that estimate is more than 5%
+    a narrower gate, whose residuals that refit shrinks, so it is low where
+    the noise is large against the spacing; the likelihood's pose at too
+    small a noise weighs the nearest targets too much.  Here the noise is
+    measured again (:func:`noise_from_residuals`, with the chance pairs) on
+    the weighted pose's pairs within the final gate (:data:`FINAL_GATE` σ),
+    to which that pose was not refitted; while that estimate is more than 5%
     larger, the weighted pose is taken again from ``fit`` at it.  A smaller
     estimate leaves ``sigma`` (a narrower gate's pairs would fit their own
     noise, as in :func:`settle_noise`).  The correspondences stay ``fit``'s.

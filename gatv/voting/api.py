@@ -226,7 +226,9 @@ def _chunks(grid: Grid) -> np.ndarray:
     """
     if grid.hashed:
         return np.array([0, grid.n], np.int64)
-    keys = np.append(np.arange(0, int(np.prod(grid.dims)), _reach(grid.dims, grid.subdiv)), int(np.prod(grid.dims)))
+    nx, ny, nz = grid.dims
+    ncells = nx * ny * nz
+    keys = np.append(np.arange(0, ncells, _reach(grid.dims, grid.subdiv)), ncells)
     return np.ascontiguousarray(grid.start[keys])
 
 
@@ -240,7 +242,8 @@ def _private(n: int, dims, hashed: bool, m: int) -> bool:
     """Whether the ball pass over ``n`` tokens on a grid of ``dims`` (in the kernels' axis order) votes into
     private accumulators (:data:`PRIVATE_CHUNKS`): fewer race-free chunks (:func:`_chunks`) than
     :data:`PRIVATE_BELOW`, and few enough tokens."""
-    n_chunks = 1 if hashed else -(-int(np.prod(dims)) // _reach(dims, m))
+    nx, ny, nz = dims
+    n_chunks = 1 if hashed else -(-(nx * ny * nz) // _reach(dims, m))
     return n_chunks < PRIVATE_BELOW and n <= PRIVATE_MAX_TOKENS
 
 

@@ -4,7 +4,8 @@
   verdict's wrong draws (:class:`gatv.scans.WrongDraws`) and of
   :func:`gatv.motions.scans.chance_support`, every draw's whole ICP in one
   kernel, draws in parallel, nearest targets looked up in a dense grid
-  (:class:`gatv.models.rigid.congruent.TargetGrid`).
+  (:class:`gatv.models.rigid.congruent.TargetGrid`); :func:`screened_supports`
+  their supports for a list of motions.
 * :class:`KDTree`: nearest and k-nearest points within a bound, as
   ``cKDTree.query`` answers, in parallel kernels.
 * :func:`occupied_cells`: the cells of a voxel grid that hold a point.
@@ -85,6 +86,14 @@ def screen_icp(X, Y, start, order, origin, cell, dims, rotations, translations, 
         out_t[k] = t
         support[k] = c
     return out_R, out_t, support
+
+
+def screened_supports(points: np.ndarray, grid, motions, gate: float, iterations: int) -> np.ndarray:
+    """:func:`screen_icp`'s supports for each ``(R, t)`` of ``motions`` from ``points``, against ``grid``
+    (a :class:`gatv.models.rigid.congruent.TargetGrid` of the target): ``(len(motions),)`` int64."""
+    return screen_icp(np.ascontiguousarray(points, dtype=np.float64), grid.target, grid.start, grid.order,
+                      grid.origin, grid.cell, grid.dims, np.array([R for R, _ in motions]).reshape(-1, 3, 3),
+                      np.array([t for _, t in motions]).reshape(-1, 3), float(gate), int(iterations))[2]
 
 
 # ------------------------------------------------------------------ voxels

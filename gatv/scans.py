@@ -55,7 +55,7 @@ from ._icp_kernels import (
     occupied_cells,
     plane_icp_many,
     plane_icp_parallel,
-    screen_icp,
+    screened_supports,
 )
 from ._validation import (
     as_points,
@@ -1021,7 +1021,7 @@ class WrongDraws:
     through ``polish(R, t) -> (R, t, gate, _)`` when first asked for.  ``screen_target``: the target
     points the screen pairs with (by default ``Ys``): :func:`match_surfaces` passes its voxel grid's
     centroids, where the search itself matched (3,318 points against the scan's 40,256 on bun000).
-    Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screen_icp`, equal to
+    Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screened_supports`, equal to
     :func:`point_icp` with ``fit=kabsch3``), draws in parallel.  ``polish_many(motions) -> [(R, t), ...]``:
     ``polish`` of several motions at once (in parallel); draws are then polished as many at a time as numba
     has threads, and :func:`surface_verdict` polishes its motion's start with the first
@@ -1039,9 +1039,7 @@ class WrongDraws:
         Yq = Ys if screen_target is None else screen_target
         # Every draw's point_icp(screen, Yq, ..., voxel, fit=kabsch3) in one kernel (draws in parallel).
         grid = TargetGrid.of(Yq, voxel)
-        ranks = screen_icp(np.ascontiguousarray(screen, dtype=np.float64), grid.target, grid.start, grid.order,
-                           grid.origin, grid.cell, grid.dims, np.array([R for R, _ in starts]).reshape(-1, 3, 3),
-                           np.array([t for _, t in starts]).reshape(-1, 3), float(voxel), 10)[2]
+        ranks = screened_supports(screen, grid, starts, voxel, 10)
         order = np.argsort(ranks, kind="stable")[::-1][:n_polished]
         #: The draws kept for polishing, best screened first, and their ranks (descending).
         self.starts = [starts[k] for k in order]

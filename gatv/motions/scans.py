@@ -60,7 +60,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm, poisson
 
 from .. import stages
-from .._icp_kernels import KDTree, screen_icp
+from .._icp_kernels import KDTree, screened_supports
 from .._validation import (
     check_fraction,
     check_int,
@@ -226,19 +226,13 @@ def chance_support(source: np.ndarray, target: np.ndarray, gate: float, *, n_dra
     # Each draw's point_icp(points, Y, ..., gate, polish) in one kernel, draws in parallel (nearest targets
     # from a grid of Y; the fit is the numba Kabsch, point_icp's to rounding).
     grid = TargetGrid.of(Y, gate)
-
-    def polished_supports(points, motions) -> np.ndarray:
-        return screen_icp(np.ascontiguousarray(points, dtype=np.float64), grid.target, grid.start, grid.order,
-                          grid.origin, grid.cell, grid.dims, np.array([R for R, _ in motions]).reshape(-1, 3, 3),
-                          np.array([t for _, t in motions]).reshape(-1, 3), float(gate), int(polish))[2]
-
     if len(starts) > N_CHANCE_FINAL and sub.shape[0] > CHANCE_SCREEN:
         # Screen every draw on a smaller sample; only the best-ranked few are polished
         # and counted on the whole sample (the maximum is decided among them).
         screen = sub[rng.choice(sub.shape[0], CHANCE_SCREEN, replace=False)]
-        ranks = polished_supports(screen, starts)
+        ranks = screened_supports(screen, grid, starts, gate, polish)
         starts = [starts[k] for k in np.argsort(ranks, kind="stable")[::-1][:N_CHANCE_FINAL]]
-    return int(np.ceil(int(polished_supports(sub, starts).max()) * scale))
+    return int(np.ceil(int(screened_supports(sub, grid, starts, gate, polish).max()) * scale))
 
 
 def _sphere_directions(n: int) -> np.ndarray:

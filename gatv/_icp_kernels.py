@@ -631,23 +631,20 @@ def neighbourhood_noise(points, neighbours, m, centroids, axes, radius, quadric)
     factor = 1.4826 * np.sqrt(m / max(m - params, 1))
     for i in prange(n):
         h = np.empty(m)
-        nx, ny, nz = axes[i, 0, 2], axes[i, 1, 2], axes[i, 2, 2]
+        basis = np.empty((m, 6))  # the quadric's terms in the tangent plane
+        scale = max(radius[i], 1e-300)
         for a in range(m):
             q = neighbours[i, a]
-            h[a] = ((points[q, 0] - centroids[i, 0]) * nx + (points[q, 1] - centroids[i, 1]) * ny
-                    + (points[q, 2] - centroids[i, 2]) * nz)
-        if quadric:
-            scale = max(radius[i], 1e-300)
-            basis = np.empty((m, 6))
-            for a in range(m):
-                q = neighbours[i, a]
-                x = points[q, 0] - centroids[i, 0]
-                y = points[q, 1] - centroids[i, 1]
-                z = points[q, 2] - centroids[i, 2]
+            x = points[q, 0] - centroids[i, 0]
+            y = points[q, 1] - centroids[i, 1]
+            z = points[q, 2] - centroids[i, 2]
+            h[a] = x * axes[i, 0, 2] + y * axes[i, 1, 2] + z * axes[i, 2, 2]
+            if quadric:
                 u = (x * axes[i, 0, 0] + y * axes[i, 1, 0] + z * axes[i, 2, 0]) / scale
                 v = (x * axes[i, 0, 1] + y * axes[i, 1, 1] + z * axes[i, 2, 1]) / scale
                 basis[a, 0], basis[a, 1], basis[a, 2] = u * u, u * v, v * v
                 basis[a, 3], basis[a, 4], basis[a, 5] = u, v, 1.0
+        if quadric:
             normal = basis.T @ basis + 1e-9 * np.eye(6)
             rhs = basis.T @ (h / scale)
             coef = np.linalg.solve(normal, rhs)

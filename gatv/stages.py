@@ -422,7 +422,7 @@ def refine(problem: Problem, fit: Fit, gate: float, iterations: int = 10) -> Fit
 
     Stops when the correspondences repeat or the motion moves by less than
     1e-9 of the point spacing.  Returns ``fit`` unchanged when fewer than
-    ``sample_size`` points have a target within the gate.
+    ``sample_size`` points have a target within the gate, one-to-one.
     """
     model = problem.model
     X, Y = problem.source, problem.target
@@ -435,6 +435,8 @@ def refine(problem: Problem, fit: Fit, gate: float, iterations: int = 10) -> Fit
             break
         pairs = np.stack([ok, j[ok]], axis=1)
         new = pairs[one_to_one(pairs, dist[ok])]
+        if new.shape[0] < model.sample_size:  # points sharing targets: too few pairs to fit
+            break
         T_new = model.fit(X[new[:, 0]], Y[new[:, 1]])
         same = kept is not None and new.shape == kept.shape and np.array_equal(new, kept)
         A_new, t_new = split_matrix(T_new)

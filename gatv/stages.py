@@ -1123,7 +1123,7 @@ def chunk_work(trials, n_source: int, triple_cost: float = 0.0) -> float:
 POLISH_ROUNDS = 10
 
 
-def polish_trials(problem: Problem, trials, gate_radius: float):
+def polish_trials(problem: Problem, trials, gate_radius: float, index=None):
     """``trials`` each polished by ICP within ``gate_radius`` (:func:`refine`), ranked by their polished support.
 
     The local optimisation of LO-RANSAC: under noise the pose of three noisy
@@ -1134,15 +1134,26 @@ def polish_trials(problem: Problem, trials, gate_radius: float):
     them in (a wrong trial's gains little: its pairs are chance pairs,
     which a refit only moves among).  The trials keep the
     model's type; their matrices and support are replaced.
+
+    ``index``: the model's index of ``problem.target`` at ``gate_radius``
+    (the search's); a model with the optional hook ``polish_motions`` then
+    polishes every trial in one call (the rigid model: one numba kernel,
+    trials in parallel, :func:`refine`'s steps).
     """
     if not len(trials):
         return trials
-    fits = [refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), gate_radius, POLISH_ROUNDS)
-            for matrix in trials.matrices]
-    support = np.array([f.support for f in fits], np.int64)
+    fast = getattr(problem.model, "polish_motions", None)
+    if fast is not None and index is not None and float(index.radius) == float(gate_radius):
+        linear, shift, support = fast(problem.source, index, trials.rotations, trials.translations, POLISH_ROUNDS,
+                                      extent=problem.extent, spacing=problem.spacing)
+    else:
+        fits = [refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), gate_radius, POLISH_ROUNDS)
+                for matrix in trials.matrices]
+        support = np.array([f.support for f in fits], np.int64)
+        linear, shift = (np.stack(a) for a in zip(*(split_matrix(f.matrix) for f in fits)))
     order = np.argsort(-support, kind="stable")
-    linear, shift = zip(*(split_matrix(fits[k].matrix) for k in order))
-    return replace(trials, rotations=np.stack(linear), translations=np.stack(shift), support=support[order])
+    return replace(trials, rotations=np.ascontiguousarray(linear[order]),
+                   translations=np.ascontiguousarray(shift[order]), support=support[order])
 
 
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
@@ -1299,7 +1310,7 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 rec["visited"] += visited
                 chunk = chunk_work(trials, n, triple_cost(n2) if triple_cost is not None else 0.0)
                 if polish_trial_motions and len(trials):
-                    trials = polish_trials(problem, trials, g)
+                    trials = polish_trials(problem, trials, g, indexes[level])
                     chunk += len(trials) * POLISH_ROUNDS * (SCORE_COST + VISIT_COST * n)
                 rec["work"] += chunk
                 work += chunk

@@ -594,6 +594,44 @@ def test_polished_trial_motions_bring_in_their_motion_and_wrong_ones_stay_under_
     assert polished.support[1] < P.chance(g, len(wrong))  # every wrong one polished stays under chance
 
 
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), noise=st.floats(0.0, 0.3), tol=st.floats(0.02, 0.4),
+       off=st.floats(0.0, 0.2))
+def test_polish_kernel_is_refine_for_every_trial(seed, noise, tol, off):
+    """The rigid model's polish in one kernel (``polish_trials`` given the search's index) takes
+    :func:`gatv.stages.refine`'s steps: the same supports and ranking, poses equal to rounding, a motion
+    with fewer than three targets in its gate left as it was with support 0."""
+    from gatv.models.rigid.congruent import TrialMotions
+
+    rng = np.random.default_rng(seed)
+    rots = Rotation.random(2, random_state=seed % (2**32)).as_matrix()
+    scene = multi_motion_scene(rots, rng.uniform(-5, 5, (2, 3)), [int(rng.integers(10, 50)), 30],
+                               n_outliers=int(rng.integers(0, 80)), noise=noise, seed=rng)
+    P = stages.prepare(scene.source, scene.target)
+    g = stages.gate(tol)
+    index = P.model.index(P.target, g)
+    mats = []
+    for k in range(2):
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, off, 3)).as_matrix() @ scene.rotations[k]
+        M[:3, 3] = scene.translations[k] + rng.normal(0.0, 5 * off, 3)
+        mats.append(M)
+    far = np.eye(4)
+    far[:3, 3] = 1e3  # no target near: left as it was
+    mats += [far] + [np.eye(4) for _ in range(3)]
+    for M in mats[-3:]:
+        M[:3, :3] = Rotation.random(random_state=int(rng.integers(2**31))).as_matrix()
+        M[:3, 3] = rng.uniform(-5, 5, 3)
+    mats = np.stack(mats)
+    trials = TrialMotions(mats[:, :3, :3], mats[:, :3, 3], np.zeros(len(mats), np.int64), 0, len(mats), len(mats))
+    fast = stages.polish_trials(P, trials, g, index)
+    slow = stages.polish_trials(P, trials, g)
+    np.testing.assert_array_equal(fast.support, slow.support)
+    np.testing.assert_allclose(fast.matrices, slow.matrices, rtol=0, atol=1e-9)
+    left = int(np.flatnonzero(np.all(np.isclose(fast.matrices, far), axis=(1, 2)))[0])
+    assert fast.support[left] == 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [  # both found only one motion before
     pytest.param(3, marks=pytest.mark.xfail(strict=True, reason=(

@@ -27,7 +27,9 @@ samples among ``n`` points); :func:`gatv.motions.peel` reads the last two;
 ``changes_scale`` (true when the motion scales: :func:`gatv.stages.prepare`
 then measures the spacing in the target alone) and ``triple_cost(m)``
 (work units of one trial sample against ``m`` targets, for the round robin
-of :func:`gatv.register`).
+of :func:`gatv.register`); ``polish_motions(source, index, rotations,
+translations, iterations, extent=, spacing=)`` (the ICP polish of many trial
+motions at once on the model's index: :func:`gatv.stages.polish_trials`).
 
 How the pipelines search for a model's motions (tolerance schedule, match
 cap, trial options, noise settling, rival check, which paths apply) is the

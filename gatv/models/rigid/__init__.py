@@ -14,6 +14,7 @@ import numpy as np
 
 from ..._validation import as_points, coordinates, shape_hint
 from .congruent import TargetIndex, trial_motions
+from .congruent_kernels import polish_icp
 from ...errors import InputError
 from ...fitting import kabsch
 from ...ga import eq41_length_residual, eq41_residual
@@ -178,6 +179,23 @@ class Rigid:
     def index(self, target: np.ndarray, radius: float, *, memory_budget=None):
         """The target's pair-length table and scoring grid (:class:`gatv.models.rigid.congruent.TargetIndex`)."""
         return TargetIndex(target, radius, memory_budget=memory_budget)
+
+    def polish_motions(self, source: np.ndarray, index, rotations, translations, iterations: int, *,
+                       extent: float, spacing: float):
+        """Each motion polished by ICP within ``index.radius`` on the index's scoring grid.
+
+        :func:`gatv.stages.refine`'s steps (nearest target, one-to-one cheapest
+        first, Kabsch refit, until the pairs repeat or the motion stops moving)
+        for every motion at once, in parallel (:func:`gatv.models.rigid.congruent_kernels.polish_icp`).
+        Returns ``(rotations, translations, supports)``; a motion that never had
+        ``sample_size`` targets within the gate is returned as it was, support 0.
+        """
+        R0 = np.ascontiguousarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+        t0 = np.ascontiguousarray(translations, dtype=np.float64).reshape(-1, 3)
+        R, t, support = polish_icp(np.ascontiguousarray(source, dtype=np.float64), index.target, index.start,
+                                   index.order, index.origin, float(index.cell), index.dims, R0, t0,
+                                   float(index.radius), int(iterations), float(extent), float(spacing))
+        return R, t, np.maximum(support, 0)
 
     def trial_motions(self, source: np.ndarray, index, **options):
         """Trial motions from congruent triples (:func:`gatv.models.rigid.congruent.trial_motions`)."""

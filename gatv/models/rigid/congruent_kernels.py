@@ -4,7 +4,8 @@ Side lengths of a triangle survive any rigid motion, so three true
 matches ``(a, b, c) <-> (k, l, m)`` are found by looking up target pairs
 of the same length (:func:`triple_hypotheses`); side-length *ratios*
 survive any similarity, so :func:`similar_triple_hypotheses` looks up
-target triangles of the same shape at any scale in a range.  The kernels here are pure: arrays and scalars in,
+target triangles of the same shape at any scale in a range.  :func:`polish_icp`
+polishes trial motions by ICP on the scoring grid (LO-RANSAC's local step).  The kernels here are pure: arrays and scalars in,
 arrays out.  :mod:`gatv.models.rigid.congruent` validates input and drives them.
 """
 
@@ -13,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..._fit_kernels import triangle_pose, umeyama3
+from ..._fit_kernels import kabsch3, triangle_pose, umeyama3
 
 # Defaults of the optional array arguments (no visiting order, no occupancy grid).
 _NO_VISIT = np.zeros(0, np.int64)
@@ -262,6 +263,92 @@ def nearest_in_grid(p, target, start, order, origin, cell, dims, radius):
                         bd = d2
                         best = j
     return best
+
+
+@njit(cache=True)
+def _polish_one(X, Y, start, order, origin, cell, dims, R, t, gate, iterations, extent, spacing):
+    """:func:`gatv.stages.refine` of a rigid motion: nearest target within ``gate`` (the grid
+    ``start, order, origin, cell, dims`` of ``Y``), one-to-one cheapest first, Kabsch refit, until the
+    pairs repeat or the motion moves by less than 1e-9 of ``spacing`` (rotation scaled by ``extent``).
+    Returns ``(R, t, support)``: the pairs of the last refit counted; support -1 when fewer than 3
+    points ever had a target within the gate, one-to-one (the motion is then returned unchanged)."""
+    n = X.shape[0]
+    idx = np.empty(n, np.int64)
+    d2 = np.empty(n)
+    used = np.zeros(Y.shape[0], np.bool_)
+    kept_i = np.empty(0, np.int64)
+    kept_j = np.empty(0, np.int64)
+    have = False
+    p = np.empty(3)
+    for _ in range(iterations):
+        cnt = 0
+        for i in range(n):
+            for a in range(3):
+                p[a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
+            j = nearest_in_grid(p, Y, start, order, origin, cell, dims, gate)
+            idx[i] = j
+            if j >= 0:
+                dx, dy, dz = Y[j, 0] - p[0], Y[j, 1] - p[1], Y[j, 2] - p[2]
+                d2[i] = dx * dx + dy * dy + dz * dz
+                cnt += 1
+        if cnt < 3:
+            break
+        ok = np.empty(cnt, np.int64)
+        keys = np.empty(cnt)
+        k = 0
+        for i in range(n):
+            if idx[i] >= 0:
+                ok[k] = i
+                keys[k] = d2[i]
+                k += 1
+        # One-to-one, cheapest first, ties to the earlier source point (candidates.one_to_one).
+        new_i = np.empty(cnt, np.int64)
+        new_j = np.empty(cnt, np.int64)
+        m = 0
+        for k in np.argsort(keys, kind="mergesort"):
+            j = idx[ok[k]]
+            if used[j]:
+                continue
+            used[j] = True
+            new_i[m] = ok[k]
+            new_j[m] = j
+            m += 1
+        for k in range(m):
+            used[new_j[k]] = False
+        if m < 3:  # points sharing targets: too few pairs to fit
+            break
+        new_i, new_j = new_i[:m], new_j[:m]
+        src = np.empty((m, 3))
+        dst = np.empty((m, 3))
+        for k in range(m):
+            src[k] = X[new_i[k]]
+            dst[k] = Y[new_j[k]]
+        R_new, t_new = kabsch3(src, dst)
+        same = have and m == kept_i.shape[0] and np.all(new_i == kept_i) and np.all(new_j == kept_j)
+        step = np.abs(R_new - R).max() * extent + np.abs(t_new - t).max()
+        R, t = R_new, t_new
+        kept_i, kept_j, have = new_i, new_j, True
+        if same or step < 1e-9 * spacing:
+            break
+    return R, t, (kept_i.shape[0] if have else -1)
+
+
+@njit(cache=True, parallel=_prange_only())
+def polish_icp(X, Y, start, order, origin, cell, dims, rotations, translations, gate, iterations, extent, spacing):
+    """:func:`_polish_one` from each of ``rotations``, ``translations`` (motions in parallel): the
+    peel's polish of its trial motions (:func:`gatv.stages.polish_trials`).  Returns ``(rotations,
+    translations, supports)``; a support of -1 marks a motion left as it was (no refit)."""
+    m = rotations.shape[0]
+    out_R = np.empty_like(rotations)
+    out_t = np.empty_like(translations)
+    support = np.empty(m, np.int64)
+    for k in prange(m):
+        R, t, c = _polish_one(X, Y, start, order, origin, cell, dims, rotations[k].copy(), translations[k].copy(),
+                              gate, iterations, extent, spacing)
+        out_R[k] = R
+        out_t[k] = t
+        support[k] = c
+    return out_R, out_t, support
 
 
 @njit(cache=True)

@@ -90,8 +90,9 @@ N_JUDGED = 4
 MAX_SAMPLES = 200_000
 #: The listing tolerance (:func:`gatv.stages.search`'s ``listing``: standard
 #: deviations of a side's length error, ``eps = 2 listing τ``) of a noisy
-#: peel's rounds once the noise is measured (see :func:`listed_share`); the
-#: first round lists at the search's default, :data:`gatv.stages.LISTING`.
+#: peel's rounds (see :func:`listed_share`): once the noise is measured, of
+#: the points' noise; in the first round, of each level's tolerance (not the
+#: search's default :data:`gatv.stages.LISTING`).
 LISTING = 1.0
 #: Candidate triples ranked a sample (``trial_motions``' ``wide``) in those
 #: rounds.  They list 7-25 matches a sample (1-2% noise), where ranking
@@ -781,13 +782,15 @@ def _search_round(S: Problem, config: _Rounds, state: _PeelState, rng, record: d
     if config.noisy:
         need_min = max(config.smallest, float(S.chance(stages.gate(min(round_levels)), N_JUDGED)))
     cap = int(min(3 * stages.sample_space(model, n_src), config.max_triples))
-    # Once the noise is measured (one sensor), a round lists congruent
-    # matches at LISTING standard deviations of a side's noise, not the
-    # search's default stages.LISTING: fewer all-inlier samples are listed
-    # (listed_share) and more are drawn, but each lists
-    # (stages.LISTING / LISTING)³ times fewer matches to score.
+    # A noisy peel's rounds list congruent matches at LISTING standard
+    # deviations of a side's noise (of each level's tolerance while the noise
+    # is unknown), not the search's default stages.LISTING: fewer all-inlier
+    # samples are listed (listed_share) and more are drawn, but each lists
+    # (stages.LISTING / LISTING)³ times fewer matches, and a listed true
+    # match ranks among the tightest scored far more often (design notes,
+    # section 7, "The rounds").
     measured = config.noisy and n_found > 0
-    listing = LISTING if measured else stages.LISTING
+    listing = LISTING if config.noisy else stages.LISTING
     # A side's noise is that of the points (measured), which may lie under
     # the round's tolerance (the schedule's first level is its floor): the
     # listing then holds more than LISTING standard deviations of it.

@@ -59,6 +59,7 @@ __all__ = [
     "joint_spaces",
     "judge",
     "judged_alike",
+    "landing_level",
     "level_counts",
     "likelihood_counts",
     "likelihood_passes",
@@ -1156,6 +1157,31 @@ def polish_trials(problem: Problem, trials, gate_radius: float, index=None):
                    translations=np.ascontiguousarray(shift[order]), support=support[order])
 
 
+def landing_level(problem: Problem, matrix: np.ndarray, gate_radius: float, n_tests: float) -> int:
+    """The density test's level at the density of the target's other points where ``matrix`` puts the source.
+
+    The support a motion's moved source points collect by chance (each within
+    ``gate_radius`` of some target point) at the local density of the target
+    points other than those it already lands on (its own partners, which a
+    true motion brings with it): :meth:`Problem.landing_pairs` of their
+    :data:`DENSITY_NEIGHBOURS`-nearest radii, family-wise over ``n_tests``.
+    Where the points are spread evenly through their box it is about the box's
+    level; where the motion lays the source onto a dense part of the target
+    (two Gaussian blobs' cores) it is that part's.
+    """
+    moved = apply_matrix(matrix, problem.source)
+    dist, j = problem.tree.query(moved, k=1, distance_upper_bound=gate_radius)
+    partners = np.unique(j[np.isfinite(dist)])
+    n_others = problem.target.shape[0] - partners.size
+    if n_others < 1:
+        return problem.chance(gate_radius, n_tests)
+    radii = problem.landing_radii(matrix, without=partners)
+    expected = problem.landing_pairs(radii, gate_radius, n_others)
+    n1, n2 = problem.source.shape[0], problem.target.shape[0]
+    measure = n1 * n2 * ball_measure(gate_radius, problem.dim) / max(expected, 1e-300)
+    return problem.model.chance(n1, n2, measure, gate_radius, n_tests)
+
+
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,
            sigma: float | None = None, max_candidates: int = 8, polish: bool = True, grow: bool = True,
            threshold_tests: float = 1.0, min_support: int | None = None, memory_budget=None,
@@ -1177,7 +1203,9 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
     visited), so the same seed gives the same result.  The ``keep`` best
     trials of a chunk that reach the density test's chance level
     (:func:`density_tests` with ``judged_wrong``; ``None``: family-wise
-    over every match) are judged by tensor voting (:func:`judge`), behind
+    over every match, and also at the density of the target's other points
+    where the trial lands, :func:`landing_level`) are judged by tensor
+    voting (:func:`judge`), behind
     the screen only those whose own polish beats the judge's level within
     some gate up to theirs (:func:`beats_chance_at_some_level`); the
     first whose support reaches the chance level of the gate (family-wise
@@ -1332,6 +1360,15 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                 for k, matrix in enumerate(trials.matrices):
                     if trials.support[k] < accept[level]:
                         break
+                    if judged_wrong is None:
+                        # Without a lenient screen the density test is the family-wise one: at the
+                        # density of the other target points where the trial puts the source too (a
+                        # search that maximises support finds the dense parts of points not spread
+                        # evenly through their box, where the box's level is far too low).
+                        local = landing_level(problem, matrix, g, screen_tests)
+                        if trials.support[k] < local:
+                            _refused(rec, LevelCount(g, int(trials.support[k]), float(local), float(screen_tests)))
+                            continue
                     # Behind the screen, before the judge: the trial polished by
                     # itself must beat the judge's own level within some gate up to
                     # this one.  Coarse gates let many wrong trials through the

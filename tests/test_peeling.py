@@ -653,3 +653,38 @@ def test_noisy_peel_finds_three_motions_at_four_percent_noise(seed):
         assert err < 2.5
         assert m.info["noise"] == pytest.approx(0.2 / np.sqrt(2.0), rel=0.25)
     _check_one_to_one(seg)
+
+
+@pytest.mark.parametrize("seed", [1013, pytest.param(1011, marks=pytest.mark.slow),
+                                  pytest.param(1015, marks=pytest.mark.slow)])
+def test_unrelated_gaussian_blobs_give_no_motion(seed):
+    """Two unrelated clouds denser at their centres than through their box: no motion.
+
+    A search that maximises support lays one core onto the other, where chance pairs are
+    ~14 times as dense as the box's mean; against the box's level such wrong motions were kept
+    (2 motions at seed 1013, 3 at 1015).  The density test also at the landing density of the
+    other target points (stages.landing_level) refuses them.
+    """
+    rng = np.random.default_rng(seed)
+    n1, n2 = rng.integers(100, 400, 2)
+    seg = segment(rng.normal(0, 3, (n1, 3)), rng.normal(0, 3, (n2, 3)))
+    assert len(seg) == 0, [m.support for m in seg]
+    assert np.all(seg.source_labels == -1) and np.all(seg.target_labels == -1)
+
+
+def test_landing_level_is_the_boxs_where_points_are_even_and_higher_on_a_dense_core():
+    """stages.landing_level: about the box's level on uniform points, far above it where a motion lays
+    a dense core onto a dense core; a true motion's own partners do not raise it."""
+    rng = np.random.default_rng(5)
+    g = 0.4
+    even = stages.prepare(rng.uniform(-5, 5, (300, 3)), rng.uniform(-5, 5, (300, 3)))
+    box = even.chance(g, 1e6)
+    assert abs(stages.landing_level(even, np.eye(4), g, 1e6) - box) <= 0.25 * box
+    blobs = stages.prepare(rng.normal(0, 3, (300, 3)), rng.normal(0, 3, (300, 3)))
+    assert stages.landing_level(blobs, np.eye(4), g, 1e6) >= 1.5 * blobs.chance(g, 1e6)
+    # A true motion of 100 of the points: its partners are left out of the density.
+    x = rng.uniform(-5, 5, (300, 3))
+    y = rng.uniform(-5, 5, (300, 3))
+    y[:100] = x[:100] + 0.01 * rng.normal(size=(100, 3))
+    moved = stages.prepare(x, y)
+    assert stages.landing_level(moved, np.eye(4), g, 1e6) <= 1.25 * moved.chance(g, 1e6)

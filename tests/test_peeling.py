@@ -673,8 +673,9 @@ def test_unrelated_gaussian_blobs_give_no_motion(seed):
 
 
 def test_landing_level_is_the_boxs_where_points_are_even_and_higher_on_a_dense_core():
-    """stages.landing_level: about the box's level on uniform points, far above it where a motion lays
-    a dense core onto a dense core; a true motion's own partners do not raise it."""
+    """stages.landing_level: about the box's level on uniform points, above it where a motion lays a
+    dense core onto a dense core; a true motion's own partners, however dense, do not raise it (they do
+    raise Problem.chance_under, which counts them in the density)."""
     rng = np.random.default_rng(5)
     g = 0.4
     even = stages.prepare(rng.uniform(-5, 5, (300, 3)), rng.uniform(-5, 5, (300, 3)))
@@ -682,9 +683,12 @@ def test_landing_level_is_the_boxs_where_points_are_even_and_higher_on_a_dense_c
     assert abs(stages.landing_level(even, np.eye(4), g, 1e6) - box) <= 0.25 * box
     blobs = stages.prepare(rng.normal(0, 3, (300, 3)), rng.normal(0, 3, (300, 3)))
     assert stages.landing_level(blobs, np.eye(4), g, 1e6) >= 1.5 * blobs.chance(g, 1e6)
-    # A true motion of 100 of the points: its partners are left out of the density.
+    # A true motion of 100 points packed in a 2-cube among 200 spread through the 10-cube.
     x = rng.uniform(-5, 5, (300, 3))
+    x[:100] = rng.uniform(-1, 1, (100, 3))
     y = rng.uniform(-5, 5, (300, 3))
     y[:100] = x[:100] + 0.01 * rng.normal(size=(100, 3))
     moved = stages.prepare(x, y)
-    assert stages.landing_level(moved, np.eye(4), g, 1e6) <= 1.25 * moved.chance(g, 1e6)
+    box = moved.chance(g, 1e6)
+    assert stages.landing_level(moved, np.eye(4), g, 1e6) <= 1.25 * box
+    assert moved.chance_under(np.eye(4), g, 1e6) >= 1.5 * box

@@ -5,8 +5,9 @@ matches ``(a, b, c) <-> (k, l, m)`` are found by looking up target pairs
 of the same length (:func:`triple_hypotheses`); side-length *ratios*
 survive any similarity, so :func:`similar_triple_hypotheses` looks up
 target triangles of the same shape at any scale in a range.  :func:`polish_icp`
-polishes trial motions by ICP on the scoring grid (LO-RANSAC's local step).  The kernels here are pure: arrays and scalars in,
-arrays out.  :mod:`gatv.models.rigid.congruent` validates input and drives them.
+polishes trial motions by ICP on the scoring grid (LO-RANSAC's local step).
+The kernels here are pure: arrays and scalars in, arrays out.
+:mod:`gatv.models.rigid.congruent` validates input and drives them.
 """
 
 from __future__ import annotations

@@ -201,7 +201,7 @@ class Problem:
         k = min(DENSITY_NEIGHBOURS, self.target.shape[0] if n_target is None else int(n_target))
         return float(np.minimum(1.0, k * (gate / radii) ** self.dim).sum())
 
-    def landing_measure(self, radii: np.ndarray, gate: float) -> float:
+    def landing_measure(self, radii: np.ndarray, gate: float, n_target: int | None = None) -> float:
         """The measure that gives :meth:`chance` the chance pairs of a motion whose
         moved source points have :meth:`landing_radii` ``radii``.
 
@@ -214,9 +214,10 @@ class Problem:
         point lands within ``gate`` of a target point with probability
         ``min(1, k (gate / r_k)^d)`` by the ``k``-nearest-neighbour density
         (``k`` target points in the ball of radius ``r_k``); the box measure
-        with the same expected count over the source is returned.
+        with the same expected count over the source is returned.  ``n_target``:
+        as in :meth:`landing_pairs` (radii counted among fewer points).
         """
-        expected = self.landing_pairs(radii, gate)
+        expected = self.landing_pairs(radii, gate, n_target)
         uniform = self.source.shape[0] * self.target.shape[0] * ball_measure(gate, self.dim)
         return uniform / max(expected, 1e-300)
 
@@ -561,15 +562,20 @@ def _mixture_scale(r: np.ndarray, gate: float, dist, s: float, chance_pairs: flo
     return s
 
 
+def _other_radii(problem: Problem, matrix: np.ndarray, partners: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """:meth:`Problem.landing_radii` of ``matrix`` among the target points other than ``partners`` (rows,
+    repeats allowed), and how many such points there are (radii ``None`` when there are none)."""
+    n_others = problem.target.shape[0] - np.unique(partners).size
+    if n_others == 0:
+        return None, 0
+    return problem.landing_radii(matrix, without=partners), n_others
+
+
 def _chance_pairs(problem: Problem, fit: Fit, gate_radius: float) -> float:
     """Pairs within ``gate_radius`` that ``fit``'s motion would find had every source point a random
     partner: the density of the target points other than its partners, where it lands."""
-    partners = fit.correspondences[:, 1]
-    n_others = problem.target.shape[0] - np.unique(partners).size
-    if n_others == 0:
-        return 0.0
-    radii = problem.landing_radii(fit.matrix, without=partners)
-    return problem.landing_pairs(radii, gate_radius, n_others)
+    radii, n_others = _other_radii(problem, fit.matrix, fit.correspondences[:, 1])
+    return 0.0 if n_others == 0 else problem.landing_pairs(radii, gate_radius, n_others)
 
 
 def settle_noise(problem: Problem, fit: Fit, levels, level: int, *, floor: float = 0.0,
@@ -1169,17 +1175,12 @@ def landing_level(problem: Problem, matrix: np.ndarray, gate_radius: float, n_te
     level; where the motion lays the source onto a dense part of the target
     (two Gaussian blobs' cores) it is that part's.
     """
-    moved = apply_matrix(matrix, problem.source)
-    dist, j = problem.tree.query(moved, k=1, distance_upper_bound=gate_radius)
-    partners = np.unique(j[np.isfinite(dist)])
-    n_others = problem.target.shape[0] - partners.size
-    if n_others < 1:
+    dist, j = problem.tree.query(apply_matrix(matrix, problem.source), k=1, distance_upper_bound=gate_radius)
+    radii, n_others = _other_radii(problem, matrix, j[np.isfinite(dist)])
+    if n_others == 0:
         return problem.chance(gate_radius, n_tests)
-    radii = problem.landing_radii(matrix, without=partners)
-    expected = problem.landing_pairs(radii, gate_radius, n_others)
-    n1, n2 = problem.source.shape[0], problem.target.shape[0]
-    measure = n1 * n2 * ball_measure(gate_radius, problem.dim) / max(expected, 1e-300)
-    return problem.model.chance(n1, n2, measure, gate_radius, n_tests)
+    return problem.model.chance(problem.source.shape[0], problem.target.shape[0],
+                                problem.landing_measure(radii, gate_radius, n_others), gate_radius, n_tests)
 
 
 def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, keep: int = 4,

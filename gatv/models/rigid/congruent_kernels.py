@@ -277,9 +277,8 @@ def _polish_one(X, Y, start, order, origin, cell, dims, R, t, gate, iterations, 
     idx = np.empty(n, np.int64)
     d2 = np.empty(n)
     used = np.zeros(Y.shape[0], np.bool_)
-    kept_i = np.empty(0, np.int64)
+    kept_i = np.empty(0, np.int64)  # the pairs of the last refit (none before the first)
     kept_j = np.empty(0, np.int64)
-    have = False
     p = np.empty(3)
     for _ in range(iterations):
         cnt = 0
@@ -325,13 +324,14 @@ def _polish_one(X, Y, start, order, origin, cell, dims, R, t, gate, iterations, 
             src[k] = X[new_i[k]]
             dst[k] = Y[new_j[k]]
         R_new, t_new = kabsch3(src, dst)
-        same = have and m == kept_i.shape[0] and np.all(new_i == kept_i) and np.all(new_j == kept_j)
+        # m >= 3 pairs, so never the same as the none kept before the first refit
+        same = m == kept_i.shape[0] and np.all(new_i == kept_i) and np.all(new_j == kept_j)
         step = np.abs(R_new - R).max() * extent + np.abs(t_new - t).max()
         R, t = R_new, t_new
-        kept_i, kept_j, have = new_i, new_j, True
+        kept_i, kept_j = new_i, new_j
         if same or step < 1e-9 * spacing:
             break
-    return R, t, (kept_i.shape[0] if have else -1)
+    return R, t, (kept_i.shape[0] if kept_i.shape[0] > 0 else -1)
 
 
 @njit(cache=True, parallel=_prange_only())

@@ -56,8 +56,10 @@ from the data (:func:`choose_pipeline`) unless ``pipeline=`` says.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import stages
 from ._validation import (
@@ -70,9 +72,9 @@ from ._validation import (
     memory_budget_limit,
 )
 from .candidates import bounded_pairs
-from .models.rigid.congruent import TargetIndex, trial_motions
+from .models.rigid.congruent import TargetGrid, TargetIndex, trial_motions
 from .errors import InputError
-from .ga import rotation_angle_deg
+from .ga import Rotor, rotation_angle_deg
 from .models import Motion, apply_matrix, get_model
 from .models.base import MAX_WORK
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
@@ -83,7 +85,7 @@ from .voting import default_sigma, extract_surfaces
 
 __all__ = ["MAX_WORK", "NOISE_SCHEDULE", "NOISY_SCHEDULE", "TIME_LIMIT", "checked_pipeline", "choose_pipeline",
            "count_ceiling", "register", "register_budget", "reject_exact_options", "resolve_pipeline",
-           "surface_likeness", "symmetry_rival"]
+           "Rivals", "rival_draws", "surface_likeness", "symmetry_rival"]
 
 # MAX_WORK, the default work bound of register's search, is gatv.models.base's (re-exported).
 #: Default wall-clock bound of a call's search, seconds: on a slow or busy
@@ -297,6 +299,7 @@ def register(
     max_work: float | None = MAX_WORK,
     time_limit: float | None = TIME_LIMIT,
     scan_options: dict | None = None,
+    check_rivals: bool = True,
     progress=None,
 ) -> Motion:
     """Register ``source`` onto ``target`` with no initial guess.
@@ -377,6 +380,16 @@ def register(
         Options of the scans pipeline only (``n_points``, ``voxel``,
         ``min_overlap``, ``feature_tol``, ``clutter``; see
         :func:`gatv.scans.register_surfaces`).
+    check_rivals : bool, default: True
+        Exact pipeline, rigid model: the motion found must beat its turned
+        and shifted copies, polished on the same data (:func:`rival_draws`);
+        where the data are structured and a copy holds about as much
+        (:attr:`Rivals.ambiguous`: planes laid on planes, dense cores on
+        dense cores, lattices, symmetric sets) the result is falsy,
+        ``info["reason"]`` starting "ambiguous".  ``info["rivals"]`` holds
+        the figures either way.  Callers that look for several motions
+        themselves (instance search) or judge a motion by other means pass
+        ``False``.
     progress : callable, optional
         ``progress(fraction, message)`` called as work proceeds.
 
@@ -489,6 +502,14 @@ def register(
                 chance_support=int(verdict.chance))
     if policy.rival_check:
         info.update(symmetry_rival(P, fit, tolerance, rng, memory_budget=memory_budget))
+        rivals = rival_draws(P, fit.matrix, fit.correspondences, gate(tolerance), rng)
+        info["rivals"] = rivals.to_dict()
+        if check_rivals and rivals.ambiguous:
+            if not info["ambiguous"]:
+                info.update(ambiguous=True, rival={"support": rivals.rival, "best_support": rivals.support,
+                                                   "angle_deg": rivals.angle_deg})
+            info["time_s"] = time.perf_counter() - t_start
+            return stages.failure(P.model, rivals.reason(), info)
     info["time_s"] = time.perf_counter() - t_start
     report(1.0, f"found {fit.support} correspondences")
     return stages.make_result(P, fit, info)
@@ -543,6 +564,193 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
 #: :func:`symmetry_rival`: on a symmetric set nearly every triple has a
 #: moved copy, so a few dozen show the symmetry.
 RIVAL_SAMPLES = 64
+
+
+#: Turns of :func:`rival_draws` about each axis, degrees (each both ways but the half-turn).
+RIVAL_TURNS = (20.0, 45.0, 90.0, 135.0, 180.0)
+#: Random axes :func:`rival_draws` turns about, beside the inliers' three principal axes.
+RIVAL_AXES = 5
+#: Shifts of :func:`rival_draws` along each principal axis (both ways), in standard
+#: deviations of the inliers along it.
+RIVAL_SHIFTS = (0.5, 1.0)
+#: Shifts of :func:`rival_draws` by the step from a random target point to one of its
+#: nearest neighbours: a repeated structure's period (a lattice's vectors).
+RIVAL_STEPS = 12
+
+
+@dataclass(frozen=True)
+class Rivals:
+    """A motion against turns and shifts of itself, each polished on the same data (:func:`rival_draws`).
+
+    ``support``: the motion's own pairs within the gate, polished as its
+    rivals are; ``rival``: the most any distinct rival holds (0 when none);
+    ``angle_deg``: the rotation between that rival and the motion and
+    ``offset`` the median distance between where the two put the inliers;
+    ``n_draws``: the rivals polished; ``even``: the most the same draws
+    hold, polished the same way, against as many target points spread
+    evenly over the target's box (what chance gives a polished rival where
+    the Poisson levels hold).
+    """
+
+    support: int
+    rival: int
+    angle_deg: float
+    offset: float
+    n_draws: int
+    even: int
+
+    @property
+    def ambiguous(self) -> bool:
+        """The data do not tell the motion from its best rival.
+
+        Where the best rival holds no more than the draws do on evenly spread points
+        (:attr:`structured` false), the points behave as the Poisson levels assume, the rivals hold
+        chance pairs, and the motion stands on the search's own level.  Where it holds more, the
+        data hold more than those levels expect (a plane, a dense core, a repeated structure, a
+        symmetric set) and the motion must beat the rival: the
+        rival holds :data:`gatv.scans.RIVAL_SHARE` of its support, or the motion does not beat the
+        rival's count by three of its Poisson deviations (the scans verdict's margin over a wrong
+        motion, before its search gain, :func:`gatv.scans.gate_verdicts`), and it is ambiguous.
+        """
+        return self.support > 0 and self.structured and (self.rival >= RIVAL_SHARE * self.support
+                                                         or self.support < self.level)
+
+    @property
+    def structured(self) -> bool:
+        """The best rival beats, by more than three Poisson deviations (of at least one), the best the
+        same draws reach on the target's count of points spread evenly over its box (:attr:`even`)."""
+        return self.rival > self.even + 3.0 * np.sqrt(max(self.even, 1))
+
+    @property
+    def level(self) -> float:
+        """The count the motion must reach: its best rival's plus three Poisson deviations."""
+        return self.rival + 3.0 * np.sqrt(self.rival)
+
+    def to_dict(self) -> dict:
+        return {"support": int(self.support), "rival": int(self.rival), "angle_deg": float(self.angle_deg),
+                "offset": float(self.offset), "n_draws": int(self.n_draws), "even": int(self.even),
+                "level": float(self.level),
+                "ambiguous": bool(self.ambiguous)}
+
+    def reason(self) -> str:
+        """Why a motion with this rival is not reported."""
+        return (f"ambiguous: a motion {self.angle_deg:.1f} deg from the one found, putting its points "
+                f"{self.offset:.3g} away, holds {self.rival} points against its {self.support} (a turn or shift "
+                f"of it, polished; the motion needs {max(self.level, self.rival / RIVAL_SHARE):.0f}): the "
+                "data do not tell the two apart")
+
+
+def _turn(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
+    """The 4×4 rotation by ``degrees`` about ``axis`` through ``centre``."""
+    R = Rotor.from_axis_angle(axis, np.radians(degrees)).as_matrix()
+    Q = np.eye(4)
+    Q[:3, :3] = R
+    Q[:3, 3] = centre - R @ centre
+    return Q
+
+
+def _held(tree, moved: np.ndarray, gate_radius: float, home: np.ndarray | None = None) -> int:
+    """Points of ``moved`` with a point of ``tree`` within ``gate_radius``, leaving out those within it of
+    their ``home`` position."""
+    if home is not None:
+        moved = moved[np.linalg.norm(moved - home, axis=1) > gate_radius]
+    if moved.shape[0] == 0:
+        return 0
+    d, _ = tree.query(moved, distance_upper_bound=gate_radius)
+    return int(np.isfinite(d).sum())
+
+
+def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_radius: float,
+                rng: np.random.Generator, *, others=()) -> Rivals:
+    """The motion ``matrix`` against wrong but plausible motions on the same data.
+
+    The Poisson levels of the exact pipeline spread the target evenly over
+    a box (or over the density of its other points where the motion
+    lands).  Points on a plane, a thin or dense cloud, or a repeated
+    structure break that: two unrelated sets laid plane on plane, or core
+    on core, collect many more pairs than the level expects, and the search,
+    which maximises support, finds such a lay.  Its rivals show it: the
+    same lay turned about an axis of its inliers or shifted along one holds
+    about as many points, where a true motion's turned copies hold chance
+    pairs only.  The rivals are the motion composed with turns of
+    :data:`RIVAL_TURNS` about the three principal axes of its source inliers
+    (``pairs[:, 0]``) and :data:`RIVAL_AXES` random axes, through their
+    centroid, shifts of :data:`RIVAL_SHIFTS` standard deviations along
+    the principal axes, and :data:`RIVAL_STEPS` shifts by the step from a
+    random target point to one of its six nearest (a lattice's period moves
+    its sites onto sites); each, and the motion itself, polished by ICP within
+    ``gate_radius`` (the model's ``polish_motions``, :func:`gatv.stages.refine`'s
+    steps).  A polished rival counts when it moves the inliers by more than
+    twice the gate (median) from the polished motion and from each of
+    ``others`` (matrices of motions found beside it, which are not rivals).
+
+    Returns
+    -------
+    Rivals
+        Ambiguous when the best rival holds more than the draws do on evenly
+        spread points, and :data:`gatv.scans.RIVAL_SHARE` of the motion's
+        support or enough that the motion does not beat it by three Poisson
+        deviations (:attr:`Rivals.ambiguous`).
+    """
+    X = problem.source[np.asarray(pairs, np.int64).reshape(-1, 2)[:, 0]]
+    if X.shape[0] < 4:
+        return Rivals(int(X.shape[0]), 0, 0.0, 0.0, 0, 0)
+    centre = X.mean(axis=0)
+    spread, principal = np.linalg.eigh(np.cov(X.T))
+    axes = list(principal.T)
+    for _ in range(RIVAL_AXES):
+        a = rng.normal(size=3)
+        axes.append(a / np.linalg.norm(a))
+    draws = [_turn(a, sign * deg, centre) for a in axes for deg in RIVAL_TURNS
+             for sign in ((1.0,) if deg == 180.0 else (1.0, -1.0))]
+    for k in range(3):
+        for f in RIVAL_SHIFTS:
+            for sign in (1.0, -1.0):
+                Q = np.eye(4)
+                Q[:3, 3] = sign * f * np.sqrt(max(float(spread[k]), 0.0)) * principal[:, k]
+                draws.append(Q)
+    M = np.asarray(matrix, np.float64)
+    starts = [M @ Q for Q in draws]
+    Y = problem.target
+    if Y.shape[0] > 1:
+        k = min(7, Y.shape[0])
+        _, near = problem.tree.query(Y[rng.integers(0, Y.shape[0], RIVAL_STEPS)], k=k)
+        for row in near:
+            step = np.eye(4)
+            step[:3, 3] = Y[row[rng.integers(1, k)]] - Y[row[0]]
+            starts.append(step @ M)
+    n_draws = len(starts)
+    starts = np.array(starts + [M])
+    grid = TargetGrid.of(Y, gate_radius, cell_radii=2.0, max_side=64)
+    R, t, _ = problem.model.polish_motions(problem.source, grid, starts[:, :3, :3], starts[:, :3, 3],
+                                           stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
+    # Every source point where the polished motion puts it; a rival counts only the points it puts
+    # elsewhere (beyond the gate), so a turn keeps no credit for the motion's own pairs near its axis.
+    home_all = problem.source @ R[-1].T + t[-1]
+    own = _held(problem.tree, home_all, gate_radius)
+    home = X @ R[-1].T + t[-1]
+    refs = [home] + [apply_matrix(np.asarray(o, np.float64), X) for o in others]
+    best, angle, offset = 0, 0.0, 0.0
+    for k in range(n_draws):
+        moved = X @ R[k].T + t[k]
+        apart = [float(np.median(np.linalg.norm(moved - ref, axis=1))) for ref in refs]
+        if min(apart) <= 2.0 * gate_radius:
+            continue
+        held = _held(problem.tree, problem.source @ R[k].T + t[k], gate_radius, home_all)
+        if held > best:
+            best, angle, offset = held, rotation_angle_deg(R[k] @ R[-1].T), apart[0]
+    # The same draws, polished and counted the same way, against the target's count of points
+    # spread evenly over its box.
+    lo, hi = Y.min(axis=0), Y.max(axis=0)
+    flat = rng.uniform(lo, hi, Y.shape)
+    Re, te, _ = problem.model.polish_motions(problem.source, TargetGrid.of(flat, gate_radius, cell_radii=2.0,
+                                                                           max_side=64),
+                                             starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
+                                             stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
+    flat_tree = cKDTree(flat)
+    even = max((_held(flat_tree, problem.source @ Re[k].T + te[k], gate_radius, home_all) for k in range(n_draws)),
+               default=0)
+    return Rivals(own, best, float(angle), offset, n_draws, even)
 
 
 def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.random.Generator, *,

@@ -692,3 +692,47 @@ def test_landing_level_is_the_boxs_where_points_are_even_and_higher_on_a_dense_c
     box = moved.chance(g, 1e6)
     assert stages.landing_level(moved, np.eye(4), g, 1e6) <= 1.25 * box
     assert moved.chance_under(np.eye(4), g, 1e6) >= 1.5 * box
+
+
+def _plane(rng, n, z):
+    return np.column_stack([rng.uniform(-8, 8, (n, 2)), rng.normal(z, 0.03, n)])
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
+def test_a_motion_beside_two_unrelated_planes_is_kept_and_the_planes_lays_dropped(seed):
+    """60 points moved by one motion (noise 0.1) beside two unrelated samples of one plane.
+
+    The noisy peel also laid plane on plane, four or five times (17-35 pairs each, every one above
+    the Poisson level of points spread over the box).  Each lay's turned and shifted copies hold about
+    as much (drop_ambiguous, rival_draws): dropped, their points outliers; the true motion's copies
+    hold chance pairs, and it stays, label 0.
+    """
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-5, 5, (60, 3))
+    axis = rng.normal(size=3)
+    R = Rotation.from_rotvec(np.radians(70) * axis / np.linalg.norm(axis)).as_matrix()
+    y = x @ R.T + [2.0, -1.0, 0.5] + rng.normal(0, 0.1, x.shape)
+    src, tgt = np.vstack([x, _plane(rng, 150, 12.0)]), np.vstack([y, _plane(rng, 150, 12.0)])
+    seg = segment(src, tgt)
+    assert len(seg) == 1, [m.support for m in seg]
+    m = seg.motions[0]
+    assert m.support >= 55 and np.degrees(Rotation.from_matrix(m.rotation.T @ R).magnitude()) < 1.0
+    assert m.info["label"] == 0 and set(np.unique(seg.source_labels)) <= {-1, 0}
+    assert np.all(seg.source_labels[m.correspondences[:, 0]] == 0) and np.sum(seg.source_labels == 0) == m.support
+    assert np.all(seg.target_labels[m.correspondences[:, 1]] == 0) and np.sum(seg.target_labels == 0) == m.support
+    dropped = seg.info["ambiguous"]
+    assert dropped and all(d["reason"].startswith("ambiguous") for d in dropped)
+    assert len(seg.info["rivals"]) == 1 + len(dropped)
+    _check_one_to_one(seg)
+
+
+def test_unrelated_lattice_samples_give_no_motion():
+    """Two random samples of one lattice (jitter 0.05): each lay of sites on sites (the search found five)
+    is matched by a lattice step of itself; no motion, and the reason says why."""
+    rng = np.random.default_rng(2003)
+    n1, n2 = rng.integers(120, 400, 2)
+    a, b = (rng.integers(-4, 5, (n, 3)).astype(float) * 1.5 + rng.normal(0, 0.05, (n, 3)) for n in (n1, n2))
+    seg = segment(a, b)
+    assert len(seg) == 0 and seg.info["reason"].startswith("ambiguous"), [m.support for m in seg]
+    assert np.all(seg.source_labels == -1) and np.all(seg.target_labels == -1)
+    assert len(seg.info["ambiguous"]) == len(seg.info["rivals"]) >= 1

@@ -8,6 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv import RigidMotion, Rotor, register
+from gatv.registration import rival_draws
+from gatv.stages import gate, prepare
 from gatv.datasets import (
     correspondence_stats,
     demo_mesh,
@@ -337,16 +339,22 @@ def test_time_limit_leaves_out_numba_compilation(monkeypatch):
 
 
 @pytest.mark.parametrize("angle", [40.0, 130.0])
-def test_a_symmetric_set_is_reported_ambiguous(angle):
-    """A 5×5×5 grid maps onto itself by 90° turns: whichever motion the search returns, a distinct one
-    explains every point as well, and the result says so instead of a confident single motion."""
+def test_a_symmetric_set_gives_no_motion_and_says_why(angle):
+    """A 5×5×5 grid maps onto itself by 90° turns: whichever motion the search finds, a distinct one
+    explains every point as well.  The data do not tell them apart, so no motion is reported (a
+    confident single motion would be a symmetry of the truth), and the result says why."""
     grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
     R = Rotor.from_axis_angle((0.3, -0.5, 0.8), np.radians(angle)).as_matrix()
     m = register(grid, grid @ R.T + np.array([1.0, 2.0, -0.5]))
-    assert m.support == 125 and m.info["ambiguous"]
+    assert not m and m.info["reason"].startswith("ambiguous") and m.info["ambiguous"]
     rival = m.info["rival"]
     assert rival["support"] == rival["best_support"] == 125
     assert rival["angle_deg"] > 45.0  # a symmetry of the grid, not a jitter of the found motion
+    rivals = m.info["rivals"]  # (the points on the turn's axis stay, and are not the rival's)
+    assert rivals["support"] == 125 and rivals["rival"] >= 0.9 * 125 and rivals["angle_deg"] > 45.0
+    # asked not to check, the caller gets the motion (a symmetry of the truth) and the figures
+    m = register(grid, grid @ R.T + np.array([1.0, 2.0, -0.5]), check_rivals=False)
+    assert m.support == 125 and m.info["ambiguous"] and m.info["rivals"]["ambiguous"]
 
 
 @settings(max_examples=6, deadline=None)
@@ -355,6 +363,103 @@ def test_a_generic_set_is_not_ambiguous(seed, noise):
     trial = table2_trial(0.5, noise=noise, seed=seed)
     m = register(trial.source, trial.target, seed=seed)
     assert m and m.info["ambiguous"] is False and "rival" not in m.info
+    # its turned and shifted copies hold chance pairs only, as on evenly spread points
+    rivals = m.info["rivals"]
+    assert not rivals["ambiguous"] and rivals["rival"] < 0.5 * rivals["support"]
+
+
+def _plane_and_blob(rng, n):
+    """Half the points on a plane (thickness 0.05), half in a blob placed at random."""
+    m = n // 2
+    plane = np.column_stack([rng.uniform(-6, 6, (m, 2)), rng.normal(0, 0.05, m)])
+    return np.vstack([plane, rng.normal(0, 1.5, (n - m, 3)) + rng.uniform(-4, 4, 3)])
+
+
+def _lattice(rng, n):
+    """Random sites of a 9 x 9 x 9 lattice of period 1.5, jittered by 0.05."""
+    return rng.integers(-4, 5, (n, 3)).astype(float) * 1.5 + rng.normal(0, 0.05, (n, 3))
+
+
+def _thin_cloud(rng, n):
+    """A Gaussian cloud of random shape with principal deviations about 6, 2 and 0.4."""
+    shape = rng.normal(0, 1, (3, 3)) * np.array([6.0, 2.0, 0.4])
+    return rng.normal(0, 1, (n, 3)) @ shape.T
+
+
+STRUCTURED = {"plane": _plane_and_blob, "lattice": _lattice, "thin": _thin_cloud}
+
+
+@pytest.mark.parametrize("kind, seed", [("plane", 2004), ("lattice", 2002), ("thin", 2004),
+                                        pytest.param("plane", 2002, marks=pytest.mark.slow),
+                                        pytest.param("lattice", 2003, marks=pytest.mark.slow),
+                                        pytest.param("lattice", 2004, marks=pytest.mark.slow)])
+def test_unrelated_structured_sets_give_no_motion(kind, seed):
+    """Two unrelated sets drawn alike: half on a plane, sites of a lattice, or thin dense clouds.
+
+    Laid plane on plane, sites on sites or core on core they hold far more pairs than the Poisson
+    levels expect of points spread over a box, and the search found such a lay (32-72 pairs before
+    rival_draws).  Turned about its inliers' axes or shifted, and polished, the lay holds about as
+    many, where evenly spread points give a few: no motion, and the reason says why.
+    """
+    rng = np.random.default_rng(seed)
+    n1, n2 = rng.integers(120, 400, 2)
+    a, b = STRUCTURED[kind](rng, n1), STRUCTURED[kind](rng, n2)
+    m = register(a, b)
+    assert not m, (m.support, m.info.get("rivals"))
+    assert m.info["reason"].startswith("ambiguous") and m.info["ambiguous"]
+    rivals = m.info["rivals"]
+    assert rivals["ambiguous"] and rivals["rival"] > rivals["even"] + 3 * np.sqrt(max(rivals["even"], 1))
+
+
+def test_rival_draws_tell_a_motion_from_a_lay_of_planes():
+    """rival_draws directly: a true motion of evenly spread points is not ambiguous (its rivals hold what
+    they hold on evenly spread points); two unrelated sets of a plane and a blob, laid plane on plane by
+    the identity, are.  (Two samples of one plane alone are evenly spread over their thin box: there the
+    Poisson levels hold, and the search's own level judges.)"""
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-5, 5, (200, 3))
+    R = Rotor.from_axis_angle((1.0, 2.0, -0.5), np.radians(50)).as_matrix()
+    y = x @ R.T + [1.0, 0.0, 2.0] + rng.normal(0, 0.02, x.shape)
+    P = prepare(x, y)
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, [1.0, 0.0, 2.0]
+    pairs = np.column_stack([np.arange(200), np.arange(200)])
+    g = gate(0.03)
+    true = rival_draws(P, M, pairs, g, np.random.default_rng(0))
+    assert not true.ambiguous and not true.structured and true.support >= 190 and true.rival < 20
+    # two unrelated samples of a plane and a blob, laid plane on plane: any in-plane turn or shift of
+    # the lay holds as many chance pairs, far more than on points spread evenly over the box
+    P = prepare(_plane_and_blob(rng, 300), _plane_and_blob(rng, 300))
+    s = P.source
+    d, j = P.tree.query(s, distance_upper_bound=gate(0.1))
+    near = np.flatnonzero(np.isfinite(d))
+    lay = rival_draws(P, np.eye(4), np.column_stack([near, j[near]]), gate(0.1), np.random.default_rng(0))
+    assert lay.structured and lay.ambiguous, lay
+
+
+def test_a_motion_found_beside_is_not_a_rival():
+    """Two true motions, the second the first turned 90 deg about its inliers' principal axis (one of
+    rival_draws' turns): alone, the first's turn lands on the second and the data do not tell them
+    apart; given the second as ``others``, the first stands (drop_ambiguous passes the other motions found)."""
+    rng = np.random.default_rng(3)
+    x1, x2 = rng.uniform(-5, 5, (100, 3)), rng.uniform(-5, 5, (100, 3))
+    A = np.eye(4)
+    A[:3, :3] = Rotor.from_axis_angle((1.0, 2.0, -0.5), np.radians(50)).as_matrix()
+    A[:3, 3] = [1.0, 0.0, 2.0]
+    c = x1.mean(axis=0)
+    axis = np.linalg.eigh(np.cov(x1.T))[1][:, 0]
+    Q = np.eye(4)
+    Q[:3, :3] = Rotor.from_axis_angle(axis, np.radians(90)).as_matrix()
+    Q[:3, 3] = c - Q[:3, :3] @ c
+    B = A @ Q
+    src = np.vstack([x1, x2])
+    tgt = np.vstack([x1 @ A[:3, :3].T + A[:3, 3], x2 @ B[:3, :3].T + B[:3, 3]])
+    P = prepare(src, tgt)
+    pairs = np.column_stack([np.arange(100), np.arange(100)])
+    alone = rival_draws(P, A, pairs, gate(0.01), np.random.default_rng(0))
+    assert alone.ambiguous and alone.rival >= 95 and abs(alone.angle_deg - 90.0) < 1.0
+    beside = rival_draws(P, A, pairs, gate(0.01), np.random.default_rng(0), others=[B])
+    assert not beside.ambiguous and beside.rival < 10
 
 
 # ----------------------------------------------------------- every model

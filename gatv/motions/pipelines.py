@@ -13,17 +13,20 @@ those searches, none of which imports it.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
+
+import numpy as np
 
 from .. import stages
-from .._validation import check_positive
+from .._validation import as_rng, check_positive
 from ..errors import InputError
-from ..registration import TIME_LIMIT, checked_pipeline, reject_exact_options
+from ..registration import TIME_LIMIT, checked_pipeline, reject_exact_options, rival_draws
 from .peeling import peel
 from .result import Segmentation
 from .scans import segment_scans
 from .segmentation import GROUPINGS, NOISY_FROM, PROBE_TRIPLES, segment_problem
 
-__all__ = ["segment"]
+__all__ = ["drop_ambiguous", "segment"]
 
 
 def segment(
@@ -166,4 +169,51 @@ def segment(
         if grouping == "auto":
             out.info["probe_s"] = probe_s
     out.info.update(pipeline="exact", pipeline_reason=why)
+    if policy.rival_check:
+        out = drop_ambiguous(P, out, as_rng(seed))
     return out
+
+
+def drop_ambiguous(P: stages.Problem, seg: Segmentation, rng) -> Segmentation:
+    """``seg`` less the motions a turned or shifted copy of themselves explains as well.
+
+    Each motion is checked as :func:`gatv.register` checks its one
+    (:func:`gatv.registration.rival_draws`, at the gate of its tolerance; the
+    other motions found are not its rivals).  One that a rival holds
+    alike is a lay of unrelated points (plane on plane, dense core on dense
+    core, a lattice on itself) that the Poisson levels took for a motion:
+    it is dropped and its points labelled as outliers.
+    ``info["ambiguous"]`` lists the dropped (points, rival's angle and
+    support); ``info["rivals"]`` every motion's figures, in order.
+    """
+    matrices = [m.as_matrix() for m in seg.motions]
+    keep = list(range(len(seg.motions)))
+    checks: dict = {}
+    while True:
+        # Motions found beside one are not its rivals, but a dropped one is: several wrong lays
+        # of one structure would otherwise each be the others' best rival and all stay.
+        for k in keep:
+            m = seg.motions[k]
+            tol = m.info.get("tolerance", seg.info.get("tolerance"))
+            others = [matrices[j] for j in keep if j != k]
+            checks[k] = rival_draws(P, matrices[k], m.correspondences, stages.gate(float(tol)), rng, others=others)
+        left = [k for k in keep if not checks[k].ambiguous]
+        if len(left) == len(keep):
+            break
+        keep = left
+    seg.info["rivals"] = [checks[k].to_dict() for k in range(len(seg.motions))]
+    seg.info["ambiguous"] = [{"points": int(seg.motions[k].support), "rival_angle_deg": checks[k].angle_deg,
+                              "rival": checks[k].rival, "reason": checks[k].reason()}
+                             for k in range(len(seg.motions)) if k not in keep]
+    if not seg.info["ambiguous"]:
+        return seg
+    remap = np.full(len(seg.motions) + 1, -1, np.int64)  # index -1 stays -1
+    remap[np.asarray(keep, np.int64)] = np.arange(len(keep))
+    motions = tuple(replace(seg.motions[k], info={**seg.motions[k].info, "label": new})
+                    for new, k in enumerate(keep))
+    info = dict(seg.info)
+    if not motions:
+        info["reason"] = seg.info["ambiguous"][0]["reason"]
+        info["verdict"] = {**info.get("verdict", {}), "passed": False}
+    return Segmentation(motions, remap[seg.source_labels], remap[seg.target_labels], seg.tokens,
+                        remap[seg.token_labels], info)

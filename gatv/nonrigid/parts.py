@@ -197,7 +197,7 @@ def seed_parts(X, Y, tree_x, tree_y, rows_x, rows_y, pairs, *, gate: float, spac
         tolerance = max(noise or 0.0, PART_GATE * hw / 3.5)
         try:
             found = rigid_register(X[window], Y[ut], model="rigid", pipeline="exact", seed=seed,
-                                   noise=tolerance, max_triples=AUTO_RIGID_TRIPLES,
+                                   noise=tolerance, max_triples=AUTO_RIGID_TRIPLES, check_rivals=False,
                                    time_limit=max(1.0, deadline - time.perf_counter()))
         except ValueError:  # a degenerate window (collinear rows)
             found = None

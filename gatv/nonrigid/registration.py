@@ -513,7 +513,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         report(0.02, f"pre-alignment ({settings.model})")
         found = rigid_register(X[si], Y[ti], model=settings.model, seed=settings.seed,
                                noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5),
-                               max_triples=AUTO_RIGID_TRIPLES)
+                               max_triples=AUTO_RIGID_TRIPLES, check_rivals=False)
         if found:
             prior = np.asarray(found.matrix, dtype=float)
             info["prealign"] = {"model": settings.model, "support": found.support}
@@ -554,7 +554,7 @@ def _register_multiscale(X, Y, settings: Settings, report, t_start, *, coarse_po
         t0 = time.perf_counter()
         found = rigid_register(X[si], Y[ti], model="rigid", seed=settings.seed,
                                noise=max(settings.noise or 0.0, 0.5 * coarse_spacing / 3.5),
-                               max_triples=AUTO_RIGID_TRIPLES)
+                               max_triples=AUTO_RIGID_TRIPLES, check_rivals=False)
         info["auto_prealign"] = {"support": int(found.support) if found else 0,
                                  "time_s": time.perf_counter() - t0}
         if found:

@@ -555,7 +555,7 @@ def rigid_hypothesis(problem: Problem, settings: Settings) -> RigidStart | None:
     """
     bound = None if settings.prealign is True else AUTO_RIGID_TRIPLES
     rigid = rigid_register(problem.source, problem.target, model=settings.model, seed=settings.seed,
-                           noise=settings.noise, max_triples=bound)
+                           noise=settings.noise, max_triples=bound, check_rivals=False)
     if not rigid:
         return None
     pairs = coarse_to_fine(problem.source, problem.target, problem.tree, rigid.transform,
@@ -622,7 +622,7 @@ def local_hypothesis(problem: Problem, settings: Settings) -> LocalStart:
                 continue
         try:
             rigid = rigid_register(X[patch], Y[near_y], model=settings.model, seed=settings.seed,
-                                   noise=tolerance, max_triples=AUTO_RIGID_TRIPLES)
+                                   noise=tolerance, max_triples=AUTO_RIGID_TRIPLES, check_rivals=False)
         except ValueError:  # a degenerate window (collinear points)
             rigid = None
         if rigid:

@@ -22,6 +22,12 @@ Null pairs (``--pairs``):
   coordinate, 116-371 points a set: the point-set pipelines), denser at
   their centres than through their box, where a search that maximises
   support lays one core onto the other.
+* ``structured``: unrelated sets drawn alike with structure the Poisson
+  levels do not model (the point-set pipelines; 120-400 points a set):
+  half on a plane and half in a blob placed at random, random sites of a
+  lattice, and thin Gaussian clouds of random shape; two pairs of each
+  (``STRUCTURED_SEEDS``).  Laid plane on plane, site on site or core on
+  core they hold far more pairs than evenly spread points would.
 * ``cropped`` (not in the default run): the four object pairs with the
   target cropped at a random plane to 40% and 50% of its points, at 0 and
   30% uniform clutter on both, and one bunny and one chef view split at a
@@ -48,7 +54,8 @@ sequential verdict stops early on a clear pass) and the seconds.
 Usage::
 
     python benchmarks/null_pairs.py [--methods register,segment,nonrigid,catadioptric]
-                                    [--pairs objects,halves,random,planes,blobs,cropped] [--sizes 1000,20000]
+                                    [--pairs objects,halves,random,planes,blobs,structured,cropped]
+                                    [--sizes 1000,20000]
                                     [--true/--no-true] [--seed 0] [--out benchmarks/results]
 """
 
@@ -70,12 +77,35 @@ from _common import DEFAULT_OUT, markdown_table, parse_list, write_csv  # noqa: 
 from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair  # noqa: E402
 
 METHODS = ("register", "segment", "nonrigid", "catadioptric")
-PAIRS = ("objects", "halves", "random", "planes", "blobs", "cropped")
+PAIRS = ("objects", "halves", "random", "planes", "blobs", "structured", "cropped")
 #: The kinds run by default (``cropped`` adds 20 slower pairs).
-DEFAULT_PAIRS = ("objects", "halves", "random", "planes", "blobs")
+DEFAULT_PAIRS = ("objects", "halves", "random", "planes", "blobs", "structured")
 #: Seeds of the ``blobs`` pairs (``np.random.default_rng(seed)`` draws the sizes, then the points):
 #: four of the eight where ``segment`` kept 1-3 motions before it tested trials at the landing density.
 BLOB_SEEDS = (1001, 1009, 1013, 1015)
+#: ``(kind, seed)`` of the ``structured`` pairs (``np.random.default_rng(seed)`` draws the sizes, then the
+#: source, then the target): pairs where ``segment`` kept 1-9 motions and ``register`` one, before
+#: they compared a motion with its turned and shifted copies (``gatv.registration.rival_draws``).
+STRUCTURED_SEEDS = (("plane and blob", 2002), ("plane and blob", 2004), ("lattice", 2002), ("lattice", 2004),
+                    ("thin cloud", 2003), ("thin cloud", 2004))
+
+
+def _plane_and_blob(rng: np.random.Generator, n: int) -> np.ndarray:
+    m = n // 2
+    plane = np.column_stack([rng.uniform(-6, 6, (m, 2)), rng.normal(0, 0.05, m)])
+    return np.vstack([plane, rng.normal(0, 1.5, (n - m, 3)) + rng.uniform(-4, 4, 3)])
+
+
+def _lattice(rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.integers(-4, 5, (n, 3)).astype(float) * 1.5 + rng.normal(0, 0.05, (n, 3))
+
+
+def _thin_cloud(rng: np.random.Generator, n: int) -> np.ndarray:
+    shape = rng.normal(0, 1, (3, 3)) * np.array([6.0, 2.0, 0.4])
+    return rng.normal(0, 1, (n, 3)) @ shape.T
+
+
+STRUCTURES = {"plane and blob": _plane_and_blob, "lattice": _lattice, "thin cloud": _thin_cloud}
 
 
 def _rms_radius(points: np.ndarray) -> float:
@@ -165,6 +195,12 @@ def null_pairs(kinds, sizes, rng, seed: int = 0):
             r = np.random.default_rng(s)
             n1, n2 = r.integers(100, 400, 2)
             out.append((f"gaussian blobs {n1}/{n2}", r.normal(0, 3, (n1, 3)), r.normal(0, 3, (n2, 3))))
+    if "structured" in kinds:
+        for kind, seed in STRUCTURED_SEEDS:
+            r = np.random.default_rng(seed)
+            n1, n2 = r.integers(120, 400, 2)
+            a = STRUCTURES[kind](r, n1)
+            out.append((f"{kind} {n1}/{n2}", a, STRUCTURES[kind](r, n2)))
     if "cropped" in kinds:
         try:
             out += cropped_pairs(seed)

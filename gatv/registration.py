@@ -649,15 +649,19 @@ def _turn(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
     return Q
 
 
-def _held(tree, moved: np.ndarray, gate_radius: float, home: np.ndarray | None = None) -> int:
-    """Points of ``moved`` with a point of ``tree`` within ``gate_radius``, leaving out those within it of
-    their ``home`` position."""
+def _held(tree, source: np.ndarray, R: np.ndarray, t: np.ndarray, gate_radius: float,
+          home: np.ndarray | None = None) -> np.ndarray:
+    """For each motion ``(R[k], t[k])``, the points of ``source`` it puts within ``gate_radius`` of a point of
+    ``tree``, leaving out those it puts within the gate of their ``home`` position (one query for all)."""
+    moved = np.einsum("kij,nj->kni", R, source) + t[:, None, :]
+    keep = np.ones(moved.shape[:2], bool)
     if home is not None:
-        moved = moved[np.linalg.norm(moved - home, axis=1) > gate_radius]
-    if moved.shape[0] == 0:
-        return 0
-    d, _ = tree.query(moved, distance_upper_bound=gate_radius)
-    return int(np.isfinite(d).sum())
+        keep = np.linalg.norm(moved - home, axis=2) > gate_radius
+    held = np.zeros(moved.shape[:2], bool)
+    if keep.any():
+        d, _ = tree.query(moved[keep], distance_upper_bound=gate_radius)
+        held[keep] = np.isfinite(d)
+    return held.sum(axis=1)
 
 
 def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_radius: float,
@@ -727,18 +731,18 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     # Every source point where the polished motion puts it; a rival counts only the points it puts
     # elsewhere (beyond the gate), so a turn keeps no credit for the motion's own pairs near its axis.
     home_all = problem.source @ R[-1].T + t[-1]
-    own = _held(problem.tree, home_all, gate_radius)
+    own = int(_held(problem.tree, problem.source, R[-1:], t[-1:], gate_radius)[0])
+    held = _held(problem.tree, problem.source, R[:n_draws], t[:n_draws], gate_radius, home_all)
     home = X @ R[-1].T + t[-1]
     refs = [home] + [apply_matrix(np.asarray(o, np.float64), X) for o in others]
     best, angle, offset = 0, 0.0, 0.0
-    for k in range(n_draws):
+    for k in np.argsort(-held, kind="stable"):
+        if held[k] <= best:
+            break
         moved = X @ R[k].T + t[k]
         apart = [float(np.median(np.linalg.norm(moved - ref, axis=1))) for ref in refs]
-        if min(apart) <= 2.0 * gate_radius:
-            continue
-        held = _held(problem.tree, problem.source @ R[k].T + t[k], gate_radius, home_all)
-        if held > best:
-            best, angle, offset = held, rotation_angle_deg(R[k] @ R[-1].T), apart[0]
+        if min(apart) > 2.0 * gate_radius:
+            best, angle, offset = int(held[k]), rotation_angle_deg(R[k] @ R[-1].T), apart[0]
     # The same draws, polished and counted the same way, against the target's count of points
     # spread evenly over its box.
     lo, hi = Y.min(axis=0), Y.max(axis=0)
@@ -747,9 +751,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
                                                                            max_side=64),
                                              starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
                                              stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
-    flat_tree = cKDTree(flat)
-    even = max((_held(flat_tree, problem.source @ Re[k].T + te[k], gate_radius, home_all) for k in range(n_draws)),
-               default=0)
+    even = int(_held(cKDTree(flat), problem.source, Re, te, gate_radius, home_all).max(initial=0))
     return Rivals(own, best, float(angle), offset, n_draws, even)
 
 

@@ -56,7 +56,7 @@ from the data (:func:`choose_pipeline`) unless ``pipeline=`` says.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -589,7 +589,8 @@ class Rivals:
     ``n_draws``: the rivals polished; ``even``: the most the same draws
     hold, polished the same way, against as many target points spread
     evenly over the target's box (what chance gives a polished rival where
-    the Poisson levels hold).
+    the Poisson levels hold); measured only where the rival is
+    :attr:`close` (``None`` otherwise).
     """
 
     support: int
@@ -597,7 +598,7 @@ class Rivals:
     angle_deg: float
     offset: float
     n_draws: int
-    even: int
+    even: int | None
 
     @property
     def ambiguous(self) -> bool:
@@ -612,14 +613,20 @@ class Rivals:
         rival's count by three of its Poisson deviations (the scans verdict's margin over a wrong
         motion, before its search gain, :func:`gatv.scans.gate_verdicts`), and it is ambiguous.
         """
-        return self.support > 0 and self.structured and (self.rival >= RIVAL_SHARE * self.support
-                                                         or self.support < self.level)
+        return self.support > 0 and self.close and self.structured
+
+    @property
+    def close(self) -> bool:
+        """The rival holds :data:`gatv.scans.RIVAL_SHARE` of the support, or the motion does not beat
+        it by three of its Poisson deviations (:attr:`level`)."""
+        return self.rival >= RIVAL_SHARE * self.support or self.support < self.level
 
     @property
     def structured(self) -> bool:
         """The best rival beats, by more than three Poisson deviations (of at least one), the best the
-        same draws reach on the target's count of points spread evenly over its box (:attr:`even`)."""
-        return self.rival > self.even + 3.0 * np.sqrt(max(self.even, 1))
+        same draws reach on the target's count of points spread evenly over its box (:attr:`even`;
+        ``None``, not measured, where the rival is not :attr:`close`: the motion stands either way)."""
+        return self.even is not None and self.rival > self.even + 3.0 * np.sqrt(max(self.even, 1))
 
     @property
     def level(self) -> float:
@@ -628,7 +635,8 @@ class Rivals:
 
     def to_dict(self) -> dict:
         return {"support": int(self.support), "rival": int(self.rival), "angle_deg": float(self.angle_deg),
-                "offset": float(self.offset), "n_draws": int(self.n_draws), "even": int(self.even),
+                "offset": float(self.offset), "n_draws": int(self.n_draws),
+                "even": None if self.even is None else int(self.even),
                 "level": float(self.level),
                 "ambiguous": bool(self.ambiguous)}
 
@@ -743,6 +751,9 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
         apart = [float(np.median(np.linalg.norm(moved - ref, axis=1))) for ref in refs]
         if min(apart) > 2.0 * gate_radius:
             best, angle, offset = int(held[k]), rotation_angle_deg(R[k] @ R[-1].T), apart[0]
+    found = Rivals(own, best, float(angle), offset, n_draws, None)
+    if not found.close:  # the motion beats its best rival whatever the data's structure
+        return found
     # The same draws, polished and counted the same way, against the target's count of points
     # spread evenly over its box.
     lo, hi = Y.min(axis=0), Y.max(axis=0)
@@ -752,7 +763,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
                                              starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
                                              stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
     even = int(_held(cKDTree(flat), problem.source, Re, te, gate_radius, home_all).max(initial=0))
-    return Rivals(own, best, float(angle), offset, n_draws, even)
+    return replace(found, even=even)
 
 
 def symmetry_rival(problem: Problem, fit: stages.Fit, tolerance: float, rng: np.random.Generator, *,

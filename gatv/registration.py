@@ -508,6 +508,7 @@ def register(
             if not info["ambiguous"]:
                 info.update(ambiguous=True, rival={"support": rivals.rival, "best_support": rivals.support,
                                                    "angle_deg": rivals.angle_deg})
+            info["verdict"] = {**info["verdict"], "passed": False}  # the search's level, not the answer
             info["time_s"] = time.perf_counter() - t_start
             return stages.failure(P.model, rivals.reason(), info)
     info["time_s"] = time.perf_counter() - t_start

@@ -588,10 +588,10 @@ class Rivals:
     ``angle_deg``: the rotation between that rival and the motion and
     ``offset`` the median distance between where the two put the inliers;
     ``n_draws``: the rivals polished; ``even``: the most the same draws
-    hold, polished the same way, against as many target points spread
-    evenly over the target's box (what chance gives a polished rival where
-    the Poisson levels hold); measured only where the rival is
-    :attr:`close` (``None`` otherwise).
+    hold, polished the same way, from as many source points spread evenly
+    over the source's box onto the target (what chance gives a polished
+    rival at the target's own density, with nothing the two sets share);
+    measured only where the rival is :attr:`close` (``None`` otherwise).
     """
 
     support: int
@@ -605,10 +605,10 @@ class Rivals:
     def ambiguous(self) -> bool:
         """The data do not tell the motion from its best rival.
 
-        Where the best rival holds no more than the draws do on evenly spread points
-        (:attr:`structured` false), the points behave as the Poisson levels assume, the rivals hold
-        chance pairs, and the motion stands on the search's own level.  Where it holds more, the
-        data hold more than those levels expect (a plane, a dense core, a repeated structure, a
+        Where the best rival holds no more than the draws do from evenly spread source points
+        (:attr:`structured` false), the rivals hold chance pairs at the target's density, and the
+        motion stands on the search's own level.  Where it holds more, the two sets share
+        structure the Poisson levels do not model (planes, dense cores, a repeated structure, a
         symmetric set) and the motion must beat the rival: the
         rival holds :data:`gatv.scans.RIVAL_SHARE` of its support, or the motion does not beat the
         rival's count by three of its Poisson deviations (the scans verdict's margin over a wrong
@@ -625,8 +625,8 @@ class Rivals:
     @property
     def structured(self) -> bool:
         """The best rival beats, by more than three Poisson deviations (of at least one), the best the
-        same draws reach on the target's count of points spread evenly over its box (:attr:`even`;
-        ``None``, not measured, where the rival is not :attr:`close`: the motion stands either way)."""
+        same draws reach from evenly spread source points (:attr:`even`; ``None``, not measured,
+        where the rival is not :attr:`close`: the motion stands either way)."""
         return self.even is not None and self.rival > self.even + 3.0 * np.sqrt(max(self.even, 1))
 
     @property
@@ -661,11 +661,12 @@ def _turn(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
 def _held(tree, source: np.ndarray, R: np.ndarray, t: np.ndarray, gate_radius: float,
           home: np.ndarray | None = None) -> np.ndarray:
     """For each motion ``(R[k], t[k])``, the points of ``source`` it puts within ``gate_radius`` of a point of
-    ``tree``, leaving out those it puts within the gate of their ``home`` position (one query for all)."""
+    ``tree``, leaving out those it puts within two gates of their ``home`` position: a point moved less may
+    still land on the partner it has within the gate of home (one query for all)."""
     moved = np.einsum("kij,nj->kni", R, source) + t[:, None, :]
     keep = np.ones(moved.shape[:2], bool)
     if home is not None:
-        keep = np.linalg.norm(moved - home, axis=2) > gate_radius
+        keep = np.linalg.norm(moved - home, axis=2) > 2.0 * gate_radius
     held = np.zeros(moved.shape[:2], bool)
     if keep.any():
         d, _ = tree.query(moved[keep], distance_upper_bound=gate_radius)
@@ -695,15 +696,18 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     ``gate_radius`` (the model's ``polish_motions``, :func:`gatv.stages.refine`'s
     steps).  A polished rival counts when it moves the inliers by more than
     twice the gate (median) from the polished motion and from each of
-    ``others`` (matrices of motions found beside it, which are not rivals).
+    ``others`` (matrices of motions found beside it, which are not rivals),
+    and its support counts only the source points it puts more than two
+    gates from where the motion puts them (nearer, a point may still land
+    on the motion's own partner).
 
     Returns
     -------
     Rivals
-        Ambiguous when the best rival holds more than the draws do on evenly
-        spread points, and :data:`gatv.scans.RIVAL_SHARE` of the motion's
-        support or enough that the motion does not beat it by three Poisson
-        deviations (:attr:`Rivals.ambiguous`).
+        Ambiguous when the best rival holds more than the draws do from
+        evenly spread source points, and :data:`gatv.scans.RIVAL_SHARE` of
+        the motion's support or enough that the motion does not beat it by
+        three Poisson deviations (:attr:`Rivals.ambiguous`).
     """
     X = problem.source[np.asarray(pairs, np.int64).reshape(-1, 2)[:, 0]]
     if X.shape[0] < 4:
@@ -738,7 +742,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     R, t, _ = problem.model.polish_motions(problem.source, grid, starts[:, :3, :3], starts[:, :3, 3],
                                            stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
     # Every source point where the polished motion puts it; a rival counts only the points it puts
-    # elsewhere (beyond the gate), so a turn keeps no credit for the motion's own pairs near its axis.
+    # elsewhere (beyond two gates), so a turn keeps no credit for the motion's own pairs near its axis.
     home_all = problem.source @ R[-1].T + t[-1]
     own = int(_held(problem.tree, problem.source, R[-1:], t[-1:], gate_radius)[0])
     held = _held(problem.tree, problem.source, R[:n_draws], t[:n_draws], gate_radius, home_all)
@@ -755,15 +759,14 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     found = Rivals(own, best, float(angle), offset, n_draws, None)
     if not found.close:  # the motion beats its best rival whatever the data's structure
         return found
-    # The same draws, polished and counted the same way, against the target's count of points
-    # spread evenly over its box.
-    lo, hi = Y.min(axis=0), Y.max(axis=0)
-    flat = rng.uniform(lo, hi, Y.shape)
-    Re, te, _ = problem.model.polish_motions(problem.source, TargetGrid.of(flat, gate_radius, cell_radii=2.0,
-                                                                           max_side=64),
-                                             starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
+    # The same draws from as many source points spread evenly over the source's box, polished and
+    # counted alike on the target: the target's own density (overlapping objects, dense parts) stays,
+    # what the two sets share (a plane on a plane, core on core, sites on sites) goes.
+    Xs = problem.source
+    flat = rng.uniform(Xs.min(axis=0), Xs.max(axis=0), Xs.shape)
+    Re, te, _ = problem.model.polish_motions(flat, grid, starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
                                              stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
-    even = int(_held(cKDTree(flat), problem.source, Re, te, gate_radius, home_all).max(initial=0))
+    even = int(_held(problem.tree, flat, Re, te, gate_radius).max(initial=0))
     return replace(found, even=even)
 
 

@@ -59,7 +59,6 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import stages
 from ._validation import (
@@ -711,7 +710,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     """
     X = problem.source[np.asarray(pairs, np.int64).reshape(-1, 2)[:, 0]]
     if X.shape[0] < 4:
-        return Rivals(int(X.shape[0]), 0, 0.0, 0.0, 0, 0)
+        return Rivals(int(X.shape[0]), 0, 0.0, 0.0, 0, None)  # no rival drawn, nothing measured
     centre = X.mean(axis=0)
     spread, principal = np.linalg.eigh(np.cov(X.T))
     axes = list(principal.T)

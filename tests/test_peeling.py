@@ -550,6 +550,33 @@ def test_a_time_limit_already_spent_gives_no_motion_and_says_so():
         segment(scene.source, scene.target, time_limit=-1.0)
 
 
+@pytest.mark.parametrize("model", ["similarity", "affine2d"])
+def test_the_time_limit_bounds_a_model_peeled_at_every_noise(model, monkeypatch):
+    """Models without graph grouping are peeled however noisy the data: ``segment(time_limit=)`` reaches
+    that peel's searches (it was dropped, and a similarity segmentation of two unrelated 356-point
+    mixtures ran for 730 s)."""
+    rng = np.random.default_rng(5)
+    dim = 2 if model == "affine2d" else 3
+    X, Y = rng.normal(size=(80, dim)), rng.normal(size=(80, dim))
+    deadlines = []
+
+    def search(problem, levels, *, deadline=None, tried=None, **kw):
+        deadlines.append(deadline)
+        tried.append({"stopped": "time limit", "work": 0.0} if deadline is not None else {"work": 0.0})
+        return None
+
+    monkeypatch.setattr(stages, "search", search)
+    import time
+
+    t0 = time.perf_counter()
+    seg = segment(X, Y, model=model, time_limit=30.0)
+    assert not seg and "time limit (`time_limit`, " in seg.info["reason"]
+    assert len(deadlines) == 1 and t0 + 29.0 < deadlines[0] < t0 + 30.01
+    deadlines.clear()
+    segment(X, Y, model=model, time_limit=None)
+    assert deadlines == [None]
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_polished_trial_motions_bring_in_their_motion_and_wrong_ones_stay_under_chance(seed):
     """LO-RANSAC's polish (stages.polish_trials) at 4% noise: a trial a few degrees off, as a noisy

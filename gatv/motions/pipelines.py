@@ -90,7 +90,8 @@ def segment(
         :func:`gatv.scans.register_surfaces`).
     time_limit : float or None, default: :data:`gatv.registration.TIME_LIMIT`
         Seconds of wall-clock time for the noisy point-set search
-        (``grouping="peel"``, or ``"auto"`` on noisy sets), counted from
+        (``grouping="peel"``, or ``"auto"`` on noisy sets) and for a model
+        peeled at every noise (``"similarity"``, ``"affine2d"``), counted from
         the call; past it the motions found so far are returned and
         ``info["reason"]`` says that the time ran out.  As in
         :func:`gatv.register`, numba's compilation is not counted.
@@ -147,7 +148,10 @@ def segment(
     P = stages.prepare(*(checked or (source, target)), model, validated=checked is not None)
     policy = P.model.search_policy()
     if not policy.graph_grouping or grouping in GROUPINGS or (grouping == "auto" and noise is not None):
-        out = segment_problem(P, noise=noise, grouping="graph" if grouping == "auto" else grouping, **common)
+        # A model without graph grouping is peeled (the time limit bounds that peel).
+        out = segment_problem(P, noise=noise, grouping="graph" if grouping == "auto" else grouping, **common,
+                              time_limit=None if time_limit is None
+                              else max(time_limit - (time.perf_counter() - t_call), 1e-9))
     else:
         out = None
         if grouping == "auto":

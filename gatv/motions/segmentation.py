@@ -507,18 +507,20 @@ def segment_problem(P: Problem, *, max_motions: int | None = None, min_support: 
                     noise: float | None = None, grouping: str = "graph", refine: bool = True,
                     min_inlier_share: float = 0.03, confidence: float = 0.999, max_triples: int | None = None,
                     max_judged: int = 32, sigma: float | None = None, max_candidates: int = 8,
-                    memory_budget: float | None = None, progress=None) -> Segmentation:
+                    memory_budget: float | None = None, progress=None,
+                    time_limit: float | None = None) -> Segmentation:
     """:func:`segment_points` on a prepared :class:`~gatv.stages.Problem` (validated once by its caller).
 
     A model whose :class:`~gatv.models.SearchPolicy` has no
-    ``graph_grouping`` is peeled one motion at a time (:func:`gatv.motions.peel`).
+    ``graph_grouping`` is peeled one motion at a time (:func:`gatv.motions.peel`),
+    within ``time_limit`` seconds (None: no bound) as that peel counts them.
     """
     t_start = time.perf_counter()
     if not P.model.search_policy().graph_grouping:
         return peel(P, max_motions=max_motions, min_support=min_support, seed=seed, noise=noise,
                     refine=refine, min_inlier_share=min_inlier_share, confidence=confidence,
                     max_triples=max_triples, sigma=sigma, max_candidates=max_candidates,
-                    memory_budget=memory_budget, progress=progress)
+                    memory_budget=memory_budget, progress=progress, time_limit=time_limit)
     max_motions = check_int(max_motions, "max_motions", 1, allow_none=True)
     min_support = check_int(min_support, "min_support", 3, allow_none=True)
     noise = check_positive(noise, "noise", allow_none=True)

@@ -75,7 +75,7 @@ from .models.rigid.congruent import TargetGrid, TargetIndex, trial_motions
 from .errors import InputError
 from .ga import Rotor, rotation_angle_deg
 from .models import Motion, apply_matrix, get_model
-from .models.base import MAX_WORK
+from .models.base import MAX_WORK, split_matrix
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 from .stats import samples_needed
@@ -380,7 +380,8 @@ def register(
         ``min_overlap``, ``feature_tol``, ``clutter``; see
         :func:`gatv.scans.register_surfaces`).
     check_rivals : bool, default: True
-        Exact pipeline, rigid model: the motion found must beat its turned
+        Exact pipeline (every model whose policy has ``turned_copies``:
+        rigid, similarity, 2D affine): the motion found must beat its turned
         and shifted copies, polished on the same data (:func:`rival_draws`);
         where the data are structured and a copy holds about as much
         (:attr:`Rivals.ambiguous`: planes laid on planes, dense cores on
@@ -501,10 +502,11 @@ def register(
                 chance_support=int(verdict.chance))
     if policy.rival_check:
         info.update(symmetry_rival(P, fit, tolerance, rng, memory_budget=memory_budget))
+    if policy.turned_copies:
         rivals = rival_draws(P, fit.matrix, fit.correspondences, gate(tolerance), rng)
         info["rivals"] = rivals.to_dict()
         if check_rivals and rivals.ambiguous:
-            if not info["ambiguous"]:
+            if not info.get("ambiguous"):
                 info.update(ambiguous=True, rival={"support": rivals.rival, "best_support": rivals.support,
                                                    "angle_deg": rivals.angle_deg})
             info["verdict"] = {**info["verdict"], "passed": False}  # the search's level, not the answer
@@ -657,6 +659,50 @@ def _turn(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
     return Q
 
 
+def _turn2(degrees: float, centre: np.ndarray) -> np.ndarray:
+    """The 3×3 rotation of the plane by ``degrees`` about ``centre``."""
+    a = np.radians(degrees)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    Q = np.eye(3)
+    Q[:2, :2] = R
+    Q[:2, 2] = centre - R @ centre
+    return Q
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between the rotations of two linear maps (their polar factors: a rotation or a
+    similarity's exactly, an affine map's nearest rotation), degrees."""
+    def polar(m):
+        u, _, vt = np.linalg.svd(m)
+        return u @ vt
+    r = polar(a) @ polar(b).T
+    if r.shape[0] == 2:
+        return float(abs(np.degrees(np.arctan2(r[1, 0], r[0, 0]))))
+    return rotation_angle_deg(r)
+
+
+def _polisher(problem: Problem, gate_radius: float):
+    """``polish(source, starts) -> (linear, translation)``: 4x4 ``starts`` polished by ICP within
+    ``gate_radius`` on ``problem.target`` (:func:`gatv.stages.refine`'s steps): the model's
+    ``polish_motions`` hook, all at once, where it has one; else :func:`gatv.stages.refine` of each."""
+    fast = getattr(problem.model, "polish_motions", None)
+    if fast is not None:
+        grid = TargetGrid.of(problem.target, gate_radius, cell_radii=2.0, max_side=64)
+
+        def polish(source, starts):
+            R, t, _ = fast(source, grid, starts[:, :3, :3], starts[:, :3, 3], stages.POLISH_ROUNDS,
+                           extent=problem.extent, spacing=problem.spacing)
+            return R, t
+        return polish
+
+    def polish(source, starts):
+        on = replace(problem, source=source)
+        none = np.empty((0, 2), np.int64)
+        fits = [stages.refine(on, stages.Fit(T, none), gate_radius, stages.POLISH_ROUNDS).matrix for T in starts]
+        return split_matrix(np.array(fits))
+    return polish
+
+
 def _held(tree, source: np.ndarray, R: np.ndarray, t: np.ndarray, gate_radius: float,
           home: np.ndarray | None = None) -> np.ndarray:
     """For each motion ``(R[k], t[k])``, the points of ``source`` it puts within ``gate_radius`` of a point of
@@ -676,6 +722,10 @@ def _held(tree, source: np.ndarray, R: np.ndarray, t: np.ndarray, gate_radius: f
 def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_radius: float,
                 rng: np.random.Generator, *, others=()) -> Rivals:
     """The motion ``matrix`` against wrong but plausible motions on the same data.
+
+    Any model whose motions are homogeneous matrices in 2D or 3D (turns about
+    the inliers' centroid in the plane; a model without the ``polish_motions``
+    hook is polished by :func:`gatv.stages.refine`).
 
     The Poisson levels of the exact pipeline spread the target evenly over
     a box (or over the density of its other points where the motion
@@ -709,37 +759,40 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
         three Poisson deviations (:attr:`Rivals.ambiguous`).
     """
     X = problem.source[np.asarray(pairs, np.int64).reshape(-1, 2)[:, 0]]
-    if X.shape[0] < 4:
+    d = problem.dim
+    if X.shape[0] < d + 1:
         return Rivals(int(X.shape[0]), 0, 0.0, 0.0, 0, None)  # no rival drawn, nothing measured
     centre = X.mean(axis=0)
     spread, principal = np.linalg.eigh(np.cov(X.T))
-    axes = list(principal.T)
-    for _ in range(RIVAL_AXES):
-        a = rng.normal(size=3)
-        axes.append(a / np.linalg.norm(a))
-    draws = [_turn(a, sign * deg, centre) for a in axes for deg in RIVAL_TURNS
-             for sign in ((1.0,) if deg == 180.0 else (1.0, -1.0))]
-    for k in range(3):
+    signed = [sign * deg for deg in RIVAL_TURNS for sign in ((1.0,) if deg == 180.0 else (1.0, -1.0))]
+    if d == 3:
+        axes = list(principal.T)
+        for _ in range(RIVAL_AXES):
+            a = rng.normal(size=3)
+            axes.append(a / np.linalg.norm(a))
+        draws = [_turn(a, deg, centre) for a in axes for deg in signed]
+    else:  # in the plane: turns about the centroid
+        draws = [_turn2(deg, centre) for deg in signed]
+    for k in range(d):
         for f in RIVAL_SHIFTS:
             for sign in (1.0, -1.0):
-                Q = np.eye(4)
-                Q[:3, 3] = sign * f * np.sqrt(max(float(spread[k]), 0.0)) * principal[:, k]
+                Q = np.eye(d + 1)
+                Q[:d, d] = sign * f * np.sqrt(max(float(spread[k]), 0.0)) * principal[:, k]
                 draws.append(Q)
     M = np.asarray(matrix, np.float64)
     starts = [M @ Q for Q in draws]
     Y = problem.target
     if Y.shape[0] > 1:
-        k = min(7, Y.shape[0])
+        k = min(2 * d + 1, Y.shape[0])  # each point and its 2d nearest (a lattice's neighbours)
         _, near = problem.tree.query(Y[rng.integers(0, Y.shape[0], RIVAL_STEPS)], k=k)
         for row in near:
-            step = np.eye(4)
-            step[:3, 3] = Y[row[rng.integers(1, k)]] - Y[row[0]]
+            step = np.eye(d + 1)
+            step[:d, d] = Y[row[rng.integers(1, k)]] - Y[row[0]]
             starts.append(step @ M)
     n_draws = len(starts)
     starts = np.array(starts + [M])
-    grid = TargetGrid.of(Y, gate_radius, cell_radii=2.0, max_side=64)
-    R, t, _ = problem.model.polish_motions(problem.source, grid, starts[:, :3, :3], starts[:, :3, 3],
-                                           stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
+    polish = _polisher(problem, gate_radius)
+    R, t = polish(problem.source, starts)
     # Every source point where the polished motion puts it; a rival counts only the points it puts
     # elsewhere (beyond two gates), so a turn keeps no credit for the motion's own pairs near its axis.
     home_all = problem.source @ R[-1].T + t[-1]
@@ -754,7 +807,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
         moved = X @ R[k].T + t[k]
         apart = [float(np.median(np.linalg.norm(moved - ref, axis=1))) for ref in refs]
         if min(apart) > 2.0 * gate_radius:
-            best, angle, offset = int(held[k]), rotation_angle_deg(R[k] @ R[-1].T), apart[0]
+            best, angle, offset = int(held[k]), _angle_deg(R[k], R[-1]), apart[0]
     found = Rivals(own, best, float(angle), offset, n_draws, None)
     if not found.close:  # the motion beats its best rival whatever the data's structure
         return found
@@ -763,8 +816,7 @@ def rival_draws(problem: Problem, matrix: np.ndarray, pairs: np.ndarray, gate_ra
     # what the two sets share (a plane on a plane, core on core, sites on sites) goes.
     Xs = problem.source
     flat = rng.uniform(Xs.min(axis=0), Xs.max(axis=0), Xs.shape)
-    Re, te, _ = problem.model.polish_motions(flat, grid, starts[:n_draws, :3, :3], starts[:n_draws, :3, 3],
-                                             stages.POLISH_ROUNDS, extent=problem.extent, spacing=problem.spacing)
+    Re, te = polish(flat, starts[:n_draws])
     even = int(_held(problem.tree, flat, Re, te, gate_radius).max(initial=0))
     return replace(found, even=even)
 

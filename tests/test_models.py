@@ -171,14 +171,16 @@ def test_each_model_returns_its_search_policy():
     assert dict(rigid.trial_options) == RIGID_TRIALS
     assert rigid.trials(0.1) == dict(RIGID_TRIALS, min_share=0.1)
     assert rigid.settle_noise and rigid.rival_check and rigid.small_motion and rigid.scans
-    assert rigid.graph_grouping and rigid.merge_motions and rigid.max_work == MAX_WORK
+    assert rigid.graph_grouping and rigid.merge_motions and rigid.max_work == MAX_WORK and rigid.turned_copies
     for name in ("similarity", "affine2d"):
         p = get_model(name).search_policy()
         assert isinstance(p, SearchPolicy)
         assert p.schedule == NOISE_SCHEDULE and p.max_matches == stages.MAX_MATCHES == 64
         assert p.trials(0.1) is None and not (p.settle_noise or p.rival_check or p.scans or p.graph_grouping)
+        assert p.turned_copies  # every model's motions are held against their copies
     assert get_model("similarity").search_policy().moment_prealign
-    assert get_model("affine2d").search_policy() == DEFAULT_POLICY == SearchPolicy()
+    assert get_model("affine2d").search_policy() == SearchPolicy(turned_copies=True)
+    assert DEFAULT_POLICY == SearchPolicy() and not DEFAULT_POLICY.turned_copies
     assert stages.NOISE_SCHEDULE == NOISE_SCHEDULE and stages.NOISY_SCHEDULE == NOISY_SCHEDULE
     with pytest.raises(TypeError):
         rigid.trial_options["wide"] = 2  # frozen

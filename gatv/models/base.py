@@ -116,6 +116,11 @@ class SearchPolicy:
     rival_check : bool
         Look for a distinct motion explaining the found pairs nearly as
         well (a symmetric set, :func:`gatv.registration.symmetry_rival`).
+    turned_copies : bool
+        Hold each motion found on point sets against its turned and
+        shifted copies (:func:`gatv.registration.rival_draws`; 3D models):
+        ``register`` reports no motion and ``segment`` drops one that a
+        copy explains alike (two unrelated sets with shared structure).
     small_motion : bool
         ``register``'s small-motion mode (``max_angle``) applies.
     scans : bool
@@ -139,6 +144,7 @@ class SearchPolicy:
     settle_noise: bool = False
     max_work: float | None = None
     rival_check: bool = False
+    turned_copies: bool = False
     small_motion: bool = False
     scans: bool = False
     graph_grouping: bool = False
@@ -151,7 +157,8 @@ class SearchPolicy:
 
     def __hash__(self) -> int:
         return hash((self.schedule, self.max_matches, tuple(sorted(self.trial_options.items())),
-                     self.settle_noise, self.max_work, self.rival_check, self.small_motion, self.scans,
+                     self.settle_noise, self.max_work, self.rival_check, self.turned_copies, self.small_motion,
+                     self.scans,
                      self.graph_grouping, self.merge_motions, self.moment_prealign))
 
     def trials(self, min_share: float) -> dict | None:

@@ -440,8 +440,9 @@ class Similarity:
 
 
 #: The similarity's search: the defaults (tolerances up to 5% of the
-#: spacing, grown while the support grows), and principal axes as
+#: spacing, grown while the support grows), each motion held against its
+#: turned and shifted copies, and principal axes as
 #: :func:`gatv.nonrigid.register`'s fallback pre-alignment.
-POLICY = SearchPolicy(moment_prealign=True)
+POLICY = SearchPolicy(turned_copies=True, moment_prealign=True)
 
 MODEL = Similarity()

@@ -176,7 +176,7 @@ def segment(
         if grouping == "auto":
             out.info["probe_s"] = probe_s
     out.info.update(pipeline="exact", pipeline_reason=why)
-    if policy.rival_check:
+    if policy.turned_copies:
         out = drop_ambiguous(P, out, as_rng(seed))
     return out
 

@@ -46,7 +46,7 @@ from ..._validation import as_points, check_memory
 from ..rigid.congruent import TrialPool, accept_level
 from ...errors import InputError
 from ...stats import chance_support
-from ..base import DEFAULT_POLICY, Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
+from ..base import Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
 from ..rigid import check_dimension, check_spread
 
 __all__ = ["Affine2D", "Affine2DMotion", "AffineIndex", "MODEL", "fit_affine", "Affine2DTrials"]
@@ -348,8 +348,12 @@ class Affine2D:
         return Affine2DMotion(matrix[:2, :2], matrix[:2, 2], correspondences, score, rms, info)
 
     def search_policy(self) -> SearchPolicy:
-        """The defaults: :data:`gatv.models.base.NOISE_SCHEDULE`, motions peeled one at a time."""
-        return DEFAULT_POLICY
+        """:data:`POLICY`."""
+        return POLICY
 
+
+#: The 2D affine search: the defaults (:data:`gatv.models.base.NOISE_SCHEDULE`, motions peeled one at
+#: a time), each motion held against its turned and shifted copies.
+POLICY = SearchPolicy(turned_copies=True)
 
 MODEL = Affine2D()

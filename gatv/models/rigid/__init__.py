@@ -44,11 +44,11 @@ RIGID_TRIALS = {"wide": WIDE, "max_enumerated": MAX_ENUMERATED, "sequential": Tr
 
 #: The rigid model's search: the tolerances continued to real sensors'
 #: noise, which is measured on each motion found; many matches a triple,
-#: ranked by wide draws; the symmetry rival; the small-motion mode, the
-#: scans pipeline and the graph grouping of section 5.
+#: ranked by wide draws; the symmetry rival and turned copies; the
+#: small-motion mode, the scans pipeline and the graph grouping of section 5.
 POLICY = SearchPolicy(schedule=NOISY_SCHEDULE, max_matches=NOISY_MAX_MATCHES, trial_options=RIGID_TRIALS,
-                      settle_noise=True, max_work=MAX_WORK, rival_check=True, small_motion=True, scans=True,
-                      graph_grouping=True, merge_motions=True)
+                      settle_noise=True, max_work=MAX_WORK, rival_check=True, turned_copies=True,
+                      small_motion=True, scans=True, graph_grouping=True, merge_motions=True)
 
 
 def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | None = None) -> None:

@@ -36,7 +36,10 @@ Null pairs (``--pairs``):
 
 Pipelines (``--methods``): ``register`` (``gatv.register``, its automatic
 pipeline choice), ``segment`` (``gatv.motions.segment``, found = at least
-one motion), ``nonrigid`` (``gatv.nonrigid.register`` on at most 5,000
+one motion; both of ``--model``, default ``rigid``: ``similarity`` runs
+the point-set kinds ``random``, ``blobs`` and ``structured`` at
+``--sizes`` up to 2,000, without true pairs; ``affine2d`` the same kinds
+in the plane: a line and a blob, a planar lattice, thin 2D clouds), ``nonrigid`` (``gatv.nonrigid.register`` on at most 5,000
 points a set) and ``catadioptric`` (``catadioptric.match`` on two
 independent uniform pixel sets of the Mei camera's image; found = any
 motion).
@@ -55,7 +58,7 @@ Usage::
 
     python benchmarks/null_pairs.py [--methods register,segment,nonrigid,catadioptric]
                                     [--pairs objects,halves,random,planes,blobs,structured,cropped]
-                                    [--sizes 1000,20000]
+                                    [--sizes 1000,20000] [--model rigid|similarity|affine2d]
                                     [--true/--no-true] [--seed 0] [--out benchmarks/results]
 """
 
@@ -90,19 +93,20 @@ STRUCTURED_SEEDS = (("plane and blob", 2002), ("plane and blob", 2004), ("lattic
                     ("thin cloud", 2003), ("thin cloud", 2004))
 
 
-def _plane_and_blob(rng: np.random.Generator, n: int) -> np.ndarray:
+def _plane_and_blob(rng: np.random.Generator, n: int, dim: int = 3) -> np.ndarray:
+    """Half the points on a plane (a line in 2D), half in a blob."""
     m = n // 2
-    plane = np.column_stack([rng.uniform(-6, 6, (m, 2)), rng.normal(0, 0.05, m)])
-    return np.vstack([plane, rng.normal(0, 1.5, (n - m, 3)) + rng.uniform(-4, 4, 3)])
+    plane = np.column_stack([rng.uniform(-6, 6, (m, dim - 1)), rng.normal(0, 0.05, m)])
+    return np.vstack([plane, rng.normal(0, 1.5, (n - m, dim)) + rng.uniform(-4, 4, dim)])
 
 
-def _lattice(rng: np.random.Generator, n: int) -> np.ndarray:
-    return rng.integers(-4, 5, (n, 3)).astype(float) * 1.5 + rng.normal(0, 0.05, (n, 3))
+def _lattice(rng: np.random.Generator, n: int, dim: int = 3) -> np.ndarray:
+    return rng.integers(-4, 5, (n, dim)).astype(float) * 1.5 + rng.normal(0, 0.05, (n, dim))
 
 
-def _thin_cloud(rng: np.random.Generator, n: int) -> np.ndarray:
-    shape = rng.normal(0, 1, (3, 3)) * np.array([6.0, 2.0, 0.4])
-    return rng.normal(0, 1, (n, 3)) @ shape.T
+def _thin_cloud(rng: np.random.Generator, n: int, dim: int = 3) -> np.ndarray:
+    shape = rng.normal(0, 1, (dim, dim)) * (np.array([6.0, 2.0, 0.4]) if dim == 3 else np.array([6.0, 0.4]))
+    return rng.normal(0, 1, (n, dim)) @ shape.T
 
 
 STRUCTURES = {"plane and blob": _plane_and_blob, "lattice": _lattice, "thin cloud": _thin_cloud}
@@ -162,7 +166,7 @@ def cropped_pairs(seed: int):
     return out
 
 
-def null_pairs(kinds, sizes, rng, seed: int = 0):
+def null_pairs(kinds, sizes, rng, seed: int = 0, dim: int = 3):
     """``(name, source, target)`` of each null pair asked for."""
     out = []
     if "objects" in kinds:
@@ -185,7 +189,7 @@ def null_pairs(kinds, sizes, rng, seed: int = 0):
             print(f"halves: skipped ({exc})", file=sys.stderr)
     if "random" in kinds:
         for n in sizes:
-            out.append((f"random {n}", rng.uniform(0, 10, (n, 3)), rng.uniform(0, 10, (n, 3))))
+            out.append((f"random {n}", rng.uniform(0, 10, (n, dim)), rng.uniform(0, 10, (n, dim))))
     if "planes" in kinds:
         def square(n):
             return np.column_stack([rng.uniform(0, 10, (n, 2)), np.zeros(n)])
@@ -194,13 +198,13 @@ def null_pairs(kinds, sizes, rng, seed: int = 0):
         for s in BLOB_SEEDS:
             r = np.random.default_rng(s)
             n1, n2 = r.integers(100, 400, 2)
-            out.append((f"gaussian blobs {n1}/{n2}", r.normal(0, 3, (n1, 3)), r.normal(0, 3, (n2, 3))))
+            out.append((f"gaussian blobs {n1}/{n2}", r.normal(0, 3, (n1, dim)), r.normal(0, 3, (n2, dim))))
     if "structured" in kinds:
         for kind, seed in STRUCTURED_SEEDS:
             r = np.random.default_rng(seed)
             n1, n2 = r.integers(120, 400, 2)
-            a = STRUCTURES[kind](r, n1)
-            out.append((f"{kind} {n1}/{n2}", a, STRUCTURES[kind](r, n2)))
+            a = STRUCTURES[kind](r, n1, dim)
+            out.append((f"{kind} {n1}/{n2}", a, STRUCTURES[kind](r, n2, dim)))
     if "cropped" in kinds:
         try:
             out += cropped_pairs(seed)
@@ -237,17 +241,24 @@ def _verdict(info: dict) -> tuple[str, str, str]:
     return str(int(v["support"])), f"{v['chance']:.0f}", str(polished)
 
 
-def run_null(method: str, source, target, seed: int) -> dict:
+#: Models ``--model`` takes, and the null kinds each runs (the similarity model has no scans pipeline).
+MODELS = {"rigid": PAIRS, "similarity": ("random", "blobs", "structured"),
+          "affine2d": ("random", "blobs", "structured")}
+#: Largest ``--sizes`` entry for a model other than the rigid one (the exact pipeline on every point).
+MAX_SIZE_OTHER = 2000
+
+
+def run_null(method: str, source, target, seed: int, model: str = "rigid") -> dict:
     t0 = time.perf_counter()
     if method == "register":
         from gatv import register
 
-        m = register(source, target, seed=seed)
+        m = register(source, target, seed=seed, model=model)
         found, info = bool(m), m.info
     elif method == "segment":
         from gatv.motions import segment
 
-        s = segment(source, target, seed=seed)
+        s = segment(source, target, seed=seed, model=model)
         found, info = len(s.motions) > 0, dict(s.info)
         if s.motions:
             info = dict(s.motions[0].info)
@@ -302,15 +313,24 @@ def main(argv=None) -> int:
     parser.add_argument("--pairs", type=parse_list(str), default=list(DEFAULT_PAIRS))
     parser.add_argument("--sizes", type=parse_list(int), default=[1000, 20000])
     parser.add_argument("--true", action=argparse.BooleanOptionalAction, default=True)
+    parser.add_argument("--model", choices=sorted(MODELS), default="rigid",
+                        help="the motion model of register and segment (default: rigid)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     bad = sorted(set(args.methods) - set(METHODS)) + sorted(set(args.pairs) - set(PAIRS))
     if bad:
         parser.error(f"unknown --methods/--pairs {bad}; choose from {METHODS} and {PAIRS}")
+    if args.model != "rigid":
+        wrong = sorted(set(args.methods) - {"register", "segment"}) + sorted(set(args.pairs) - set(MODELS[args.model]))
+        if wrong:
+            parser.error(f"--model {args.model} runs --methods register,segment on --pairs "
+                         f"{','.join(MODELS[args.model])}; drop {wrong}")
+        if "random" in args.pairs and max(args.sizes) > MAX_SIZE_OTHER:
+            parser.error(f"--model {args.model} takes --sizes up to {MAX_SIZE_OTHER}; pass e.g. --sizes 1000")
     rng = np.random.default_rng(args.seed)
     rows = []
-    nulls = null_pairs(args.pairs, args.sizes, rng, args.seed)
+    nulls = null_pairs(args.pairs, args.sizes, rng, args.seed, dim=2 if args.model == "affine2d" else 3)
     for method in args.methods:
         if method == "catadioptric":
             rows += run_catadioptric(args.seed)
@@ -318,10 +338,10 @@ def main(argv=None) -> int:
         for name, source, target in nulls:
             if method == "nonrigid" and name.startswith("planes"):
                 continue  # a non-rigid motion may fold a plane onto a plane: not a null pair for it
-            r = run_null(method, source, target, args.seed)
+            r = run_null(method, source, target, args.seed, args.model)
             rows.append({"pipeline": method, "pair": name, "kind": "null", **r})
             print(f"{method:9s} {name:26s} found={r['found']} {r['seconds']:.1f}s", file=sys.stderr, flush=True)
-    if args.true and "register" in args.methods:
+    if args.true and "register" in args.methods and args.model == "rigid":
         from gatv import register
         from gatv.datasets import rotation_error_deg
 

@@ -682,7 +682,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _polisher(problem: Problem, gate_radius: float):
-    """``polish(source, starts) -> (linear, translation)``: 4x4 ``starts`` polished by ICP within
+    """``polish(source, starts) -> (linear, translation)``: homogeneous ``starts`` polished by ICP within
     ``gate_radius`` on ``problem.target`` (:func:`gatv.stages.refine`'s steps): the model's
     ``polish_motions`` hook, all at once, where it has one; else :func:`gatv.stages.refine` of each."""
     fast = getattr(problem.model, "polish_motions", None)

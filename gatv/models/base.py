@@ -118,7 +118,7 @@ class SearchPolicy:
         well (a symmetric set, :func:`gatv.registration.symmetry_rival`).
     turned_copies : bool
         Hold each motion found on point sets against its turned and
-        shifted copies (:func:`gatv.registration.rival_draws`; 3D models):
+        shifted copies (:func:`gatv.registration.rival_draws`; 2D or 3D):
         ``register`` reports no motion and ``segment`` drops one that a
         copy explains alike (two unrelated sets with shared structure).
     small_motion : bool
@@ -158,8 +158,7 @@ class SearchPolicy:
     def __hash__(self) -> int:
         return hash((self.schedule, self.max_matches, tuple(sorted(self.trial_options.items())),
                      self.settle_noise, self.max_work, self.rival_check, self.turned_copies, self.small_motion,
-                     self.scans,
-                     self.graph_grouping, self.merge_motions, self.moment_prealign))
+                     self.scans, self.graph_grouping, self.merge_motions, self.moment_prealign))
 
     def trials(self, min_share: float) -> dict | None:
         """:attr:`trial_options` with ``min_share`` added, or None when the model has none."""

@@ -39,8 +39,8 @@ pipeline choice), ``segment`` (``gatv.motions.segment``, found = at least
 one motion; both of ``--model``, default ``rigid``: ``similarity`` runs
 the point-set kinds ``random``, ``blobs`` and ``structured`` at
 ``--sizes`` up to 2,000, without true pairs; ``affine2d`` the same kinds
-in the plane: a line and a blob, a planar lattice, thin 2D clouds), ``nonrigid`` (``gatv.nonrigid.register`` on at most 5,000
-points a set) and ``catadioptric`` (``catadioptric.match`` on two
+in the plane: a line and a blob, a planar lattice, thin 2D clouds),
+``nonrigid`` (``gatv.nonrigid.register`` on at most 5,000 points a set) and ``catadioptric`` (``catadioptric.match`` on two
 independent uniform pixel sets of the Mei camera's image; found = any
 motion).
 
@@ -322,7 +322,8 @@ def main(argv=None) -> int:
     if bad:
         parser.error(f"unknown --methods/--pairs {bad}; choose from {METHODS} and {PAIRS}")
     if args.model != "rigid":
-        wrong = sorted(set(args.methods) - {"register", "segment"}) + sorted(set(args.pairs) - set(MODELS[args.model]))
+        wrong = sorted(set(args.methods) - {"register", "segment"})
+        wrong += sorted(set(args.pairs) - set(MODELS[args.model]))
         if wrong:
             parser.error(f"--model {args.model} runs --methods register,segment on --pairs "
                          f"{','.join(MODELS[args.model])}; drop {wrong}")

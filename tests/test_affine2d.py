@@ -10,13 +10,14 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from gatv.models.affine2d import kernels as K
-from gatv import stages
+from gatv import register, stages
 from gatv.models.rigid.congruent import TrialMotions
 from gatv.errors import InputError
 from gatv.models import MotionModel, get_model
 from gatv.models.affine2d import MODEL, Affine2DMotion, fit_affine
 from gatv.models.base import homogeneous
 from gatv.motions import segment
+from gatv.registration import rival_draws
 
 
 # ------------------------------------------------------------------ scenes
@@ -282,8 +283,6 @@ def test_two_samples_of_one_lattice_give_no_affine_map():
     rng = np.random.default_rng(4001)
     n = int(rng.integers(100, 300))
     x, y = _lattice_sites(rng, n), _lattice_sites(rng, n)
-    from gatv import register
-
     m = register(x, y, model="affine2d", seed=0)
     assert not m and m.info["reason"].startswith("ambiguous: a motion") and m.info["rivals"]["ambiguous"]
     assert register(x, y, model="affine2d", seed=0, check_rivals=False)  # the lay the copies explain
@@ -308,9 +307,6 @@ def test_a_true_affine_map_of_a_line_and_a_blob_is_not_its_copies(seed):
     t = rng.uniform(-10, 10, 2)
     y = x @ A.T + t
     y = np.vstack([y, rng.uniform(y.min(axis=0), y.max(axis=0), (n // 2, 2))])
-    from gatv import register
-    from gatv.registration import rival_draws
-
     P = stages.prepare(x, y, MODEL)
     true = np.column_stack([np.arange(n), np.arange(n)])
     for tol in stages.tolerance_levels(P, None):

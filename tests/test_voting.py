@@ -11,7 +11,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from numba import njit
 from scipy.stats import rankdata
@@ -191,7 +191,9 @@ def test_a_dense_cluster_votes_in_private_chunks_as_in_race_free_ones(seed, n, s
     p = np.vstack([rng.normal(0.0, spread, (n, 3)), rng.normal(0.0, spread, (n // 3, 2)) @ [[1, 0, 0], [0, 1, 0]]])
     sigma = 0.5
     grid = api.Engine(p, sigma)
-    assert grid.cb_private is not None  # the case this test is about
+    # The case this test is about (a loose cluster of a few hundred points, spread 0.5, may vote
+    # race-free: seed 1, n = 395).
+    assume(grid.cb_private is not None)
     private = extract_surfaces(p, sigma)
     threads = get_num_threads()
     set_num_threads(1)

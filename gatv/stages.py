@@ -1297,13 +1297,30 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
         # ones), and the final level's (every match the budget scores).
         n_judge_tests = threshold_tests * (judged_wrong or 1.0)
         n_final = threshold_tests * float(budget) * max_matches
+        # The first round's chunks (FIRST_CHUNK samples a level) only measure each level's cost, so
+        # its work is not equal across levels: a motion a level finds there waits until every finer
+        # level has had as much work (a finer level's motion wins).  Later rounds share work equally.
+        pending: tuple[int, Found] | None = None
+        first_round = True
+
+        def behind(upto):
+            if not first_round and pending is None:
+                return []
+            return [lv for lv in range(upto) if done[lv] < caps[lv] and records[lv]["work"] < records[upto]["work"]]
+
         while any(d < c for d, c in zip(done, caps)):
+            if pending is not None and not behind(pending[0]):
+                return pending[1]
             measured = [p for p, rec in zip(per_triple, records) if rec["triples"] > 0]
             share = max(SEARCH_SHARE, MIN_CHUNK * max(measured, default=0.0))
             for level, tol in enumerate(levels):
                 if done[level] >= caps[level]:
                     continue
+                if pending is not None and level not in behind(pending[0]):
+                    continue
                 if max_work is not None and work >= max_work:
+                    if pending is not None:
+                        return pending[1]
                     if tried is not None:
                         tried.append({"stopped": "work bound", "work": work, "max_work": float(max_work)})
                     return None
@@ -1313,6 +1330,8 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         slowest = max(slowest, now - last_check)
                     last_check = now
                     if now + slowest >= deadline:
+                        if pending is not None:
+                            return pending[1]
                         if tried is not None:
                             tried.append({"stopped": "time limit", "work": work})
                         return None
@@ -1405,9 +1424,14 @@ def search(problem: Problem, levels, *, budget: int, rng: np.random.Generator, k
                         fit, grown = grow_tolerance(problem, fit, levels, level)
                         tol = levels[grown]
                     n_tested = n_final if final > threshold else n_judge_tests
-                    return Found(fit, tol, judged, int(trials.support[k]), int(final), float(n_tested), g,
-                                 passed if final > threshold else None)
-        return None
+                    found = Found(fit, tol, judged, int(trials.support[k]), int(final), float(n_tested), g,
+                                  passed if final > threshold else None)
+                    if not behind(level):
+                        return found
+                    pending = (level, found)
+                    break
+            first_round = False
+        return None if pending is None else pending[1]
 
 
 # ------------------------------------------------------------------ verdict

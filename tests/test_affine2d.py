@@ -318,6 +318,21 @@ def test_a_true_affine_map_of_a_line_and_a_blob_is_not_its_copies(seed):
         assert register(x, y, model="affine2d", seed=0)
 
 
+def test_an_exact_map_of_lattice_sites_is_found_not_a_lattice_shear():
+    """The round robin's first round measures each tolerance's cost on two samples; the coarsest
+    level accepted a 21-pair map a lattice shear away from the true one (all 150 pairs) before the
+    exact level had had as much work.  A first-round motion now waits for the finer levels."""
+    rng = np.random.default_rng(31)
+    x = np.unique(_lattice_sites(rng, 150).round(6), axis=0)
+    A = rng.normal(size=(2, 2)) + 1.5 * np.eye(2)
+    if abs(np.linalg.det(A)) < 0.3:
+        A += np.eye(2)
+    y = x @ A.T + rng.uniform(-10, 10, 2)
+    y = np.vstack([y, rng.uniform(y.min(axis=0), y.max(axis=0), (x.shape[0] // 2, 2))])
+    m = register(x, y, model="affine2d", seed=0)
+    assert m.support == x.shape[0] and np.abs(m.linear - A).max() < 1e-9
+
+
 def test_image_feature_tracks_two_planar_regions():
     X, Y, maps, pairs = image_pair(noise=0.3)
     seg = segment(X, Y, model="affine2d", seed=0, noise=0.3)

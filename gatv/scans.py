@@ -86,6 +86,7 @@ __all__ = [
     "SurfaceProjection",
     "SurfaceTokens",
     "local_scatter",
+    "match_points",
     "match_surfaces",
     "matching_voxel",
     "plane_noise",
@@ -98,6 +99,7 @@ __all__ = [
     "scan_noise",
     "spatial_order",
     "surface_points",
+    "surface_rows",
     "surface_support",
     "surface_tokens",
     "surface_verdict",
@@ -508,13 +510,15 @@ class SurfaceTokens:
     points : (N, 3) ndarray
         The scan's points, projected onto its surface when ``projection`` is not None.
     rows : (K,) ndarray of int
-        Rows of ``points`` on salient surfaces (all of them without clutter removal), ascending.
+        Rows of ``points`` on salient surfaces (without clutter removal: all of them, or ``sampled``), ascending.
     normals : (K, 3) ndarray or None
         Their unit normals (None without clutter removal or projection: none computed).
     noise : ScanNoise
     projection : SurfaceProjection or None
     voted : int
         Points tensor voting ran on (each vote counted).
+    sampled : (M,) ndarray of int or None
+        The rows the pipeline worked on (:func:`vote_sample`), ascending; None: every row.
     """
 
     points: np.ndarray
@@ -523,6 +527,7 @@ class SurfaceTokens:
     noise: ScanNoise
     projection: SurfaceProjection | None
     voted: int = 0
+    sampled: np.ndarray | None = None
 
 
 #: Most points of a scan that tensor voting, and so the whole scans pipeline past its noise, works on
@@ -530,15 +535,17 @@ class SurfaceTokens:
 VOTE_POINTS = 60000
 
 
-def vote_sample(n: int, seed: int = 0) -> np.ndarray | None:
-    """The rows of an ``n``-point scan that :func:`surface_points` votes on (None: all of them)."""
-    if n <= VOTE_POINTS:
+def vote_sample(n: int, seed: int = 0, max_points: int = VOTE_POINTS) -> np.ndarray | None:
+    """The rows of an ``n``-point scan that :func:`surface_points` votes on when it votes on at most
+    ``max_points`` (None: all of them)."""
+    if n <= max_points:
         return None
-    return np.sort(np.random.default_rng(seed).choice(n, VOTE_POINTS, replace=False))
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
 
 
 def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
-                   memory_budget: float | None = None, all_points: bool = True) -> SurfaceTokens:
+                   memory_budget: float | None = None, all_points: bool = True,
+                   max_points: int = VOTE_POINTS) -> SurfaceTokens:
     """Stage 1 of :func:`register_surfaces` for one scan: its noise, its surface, its points on salient surfaces.
 
     Tensor voting keeps the points on salient surfaces (``clutter=True``;
@@ -551,30 +558,36 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     scan of more than :data:`VOTE_POINTS` points (:func:`vote_sample`; the
     others stay as given in ``points``), which are all that ``rows`` can
     hold: the same ``rows`` and the same points there, at a cost that stops
-    growing with the scan beyond its noise (a 128-neighbour fit a point).
+    growing with the scan beyond its noise (a 128-neighbour fit a point);
+    without ``clutter``, ``rows`` are then that sample too.
+
+    ``max_points``: the most rows voted on (and, with ``all_points=False``,
+    projected and kept); a larger scan is sampled (:func:`vote_sample`, its
+    rows in ``sampled``).
     """
     n = points.shape[0]
     voted = 0
+    sample = vote_sample(n, seed, max_points)
     if clutter:
-        rows, normals = surface_points(points, seed=seed, max_points=VOTE_POINTS, memory_budget=memory_budget)
-        voted += min(n, VOTE_POINTS)
+        rows, normals = surface_points(points, seed=seed, max_points=max_points, memory_budget=memory_budget)
+        voted += min(n, max_points)
     else:
-        rows, normals = np.arange(n), None
+        rows, normals = (np.arange(n) if all_points or sample is None else sample), None
     noise = scan_noise(points, at=rows, seed=seed)
-    sample = vote_sample(n, seed) if clutter and not all_points else None
-    projection = project_to_surface(points, noise, seed=seed, rows=sample)
+    projected = None if all_points else sample
+    projection = project_to_surface(points, noise, seed=seed, rows=projected)
     if projection is not None:
-        if sample is None:
+        if projected is None:
             points = projection.points
         else:
             points = np.array(points, dtype=np.float64)
-            points[sample] = projection.points
+            points[projected] = projection.points
         if clutter:
-            rows, normals = surface_points(points, seed=seed, max_points=VOTE_POINTS, memory_budget=memory_budget)
-            voted += min(n, VOTE_POINTS)
+            rows, normals = surface_points(points, seed=seed, max_points=max_points, memory_budget=memory_budget)
+            voted += min(n, max_points)
         else:
-            normals = projection.normals
-    return SurfaceTokens(points, rows, normals, noise, projection, voted)
+            normals = projection.normals  # of every row, or of the sample's (then ``rows``)
+    return SurfaceTokens(points, rows, normals, noise, projection, voted, None if all_points else sample)
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
@@ -722,7 +735,8 @@ def register_surfaces(
         Points left in the target after voxel downsampling; sets the voxel
         size when ``voxel`` is not given (at least :data:`SAMPLING_VOXELS`
         point spacings of the more coarsely sampled scan, see
-        :func:`matching_voxel`).
+        :func:`matching_voxel`), and the rows of each scan the stages past
+        its noise work on (:func:`match_points`: 15,000 at the default).
     voxel : float, optional
         Voxel size (data units); the matching tolerance scale.
     seed : int or numpy.random.Generator, default: 0
@@ -765,9 +779,13 @@ def register_surfaces(
         :func:`plane_noise`).  ``work``: the points each step handled,
         both scans together (``input``; ``noise``, ``projection``: points
         put into k-d trees plus neighbours fitted; ``vote``: points voted
-        on; ``match``: the surface points the matching stages take), which
-        grow no faster than the scans (and stop growing past
-        :data:`VOTE_POINTS` a scan but for ``input`` and ``noise``).
+        on; ``match``: the surface points the matching stages take; ``output``,
+        for scans past :func:`match_points`: the points of the whole scans whose
+        pairs are counted), which grow no faster than the scans (and stop
+        growing past :func:`match_points` a scan but for ``input``, ``noise``
+        and ``output``).  Scans of more points than :func:`match_points`
+        (``n_points``) are voted on, matched and judged on a random sample
+        of that many rows each (:data:`MATCH_POINTS_PER_CELL`).
     """
     t0 = _clock()
     X = RIGID.check_points(source, "source")
@@ -783,8 +801,13 @@ def register_surfaces(
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
 
     report(0.0, "surface tokens")
-    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False)
-    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False)
+    # Past its noise each scan is voted on, matched and judged on a sample of at most `cap` rows; only the
+    # output's pairs count every point (surface_rows).
+    cap = match_points(n_points)
+    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
+                        max_points=cap)
+    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
+                        max_points=cap)
     ix, iy = tx.rows, ty.rows
     Xs, Ys = tx.points[ix], ty.points[iy]
     nys = ty.normals if ty.normals is not None else _normals(Ys)
@@ -797,7 +820,7 @@ def register_surfaces(
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
     # Points each step handled, summed over both scans: what grows with the scans' size (the matching
-    # past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples of them).
+    # past the voxel grid works on at most match_points(n_points) surface points a scan, and samples of them).
     info["work"] = {
         "input": int(X.shape[0] + Y.shape[0]),
         "noise": int(tx.noise.work + ty.noise.work),
@@ -823,14 +846,73 @@ def register_surfaces(
         return stages.failure(RIGID, (f"degenerate: the {on.shape[0]} supporting points lie on one plane "
                                       f"(thickness {flat:.3g}, residual {residual:.3g}), along which any slide "
                                       "fits as well"), info)
-    # Correspondences index the input points.
-    kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
+    # Correspondences index the input points: every point of each scan on its surface, sampled or not.
+    if tx.sampled is None and ty.sampled is None:
+        kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
+    else:
+        sx, sy = (surface_rows(tk, clutter=clutter) for tk in (tx, ty))
+        whole = stages.nearest_pairs(tx.points[sx] @ match.rotation.T + match.translation, KDTree(ty.points[sy]),
+                                     match.gate)
+        kept = np.stack([sx[whole[:, 0]], sy[whole[:, 1]]], axis=1)
+        info["work"]["output"] = int(sx.shape[0] + sy.shape[0])
     info.update(noise=noise, thickness=flat,
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,
                 projected=tuple(0 if t.projection is None else t.projection.neighbours for t in (tx, ty)),
                 time_s=time.perf_counter() - t0[0], cpu_s=time.process_time() - t0[1])
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
+
+
+#: Points of each scan that :func:`register_surfaces` votes on, matches and judges, per target cell of its
+#: matching grid (``n_points``; at most :data:`VOTE_POINTS`): a larger scan works on a random sample of that
+#: many rows (:func:`vote_sample`) and only its output pairs count every point (:func:`surface_rows`).  At 25
+#: points a cell (about five along a voxel's side of a surface), the verdict's neighbourhoods
+#: (:data:`VERDICT_NEIGHBOURS` points) stay within about one voxel and the final gate (three of the
+#: sample's spacings) under one: the resolution the search matched at.  Design notes, section 6, "Speed:
+#: each scan sampled to its matching grid".
+MATCH_POINTS_PER_CELL = 25
+
+
+def match_points(n_points: int) -> int:
+    """Rows of a scan :func:`register_surfaces` works on for a matching grid of ``n_points`` target cells."""
+    return int(min(VOTE_POINTS, MATCH_POINTS_PER_CELL * n_points))
+
+
+def surface_rows(tokens: SurfaceTokens, *, clutter: bool = True) -> np.ndarray:
+    """The rows of a whole scan on its surface, ascending: ``tokens.rows``, and of the rows its vote did
+    not sample (``tokens.sampled``) those on the surface the kept rows sample (every row without
+    ``clutter``).
+
+    A row is on it when its nearest kept row ``q`` lies within :data:`SURFACE_REACH` times the kept rows'
+    median spacing ``s`` (a point of a surface sampled at random lies that close to the sample with
+    probability ``1 - 2^-9``) and its height over ``q``'s tangent plane (``tokens.normals``) is within
+    ``s`` plus three of the scan's noise deviations (``tokens.noise``): clutter counts only where it
+    touches the surface, as the vote keeps it.
+    """
+    n = tokens.points.shape[0]
+    if tokens.sampled is None:
+        return tokens.rows
+    if not clutter or tokens.normals is None:
+        return np.arange(n)
+    rest = np.ones(n, dtype=bool)
+    rest[tokens.sampled] = False
+    rest = np.flatnonzero(rest)
+    if tokens.rows.size < 2 or rest.size == 0:
+        return tokens.rows
+    tree = KDTree(tokens.points[tokens.rows])
+    s = median_spacing(tree.points, tree=tree)
+    p = tokens.points[rest]
+    j = tree.nearest(p, SURFACE_REACH * s)
+    near = np.flatnonzero(j >= 0)
+    height = np.abs(np.einsum("ij,ij->i", p[near] - tree.points[j[near]], tokens.normals[j[near]]))
+    on = np.zeros(n, dtype=bool)
+    on[tokens.rows] = True
+    on[rest[near[height <= s + 3.0 * tokens.noise.sigma]]] = True
+    return np.flatnonzero(on)
+
+
+#: :func:`surface_rows`' reach, in the kept rows' median spacings.
+SURFACE_REACH = 3.0
 
 
 #: A motion's supporting points lie on one plane (and the motion can slide

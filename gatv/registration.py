@@ -75,7 +75,7 @@ from .models.rigid.congruent import TargetGrid, TargetIndex, trial_motions
 from .errors import InputError
 from .ga import Rotor, rotation_angle_deg
 from .models import Motion, apply_matrix, get_model
-from .models.base import MAX_WORK, split_matrix
+from .models.base import MAX_WORK
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 from .stats import samples_needed
@@ -683,23 +683,16 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def _polisher(problem: Problem, gate_radius: float):
     """``polish(source, starts) -> (linear, translation)``: homogeneous ``starts`` polished by ICP within
-    ``gate_radius`` on ``problem.target`` (:func:`gatv.stages.refine`'s steps): the model's
-    ``polish_motions`` hook, all at once, where it has one; else :func:`gatv.stages.refine` of each."""
-    fast = getattr(problem.model, "polish_motions", None)
-    if fast is not None:
-        grid = TargetGrid.of(problem.target, gate_radius, cell_radii=2.0, max_side=64)
-
-        def polish(source, starts):
-            R, t, _ = fast(source, grid, starts[:, :3, :3], starts[:, :3, 3], stages.POLISH_ROUNDS,
-                           extent=problem.extent, spacing=problem.spacing)
-            return R, t
-        return polish
+    ``gate_radius`` on ``problem.target`` (:func:`gatv.stages.polished_motions`: all at once where the
+    model has the ``polish_motions`` hook, on one grid of the target for every call)."""
+    grid = (TargetGrid.of(problem.target, gate_radius, cell_radii=2.0, max_side=64)
+            if getattr(problem.model, "polish_motions", None) is not None else None)
+    d = problem.dim
 
     def polish(source, starts):
-        on = replace(problem, source=source)
-        none = np.empty((0, 2), np.int64)
-        fits = [stages.refine(on, stages.Fit(T, none), gate_radius, stages.POLISH_ROUNDS).matrix for T in starts]
-        return split_matrix(np.array(fits))
+        linear, shift, _ = stages.polished_motions(replace(problem, source=source), starts[:, :d, :d],
+                                                   starts[:, :d, d], gate_radius, grid)
+        return linear, shift
     return polish
 
 

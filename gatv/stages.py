@@ -28,7 +28,7 @@ from scipy.stats import chi
 
 from .candidates import median_spacing, one_to_one
 from .models import Motion, MotionModel, apply_matrix, get_model, split_matrix
-from .models.base import MAX_MATCHES, NOISE_SCHEDULE, NOISY_SCHEDULE
+from .models.base import MAX_MATCHES, NOISE_SCHEDULE, NOISY_SCHEDULE, homogeneous
 from .stats import ALPHA, ball_measure, chance_count, likelihood_level, pair_scores, peak_ratios, samples_needed
 from .verdict import Verdict, chance_verdict
 from .voting import vote
@@ -71,6 +71,7 @@ __all__ = [
     "noise_from_residuals",
     "passing_level",
     "polish_trials",
+    "polished_motions",
     "prepare",
     "refine",
     "regate",
@@ -1149,18 +1150,30 @@ def polish_trials(problem: Problem, trials, gate_radius: float, index=None):
     """
     if not len(trials):
         return trials
-    fast = getattr(problem.model, "polish_motions", None)
-    if fast is not None and index is not None and float(index.radius) == float(gate_radius):
-        linear, shift, support = fast(problem.source, index, trials.rotations, trials.translations, POLISH_ROUNDS,
-                                      extent=problem.extent, spacing=problem.spacing)
-    else:
-        fits = [refine(problem, Fit(matrix, np.empty((0, 2), np.int64)), gate_radius, POLISH_ROUNDS)
-                for matrix in trials.matrices]
-        support = np.array([f.support for f in fits], np.int64)
-        linear, shift = (np.stack(a) for a in zip(*(split_matrix(f.matrix) for f in fits)))
+    linear, shift, support = polished_motions(problem, trials.rotations, trials.translations, gate_radius, index)
     order = np.argsort(-support, kind="stable")
     return replace(trials, rotations=np.ascontiguousarray(linear[order]),
                    translations=np.ascontiguousarray(shift[order]), support=support[order])
+
+
+def polished_motions(problem: Problem, linear: np.ndarray, shift: np.ndarray, gate_radius: float, index=None):
+    """``(linear, shift, support)``: each motion ``(linear[k], shift[k])`` polished by ICP within
+    ``gate_radius`` (:func:`refine`'s steps, :data:`POLISH_ROUNDS` rounds) and its polished support.
+
+    ``index``: the model's index of ``problem.target`` at ``gate_radius``; a model with the optional
+    hook ``polish_motions`` then polishes every motion in one call (the rigid model: one numba kernel,
+    motions in parallel), else each goes through :func:`refine`.
+    """
+    fast = getattr(problem.model, "polish_motions", None)
+    if fast is not None and index is not None and float(index.radius) == float(gate_radius):
+        linear, shift, support = fast(problem.source, index, linear, shift, POLISH_ROUNDS,
+                                      extent=problem.extent, spacing=problem.spacing)
+        return linear, shift, np.asarray(support, np.int64)
+    none = np.empty((0, 2), np.int64)
+    fits = [refine(problem, Fit(homogeneous(A, b), none), gate_radius, POLISH_ROUNDS) for A, b in zip(linear, shift)]
+    support = np.array([f.support for f in fits], np.int64)
+    linear, shift = (np.stack(a) for a in zip(*(split_matrix(f.matrix) for f in fits)))
+    return linear, shift, support
 
 
 def landing_level(problem: Problem, matrix: np.ndarray, gate_radius: float, n_tests: float) -> int:

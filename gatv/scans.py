@@ -736,7 +736,8 @@ def register_surfaces(
         size when ``voxel`` is not given (at least :data:`SAMPLING_VOXELS`
         point spacings of the more coarsely sampled scan, see
         :func:`matching_voxel`), and the rows of each scan the stages past
-        its noise work on (:func:`match_points`: 15,000 at the default).
+        its noise work on first (:func:`match_points`: 15,000 at the
+        default).
     voxel : float, optional
         Voxel size (data units); the matching tolerance scale.
     seed : int or numpy.random.Generator, default: 0
@@ -783,9 +784,12 @@ def register_surfaces(
         for scans past :func:`match_points`: the points of the whole scans whose
         pairs are counted), which grow no faster than the scans (and stop
         growing past :func:`match_points` a scan but for ``input``, ``noise``
-        and ``output``).  Scans of more points than :func:`match_points`
-        (``n_points``) are voted on, matched and judged on a random sample
-        of that many rows each (:data:`MATCH_POINTS_PER_CELL`).
+        and ``output``), summed over both tries (below).  Scans of more
+        points than :func:`match_points` (``n_points``) are voted on,
+        matched and judged on a random sample of that many rows each
+        (:data:`MATCH_POINTS_PER_CELL`); where that gives no motion, on up
+        to :data:`VOTE_POINTS` rows each (``info["sampled"]``: the sample's
+        rows and its reason).
     """
     t0 = _clock()
     X = RIGID.check_points(source, "source")
@@ -800,34 +804,46 @@ def register_surfaces(
         voxel = check_positive(voxel, "voxel")
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
 
-    report(0.0, "surface tokens")
-    # Past its noise each scan is voted on, matched and judged on a sample of at most `cap` rows; only the
-    # output's pairs count every point (surface_rows).
-    cap = match_points(n_points)
-    tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
-                        max_points=cap)
-    ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
-                        max_points=cap)
-    ix, iy = tx.rows, ty.rows
-    Xs, Ys = tx.points[ix], ty.points[iy]
-    nys = ty.normals if ty.normals is not None else _normals(Ys)
-    prepared = np.subtract(_clock(), t0)
-    match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
-                           confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
-                           n_judged=n_judged, refine=refine, memory_budget=memory_budget,
-                           verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
-                           progress=lambda f, m: report(0.05 + 0.95 * f, m))
+    # Past its noise each scan is voted on, matched and judged on a sample of at most match_points(n_points)
+    # rows; only the output's pairs count every point (surface_rows).  Where the sample gives no motion and
+    # a scan has more rows, the whole scan (up to VOTE_POINTS rows) is tried as before the sample.
+    caps = [match_points(n_points)]
+    if caps[0] < min(VOTE_POINTS, max(X.shape[0], Y.shape[0])):
+        caps.append(VOTE_POINTS)
+    work: dict = {}
+    sampled = None
+    for k, cap in enumerate(caps):
+        low, high = k / len(caps), (k + 1) / len(caps)
+        report(low, "surface tokens")
+        tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
+                            max_points=cap)
+        ty = surface_tokens(Y, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
+                            max_points=cap)
+        ix, iy = tx.rows, ty.rows
+        Xs, Ys = tx.points[ix], ty.points[iy]
+        nys = ty.normals if ty.normals is not None else _normals(Ys)
+        prepared = np.subtract(_clock(), t0)
+        match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
+                               confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
+                               n_judged=n_judged, refine=refine, memory_budget=memory_budget,
+                               verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
+                               progress=lambda f, m, lo=low, hi=high: report(lo + (hi - lo) * (0.05 + 0.95 * f), m))
+        # Points each step handled, summed over both scans and both tries: what grows with the scans' size
+        # (the matching past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples
+        # of them).
+        for key, value in (("input", X.shape[0] + Y.shape[0]), ("noise", tx.noise.work + ty.noise.work),
+                           ("projection", sum(t.projection.work for t in (tx, ty) if t.projection is not None)),
+                           ("vote", tx.voted + ty.voted + (Ys.shape[0] if ty.normals is None else 0)),
+                           ("match", Xs.shape[0] + Ys.shape[0])):
+            work[key] = int(value) if key == "input" else work.get(key, 0) + int(value)
+        if match or k == len(caps) - 1:
+            break
+        sampled = {"rows": int(cap), "reason": match.info.get("reason", "")}
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
-    # Points each step handled, summed over both scans: what grows with the scans' size (the matching
-    # past the voxel grid works on at most match_points(n_points) surface points a scan, and samples of them).
-    info["work"] = {
-        "input": int(X.shape[0] + Y.shape[0]),
-        "noise": int(tx.noise.work + ty.noise.work),
-        "projection": int(sum(t.projection.work for t in (tx, ty) if t.projection is not None)),
-        "vote": int(tx.voted + ty.voted + (Ys.shape[0] if ty.normals is None else 0)),
-        "match": int(Xs.shape[0] + Ys.shape[0]),
-    }
+    info["work"] = work
+    if sampled is not None:
+        info["sampled"] = sampled  # the sample's try, which gave no motion
     # Stage timings from the start of the call.
     for stage in STAGES:
         for key, offset in zip((f"t_{stage}", f"cpu_{stage}"), prepared):
@@ -865,7 +881,8 @@ def register_surfaces(
 
 #: Points of each scan that :func:`register_surfaces` votes on, matches and judges, per target cell of its
 #: matching grid (``n_points``; at most :data:`VOTE_POINTS`): a larger scan works on a random sample of that
-#: many rows (:func:`vote_sample`) and only its output pairs count every point (:func:`surface_rows`).  At 25
+#: many rows (:func:`vote_sample`; where that gives no motion, on up to :data:`VOTE_POINTS`) and only its
+#: output pairs count every point (:func:`surface_rows`).  At 25
 #: points a cell (about five along a voxel's side of a surface), the verdict's neighbourhoods
 #: (:data:`VERDICT_NEIGHBOURS` points) stay within about one voxel and the final gate (three of the
 #: sample's spacings) under one: the resolution the search matched at.  Design notes, section 6, "Speed:

@@ -151,6 +151,39 @@ def test_a_scan_past_its_matching_sample_pairs_every_point_on_its_surface():
     assert np.median(err) < m.info["final_gate"]
 
 
+def test_scans_whose_sample_gives_no_motion_are_tried_whole(monkeypatch):
+    """Where the sample's try gives no motion, the call tries the whole scans (up to VOTE_POINTS rows) and
+    answers as the pipeline on the whole scans alone does; ``info["sampled"]`` says why."""
+    import gatv.scans as S
+
+    n, n_points = 12000, 100
+    cap = match_points(n_points)
+    rng = np.random.default_rng(7)
+    R = Rotor.from_axis_angle([0.3, -1.0, 0.4], np.radians(140.0))
+    source = _bumpy(rng, n, 0.0)
+    target = (R >> _bumpy(rng, n, 0.0)) + np.array([2.0, -1.0, 0.5])
+    real, rows = S.match_surfaces, []
+
+    def sample_fails(Xs, Ys, *args, **options):
+        rows.append(Xs.shape[0])
+        out = real(Xs, Ys, *args, **options)
+        if len(rows) > 1:
+            return out
+        return S.SurfaceMatch(None, None, out.gate, np.empty((0, 2), np.int64), 0,
+                              dict(out.info, reason="no motion on the sample"))
+
+    monkeypatch.setattr(S, "match_surfaces", sample_fails)
+    m = register_scans(source, target, n_points=n_points, seed=0)
+    assert len(rows) == 2 and rows[0] <= cap < rows[1]
+    assert m and m.info["sampled"] == {"rows": cap, "reason": "no motion on the sample"}
+    monkeypatch.setattr(S, "match_surfaces", real)
+    monkeypatch.setattr(S, "MATCH_POINTS_PER_CELL", 10**6)  # the whole scans at once
+    whole = register_scans(source, target, n_points=n_points, seed=0)
+    assert "sampled" not in whole.info
+    np.testing.assert_array_equal(m.rotation, whole.rotation)
+    np.testing.assert_array_equal(m.correspondences, whole.correspondences)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 300), st.floats(0.01, 2.0))
 def test_spatial_order_visits_every_row_once_cell_by_cell(seed, n, cell):

@@ -567,27 +567,27 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
     """
     n = points.shape[0]
     voted = 0
-    sample = vote_sample(n, seed, max_points)
+    # The rows kept past the noise: the vote's sample where only those are kept, else every row (None).
+    sample = None if all_points else vote_sample(n, seed, max_points)
     if clutter:
         rows, normals = surface_points(points, seed=seed, max_points=max_points, memory_budget=memory_budget)
         voted += min(n, max_points)
     else:
-        rows, normals = (np.arange(n) if all_points or sample is None else sample), None
+        rows, normals = (np.arange(n) if sample is None else sample), None
     noise = scan_noise(points, at=rows, seed=seed)
-    projected = None if all_points else sample
-    projection = project_to_surface(points, noise, seed=seed, rows=projected)
+    projection = project_to_surface(points, noise, seed=seed, rows=sample)
     if projection is not None:
-        if projected is None:
+        if sample is None:
             points = projection.points
         else:
             points = np.array(points, dtype=np.float64)
-            points[projected] = projection.points
+            points[sample] = projection.points
         if clutter:
             rows, normals = surface_points(points, seed=seed, max_points=max_points, memory_budget=memory_budget)
             voted += min(n, max_points)
         else:
             normals = projection.normals  # of every row, or of the sample's (then ``rows``)
-    return SurfaceTokens(points, rows, normals, noise, projection, voted, None if all_points else sample)
+    return SurfaceTokens(points, rows, normals, noise, projection, voted, sample)
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,

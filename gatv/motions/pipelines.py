@@ -106,8 +106,9 @@ def segment(
     Segmentation
         Falsy (no motions) when no motion beats the chance level;
         ``info["reason"]`` says why the search stopped.  Exact pipeline,
-        rigid model: a motion that a turned or shifted copy of itself
-        explains as well, on structured data, is dropped
+        every model with turned copies (rigid, similarity, 2D affine): a
+        motion that a turned or shifted copy of itself explains as well, on
+        structured data, is dropped
         (:func:`drop_ambiguous`; ``info["ambiguous"]``, ``info["rivals"]``).
 
     Raises

@@ -369,7 +369,8 @@ def test_rounds_at_the_measured_noise_list_at_LISTING_standard_deviations(monkey
 
 def _merged_halves(seed, cut):
     """A noisy two-motion scene's first motion cut in two at ``cut`` of its pairs, and its second, through
-    :func:`merge_same_motions` at the scene's own noise; also the first motion and the second alone."""
+    :func:`merge_same_motions` at the scene's own noise: the problem, the two motions' true pairs, the
+    three fits and the merge's ``(fits, noises, joined)``."""
     scene = _noisy_two_motions(seed, 0.05)  # target noise 0.05 per axis: sigma 0.05 / sqrt(2) in gatv's terms
     P = stages.prepare(scene.source, scene.target)
     first, second = scene.true_pairs

@@ -478,7 +478,7 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     ----------
     points : (N, 3) ndarray
     max_points : int
-        Larger inputs are randomly subsampled first (voting cost is linear).
+        Larger inputs are voted on a random sample of this many rows (:func:`vote_sample`; voting cost is linear).
     memory_budget : float, optional
         Bytes; a voting run needing more fails at once.
 
@@ -491,10 +491,9 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
         Their unoriented unit normals (``e1`` of the final tensors).
     """
     pts = as_points(points, "points", min_points=3)
-    pick = np.arange(pts.shape[0])
-    if pts.shape[0] > max_points:
-        rng = np.random.default_rng(seed)
-        pick = np.sort(rng.choice(pts.shape[0], max_points, replace=False))
+    pick = vote_sample(pts.shape[0], seed, max_points)
+    if pick is None:
+        pick = np.arange(pts.shape[0])
     surf = extract_surfaces(pts[pick], n_stick_passes=1, memory_budget=memory_budget)
     idx = np.asarray(surf.indices)
     order = np.argsort(idx, kind="stable")

@@ -1117,8 +1117,10 @@ class WrongDraws:
     point-to-point ICP at the ``voxel`` gate on :data:`VERDICT_SCREEN` source points (their *ranks*: the
     screen points within the gate at its end); the ``n_polished`` best, in the order of their ranks, go
     through ``polish(R, t) -> (R, t, gate, _)`` when first asked for.  ``screen_target``: the target
-    points the screen pairs with (by default ``Ys``): :func:`match_surfaces` passes its voxel grid's
-    centroids, where the search itself matched (3,318 points against the scan's 40,256 on bun000).
+    points the screen pairs with (by default ``Ys``), and ``screen_source`` the source points it moves
+    (by default :data:`VERDICT_SCREEN` random rows of ``Xs``): :func:`match_surfaces` passes its voxel
+    grids' centroids, where the search itself matched (a few hundred points a scan against tens of
+    thousands), so that a draw ranks by the cells it lays on cells, as a trial motion is found.
     Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screened_supports`, equal to
     :func:`point_icp` with ``fit=kabsch3``), draws in parallel.  ``polish_many(motions) -> [(R, t), ...]``:
     ``polish`` of several motions at once (in parallel); draws are then polished as many at a time as numba
@@ -1128,12 +1130,18 @@ class WrongDraws:
 
     def __init__(self, Xs, Ys, target_normals, tree: cKDTree | KDTree, frame: SourceFrame, *, polish, voxel: float,
                  rng: np.random.Generator, n_draws: int = VERDICT_DRAWS, n_polished: int = VERDICT_POLISHED,
-                 screen_target: np.ndarray | None = None, polish_many=None):
+                 screen_target: np.ndarray | None = None, screen_source: np.ndarray | None = None,
+                 polish_many=None):
         self.Xs, self.Ys, self.target_normals, self.tree, self.frame = Xs, Ys, target_normals, tree, frame
         self.polish = polish
         self.polish_many = polish_many
         starts = tangent_motions(Xs, Ys, n_draws, rng, source_tree=frame.tree, target_tree=tree)
-        screen = Xs if Xs.shape[0] <= VERDICT_SCREEN else Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
+        if screen_source is not None:
+            screen = np.ascontiguousarray(screen_source, dtype=np.float64)
+        elif Xs.shape[0] <= VERDICT_SCREEN:
+            screen = Xs
+        else:
+            screen = Xs[rng.choice(Xs.shape[0], VERDICT_SCREEN, replace=False)]
         Yq = Ys if screen_target is None else screen_target
         # Every draw's point_icp(screen, Yq, ..., voxel, fit=kabsch3) in one kernel (draws in parallel).
         grid = TargetGrid.of(Yq, voxel)
@@ -1530,7 +1538,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     wrong_draws = functools.cache(lambda: WrongDraws(Xs, Ys, target_normals, tree, source_frame(),
                                                        polish=verdict_polish, voxel=voxel,
                                                        rng=np.random.default_rng([seed, VERDICT_STREAM]),
-                                                       screen_target=Yd, polish_many=verdict_polish_many))
+                                                       screen_target=Yd, screen_source=Xd,
+                                                       polish_many=verdict_polish_many))
 
     def on_surface(R, t, g) -> int:
         """Source points within ``g`` of a target point whose normals agree with its (:func:`surface_support`)."""

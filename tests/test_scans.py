@@ -549,3 +549,28 @@ def test_two_motions_the_data_hold_alike_give_no_motion_and_say_so():
     rival = m.info["rival"]
     assert rival["angle_deg"] > 90.0
     assert np.allclose(rival["supports"], m.info["verdict_gates"]["support"], rtol=0.02)
+
+
+def test_wrong_draws_screened_on_given_source_points():
+    """``WrongDraws(screen_source=)``: the screen moves those points (match_surfaces passes its voxel grid's
+    centroids); the source itself is the default screen of a source of at most VERDICT_SCREEN points, so
+    passing it changes nothing, and a draw's rank never exceeds the screen's points."""
+    from gatv.scans import VERDICT_SCREEN, SourceFrame, WrongDraws
+
+    src, tgt, normals, tree, polish = _verdict_case(4, n=800)
+    assert src.shape[0] <= VERDICT_SCREEN
+    frame = SourceFrame.of(src)
+
+    def draws(**options):
+        return WrongDraws(src, tgt, normals, tree, frame, polish=polish, voxel=0.3, rng=np.random.default_rng(5),
+                          n_draws=48, **options)
+
+    default, given = draws(), draws(screen_source=src)
+    np.testing.assert_array_equal(default.ranks, given.ranks)
+    assert all(np.array_equal(Ra, Rb) and np.array_equal(ta, tb)
+               for (Ra, ta), (Rb, tb) in zip(default.starts, given.starts))
+    cells = voxel_downsample(src, 0.3)
+    coarse = draws(screen_source=cells)
+    assert coarse.n_screen == cells.shape[0] < src.shape[0]
+    assert np.all(np.diff(coarse.ranks) <= 0) and coarse.ranks[0] <= cells.shape[0]
+    assert coarse.ranks[0] > 0

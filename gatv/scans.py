@@ -722,6 +722,7 @@ def register_surfaces(
     refine: bool = True,
     clutter: bool = True,
     memory_budget: float | None = None,
+    coarse_first: bool = True,
     progress=None,
 ) -> RigidMotion:
     """Register two real scans of one object, with no initial guess.
@@ -760,6 +761,12 @@ def register_surfaces(
     memory_budget : float, optional
         Bytes; a voting run or a congruent-triple index needing more fails
         at once (see :func:`gatv._validation.check_memory`).
+    coarse_first : bool, default: True
+        Without ``voxel``, try first on half the ``n_points`` cells (and
+        :func:`match_points` of them a scan) with the adaptive search alone
+        (:data:`SEARCHES`); a motion that passes the verdict there is the
+        answer, and where none does the call goes on at ``n_points``
+        (``info["coarse"]``: the coarse try's rows, cells and reason).
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -783,7 +790,7 @@ def register_surfaces(
         for scans past :func:`match_points`: the points of the whole scans whose
         pairs are counted), which grow no faster than the scans (and stop
         growing past :func:`match_points` a scan but for ``input``, ``noise``
-        and ``output``), summed over both tries (below).  Scans of more
+        and ``output``), summed over the tries (below and ``coarse_first``).  Scans of more
         points than :func:`match_points` (``n_points``) are voted on,
         matched and judged on a random sample of that many rows each
         (:data:`MATCH_POINTS_PER_CELL`); where that gives no motion, on up
@@ -806,13 +813,18 @@ def register_surfaces(
     # Past its noise each scan is voted on, matched and judged on a sample of at most match_points(n_points)
     # rows; only the output's pairs count every point (surface_rows).  Where the sample gives no motion and
     # a scan has more rows, the whole scan (up to VOTE_POINTS rows) is tried as before the sample.
-    caps = [match_points(n_points)]
-    if caps[0] < min(VOTE_POINTS, max(X.shape[0], Y.shape[0])):
-        caps.append(VOTE_POINTS)
+    # The tries: (rows a scan, target cells, searches).  First a coarse one, on half the cells and their
+    # sample, with the adaptive search alone: most clean pairs end there; where it gives no motion, the
+    # pipeline at n_points follows, as without it.
+    tries = [(match_points(n_points), n_points, SEARCHES)]
+    if tries[0][0] < min(VOTE_POINTS, max(X.shape[0], Y.shape[0])):
+        tries.append((VOTE_POINTS, n_points, SEARCHES))
+    if coarse_first and voxel is None and n_points // 2 >= COARSE_MIN_POINTS:
+        tries.insert(0, (match_points(n_points // 2), n_points // 2, SEARCHES[:1]))
     work: dict = {}
-    sampled = None
-    for k, cap in enumerate(caps):
-        low, high = k / len(caps), (k + 1) / len(caps)
+    sampled = coarse = None
+    for k, (cap, cells, searches) in enumerate(tries):
+        low, high = k / len(tries), (k + 1) / len(tries)
         report(low, "surface tokens")
         tx = surface_tokens(X, clutter=clutter, seed=seed, memory_budget=memory_budget, all_points=False,
                             max_points=cap)
@@ -822,12 +834,13 @@ def register_surfaces(
         Xs, Ys = tx.points[ix], ty.points[iy]
         nys = ty.normals if ty.normals is not None else _normals(Ys)
         prepared = np.subtract(_clock(), t0)
-        match = match_surfaces(Xs, Ys, nys, n_points=n_points, voxel=voxel, seed=seed, min_overlap=min_overlap,
+        match = match_surfaces(Xs, Ys, nys, n_points=cells, voxel=voxel, seed=seed, min_overlap=min_overlap,
                                confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                                n_judged=n_judged, refine=refine, memory_budget=memory_budget,
                                verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
+                               searches=searches, defer_rivals=cells < n_points,
                                progress=lambda f, m, lo=low, hi=high: report(lo + (hi - lo) * (0.05 + 0.95 * f), m))
-        # Points each step handled, summed over both scans and both tries: what grows with the scans' size
+        # Points each step handled, summed over both scans and every try: what grows with the scans' size
         # (the matching past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples
         # of them).
         for key, value in (("input", X.shape[0] + Y.shape[0]), ("noise", tx.noise.work + ty.noise.work),
@@ -835,12 +848,18 @@ def register_surfaces(
                            ("vote", tx.voted + ty.voted + (Ys.shape[0] if ty.normals is None else 0)),
                            ("match", Xs.shape[0] + Ys.shape[0])):
             work[key] = int(value) if key == "input" else work.get(key, 0) + int(value)
-        if match or k == len(caps) - 1:
+        if match or k == len(tries) - 1:
             break
-        sampled = {"rows": int(cap), "reason": match.info.get("reason", "")}
+        gave = {"rows": int(cap), "reason": match.info.get("reason", "")}
+        if cells < n_points:
+            coarse = dict(gave, n_points=int(cells))
+        else:
+            sampled = gave
     info = {"mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0]))}
     info.update(match.info)
     info["work"] = work
+    if coarse is not None:
+        info["coarse"] = coarse  # the coarse try, which gave no motion
     if sampled is not None:
         info["sampled"] = sampled  # the sample's try, which gave no motion
     # Stage timings from the start of the call.
@@ -876,6 +895,15 @@ def register_surfaces(
                 time_s=time.perf_counter() - t0[0], cpu_s=time.process_time() - t0[1])
     report(1.0, f"{kept.shape[0]} correspondences")
     return stages.motion_result(RIGID, X, Y, stages.Fit(homogeneous(match.rotation, match.translation), kept), info)
+
+
+#: The searches of :func:`match_surfaces` with the verdict, in the order it runs them until one gives a motion
+#: that passes.
+SEARCHES = ("adaptive", "whole budget", "partial overlap")
+
+
+#: The fewest target cells :func:`register_surfaces`' coarse try runs on (half of ``n_points``).
+COARSE_MIN_POINTS = 100
 
 
 #: Points of each scan that :func:`register_surfaces` votes on, matches and judges, per target cell of its
@@ -1420,7 +1448,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                    min_overlap: float = MIN_OVERLAP, confidence: float = 0.999, max_triples: int | None = None,
                    feature_tol: float = 0.15, n_judged: int = 4, refine: bool = True,
                    memory_budget: float | None = None, coarse_points: int = FINE_SAMPLE,
-                   verdict: bool = False, noise: float = 0.0, progress=None) -> SurfaceMatch:
+                   verdict: bool = False, noise: float = 0.0, searches: tuple = SEARCHES,
+                   defer_rivals: bool = False, progress=None) -> SurfaceMatch:
     """Stages 2–5 of :func:`register_surfaces` on points already kept as surface.
 
     ``Xs``, ``Ys`` are the two scans' surface points (for example rows of
@@ -1472,9 +1501,19 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     the answer (``"adaptive"``, ``"whole budget"`` or ``"partial
     overlap"``; after the first, ``info["adaptive"]`` and after the second
     ``info["whole_budget"]``: the triples drawn and why they gave no
-    motion).
+    motion).  ``searches``: those of :data:`SEARCHES` to run, in that
+    order (:func:`register_surfaces`' coarse try runs the adaptive one
+    alone).  ``defer_rivals``: the best trial motion and its rivals are
+    first polished as the verdict's wrong draws are (fewer points and
+    iterations, at once); where a rival does not end on the best, the
+    search gives no motion (``"ambiguous: ... not judged on this grid"``)
+    instead of polishing and judging the two, for a caller that tries a
+    finer grid next; where every rival ends on the best, the best alone is
+    polished on.
     """
     t0 = _clock()
+    if not searches or any(m not in SEARCHES for m in searches):
+        raise InputError(f"`searches` must name some of {SEARCHES}; got {tuple(searches)!r}.")
     report = progress if progress is not None else (lambda fraction, message="": None)
     # C-ordered float64 for the numba kernels (one specialisation each)
     Xs, Ys = (np.ascontiguousarray(a, dtype=np.float64) for a in (Xs, Ys))
@@ -1585,6 +1624,11 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                                         np.array(gates, np.float64), 30, np.full(len(gates), tol))
         return [counted(R, t, levels[-1], count) for R, t in zip(Rs, ts)]
 
+    def same_motion(Ra, ta, Rb, tb, g) -> bool:
+        """Whether two polished motions are one: within 1° and three gates ``g`` at the source's centroid."""
+        return (rotation_angle_deg(Ra @ Rb.T) < 1.0
+                and float(np.linalg.norm((Ra - Rb) @ Xs.mean(axis=0) + ta - tb)) < 3.0 * g)
+
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""
         out = []
@@ -1647,14 +1691,23 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         count = "normals" if partial else True
         # The rivals (judged nearly as well) are polished too, with the best and at once (in parallel), and
         # compared at full resolution.
+        if defer_rivals and rivals:
+            # Polished as the verdict's wrong draws are, at once: a rival that does not end on the best is
+            # left to a finer grid; rivals that do are the best found again.
+            (Rq, tq), *others = verdict_polish_many([(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]])
+            for Rr, tr in others:
+                if not same_motion(Rr, tr, Rq, tq, fine):
+                    return SurfaceMatch(None, None, gate, none, 0, dict(info, reason=(
+                        f"ambiguous: a rival {rotation_angle_deg(Rr @ Rq.T):.0f} deg away from the best trial "
+                        "motion did not end on it when polished (not judged on this grid)")))
+            rivals = []
         polished = polish_all([(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]], count=count)
         R, t, g, on = polished[0]
         start = best.matrix  # the trial the motion was polished from (the verdict polishes it as its draws)
         info["ambiguous"] = False
         rival_motion = None  # a distinct polished motion holding RIVAL_SHARE of the best's support
         for rival, (Rr, tr, gr, on_r) in zip(rivals, polished[1:]):
-            if (rotation_angle_deg(Rr @ R.T) < 1.0
-                    and np.linalg.norm((Rr - R) @ Xs.mean(axis=0) + tr - t) < 3.0 * max(g, gr)):
+            if same_motion(Rr, tr, R, t, max(g, gr)):
                 continue  # polishing brought it onto the best motion
             if on_r > on:
                 R, t, g, on, Rr, tr, gr, on_r = Rr, tr, gr, on_r, R, t, g, on
@@ -1706,14 +1759,14 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     # trial's inlier share needs; when its motion fails (or none is found) and it stopped short of the
     # budget, the whole budget is drawn, as without the adaptive stop; when that fails too, the search for a
     # partial overlap.
-    first = attempt("adaptive", dict(info))
-    if first:
-        return dataclasses.replace(first, info=dict(first.info, search="adaptive"))
-    gave = {"adaptive": {"triples": first.info["triples"], "reason": first.info.get("reason", "")}}
-    if first.info["triples"] < budget:
-        second = attempt("whole budget", dict(info))
-        if second:
-            return dataclasses.replace(second, info=dict(second.info, search="whole budget", **gave))
-        gave["whole_budget"] = {"triples": second.info["triples"], "reason": second.info.get("reason", "")}
-    third = attempt("partial overlap", dict(info))
-    return dataclasses.replace(third, info=dict(third.info, search="partial overlap", **gave))
+    gave: dict = {}  # the searches that gave no motion before the last one run
+    out, ran = None, None
+    for mode in (m for m in SEARCHES if m in searches):
+        if mode == "whole budget" and out is not None and out.info["triples"] >= budget:
+            continue  # the adaptive search drew the whole budget already
+        if out is not None:
+            gave[ran.replace(" ", "_")] = {"triples": out.info["triples"], "reason": out.info.get("reason", "")}
+        out, ran = attempt(mode, dict(info)), mode
+        if out:
+            break
+    return dataclasses.replace(out, info=dict(out.info, search=ran, **gave))

@@ -574,3 +574,40 @@ def test_wrong_draws_screened_on_given_source_points():
     assert coarse.n_screen == cells.shape[0] < src.shape[0]
     assert np.all(np.diff(coarse.ranks) <= 0) and coarse.ranks[0] <= cells.shape[0]
     assert coarse.ranks[0] > 0
+
+
+def test_a_rival_left_to_a_finer_grid_gives_no_motion_there_and_says_so():
+    """``match_surfaces(defer_rivals=True)`` (the coarse try): on an ellipsoid, which matches itself after a
+    half-turn, a rival that does not end on the best trial motion gives no motion on that grid, before any
+    verdict; without it the two are judged ("ambiguous: two motions")."""
+    from gatv.scans import SourceFrame, match_surfaces
+
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(4000, 3))
+    surface = u / np.linalg.norm(u, axis=1, keepdims=True) * [1.0, 0.7, 0.5]
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = surface[rng.permutation(4000)[:3000]] @ R.T + [0.2, 0.0, -0.1]
+    normals = SourceFrame.of(moved).normals
+    options = dict(n_points=300, seed=0, max_triples=60, verdict=True)
+    deferred = match_surfaces(surface, moved, normals, defer_rivals=True, **options)
+    assert not deferred and "not judged on this grid" in deferred.info["reason"]
+    assert "verdict" not in deferred.info
+    judged = match_surfaces(surface, moved, normals, **options)
+    assert not judged and judged.info["reason"].startswith("ambiguous: two motions")
+
+
+def test_match_surfaces_runs_the_searches_it_is_given_and_refuses_others():
+    """``searches``: a subset of SEARCHES, run in that order; an unknown name is refused, naming it."""
+    from gatv.errors import InputError
+    from gatv.scans import SEARCHES, SourceFrame, match_surfaces
+
+    rng = np.random.default_rng(1)
+    src, tgt, _, _ = _resampled_sphere_pair(2, 3000, 3000)
+    other = _resampled_sphere_pair(5, 3000, 3000)[0] * [1.0, 1.6, 0.5]
+    normals = SourceFrame.of(tgt).normals
+    options = dict(n_points=300, seed=0, verdict=True)
+    null = match_surfaces(other @ np.linalg.qr(rng.normal(size=(3, 3)))[0], tgt, normals, searches=SEARCHES[:1],
+                          **options)
+    assert not null and null.info["search"] == "adaptive" and "whole_budget" not in null.info
+    with pytest.raises(InputError, match="searches"):
+        match_surfaces(src, tgt, normals, searches=("everything",), **options)

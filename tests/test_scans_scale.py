@@ -211,3 +211,40 @@ def test_the_projection_of_rows_in_any_order_is_each_rows_own():
     np.testing.assert_array_equal(some.points, whole.points[rows])
     np.testing.assert_array_equal(some.normals, whole.normals[rows])
     assert not np.array_equal(some.points, points[rows])  # the rows did move onto the surface
+
+
+def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypatch):
+    """``register_surfaces`` tries half the cells first, with the adaptive search alone; where that gives no
+    motion, the answer is the call's without the coarse try (motion and pairs equal), ``info["coarse"]``
+    saying why.  A clean pair ends at the coarse try: no ``info["coarse"]``, the motion within 1°."""
+    import gatv.scans as S
+
+    n, n_points = 12000, 400
+    source, target = _pair(n, seed=3, noise=0.0)
+    R = Rotor.from_axis_angle([0.3, -1.0, 0.4], np.radians(140.0)).as_matrix()
+    first = register_scans(source, target, n_points=n_points, seed=0)
+    assert first and "coarse" not in first.info
+    assert first.info["search"] == "adaptive"
+    assert sum(first.info["n_downsampled"]) < 2 * 0.75 * n_points  # the coarse grid's cells
+    assert np.degrees(np.arccos(np.clip((np.trace(first.rotation @ R.T) - 1) / 2, -1, 1))) < 1.0
+
+    real, calls = S.match_surfaces, []
+
+    def coarse_fails(Xs, Ys, *args, **options):
+        calls.append((options["n_points"], options["searches"]))
+        out = real(Xs, Ys, *args, **options)
+        if options["n_points"] == n_points:
+            return out
+        return S.SurfaceMatch(None, None, out.gate, np.empty((0, 2), np.int64), 0,
+                              dict(out.info, reason="no motion on the coarse grid"))
+
+    monkeypatch.setattr(S, "match_surfaces", coarse_fails)
+    m = register_scans(source, target, n_points=n_points, seed=0)
+    assert calls == [(n_points // 2, S.SEARCHES[:1]), (n_points, S.SEARCHES)]
+    assert m and m.info["coarse"] == {"rows": match_points(n_points // 2), "n_points": n_points // 2,
+                                      "reason": "no motion on the coarse grid"}
+    monkeypatch.setattr(S, "match_surfaces", real)
+    without = register_scans(source, target, n_points=n_points, seed=0, coarse_first=False)
+    assert "coarse" not in without.info
+    np.testing.assert_array_equal(m.rotation, without.rotation)
+    np.testing.assert_array_equal(m.correspondences, without.correspondences)

@@ -808,6 +808,8 @@ def register_surfaces(
     n_judged = check_int(n_judged, "n_judged", 1)
     if voxel is not None:
         voxel = check_positive(voxel, "voxel")
+    if not isinstance(coarse_first, (bool, np.bool_)):
+        raise InputError(f"Expected `coarse_first` True or False, got {coarse_first!r}.")
     seed = seed_int(seed)  # an int seeds the three random steps alike; a Generator draws one
 
     # Past its noise each scan is voted on, matched and judged on a sample of at most match_points(n_points)

@@ -65,3 +65,10 @@ def test_a_bad_point_to_plane_tolerance_is_named(bad):
     normals = np.tile([0.0, 0.0, 1.0], (target.shape[0], 1))
     with pytest.raises(InputError, match="`tol` to be a finite number >= 0"):
         refine_point_to_plane(target, target, normals, np.eye(3), np.zeros(3), 0.1, tol=bad)
+
+
+@pytest.mark.parametrize("bad", ["yes", 1, None, 0.0])
+def test_a_bad_coarse_first_is_named(bad):
+    good = _scan()
+    with pytest.raises(InputError, match="`coarse_first` True or False"):
+        register_scans(good, good, coarse_first=bad)

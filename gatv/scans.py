@@ -1564,15 +1564,22 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     def verdict_polish(R, t):
         return polish(R, t, sample, VERDICT_ITERATIONS, False)
 
+    verdict_polished: dict = {}  # verdict_polish_many's motions, by their start
+
     def verdict_polish_many(motions) -> list:
-        """``verdict_polish`` of each ``(R, t)`` of ``motions``, in parallel (one numba kernel)."""
+        """``verdict_polish`` of each ``(R, t)`` of ``motions``, in parallel (one numba kernel), each start
+        once: the coarse try's best, polished so beside its rivals, is the verdict's start."""
         if not refine:
             return [(np.asarray(R, np.float64), np.asarray(t, np.float64)) for R, t in motions]
-        Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, normals_c,
-                                *tree.nodes, np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3),
-                                np.array([t for _, t in motions], np.float64).reshape(-1, 3),
-                                np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9))
-        return list(zip(Rs, ts))
+        keys = [(np.asarray(R, np.float64).tobytes(), np.asarray(t, np.float64).tobytes()) for R, t in motions]
+        todo = [k for k, key in enumerate(keys) if key not in verdict_polished]
+        if todo:
+            Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, normals_c, *tree.nodes,
+                                    np.array([motions[k][0] for k in todo], np.float64).reshape(-1, 3, 3),
+                                    np.array([motions[k][1] for k in todo], np.float64).reshape(-1, 3),
+                                    np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9))
+            verdict_polished.update((keys[k], (R, t)) for k, R, t in zip(todo, Rs, ts))
+        return [verdict_polished[key] for key in keys]
 
     # The verdict's wrong draws do not depend on the motion judged: drawn, screened and polished once for
     # every attempt's verdict (as many as the verdicts ask for).
@@ -1626,10 +1633,11 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                                         np.array(gates, np.float64), 30, np.full(len(gates), tol))
         return [counted(R, t, levels[-1], count) for R, t in zip(Rs, ts)]
 
+    centroid = Xs.mean(axis=0)
+
     def same_motion(Ra, ta, Rb, tb, g) -> bool:
         """Whether two polished motions are one: within 1° and three gates ``g`` at the source's centroid."""
-        return (rotation_angle_deg(Ra @ Rb.T) < 1.0
-                and float(np.linalg.norm((Ra - Rb) @ Xs.mean(axis=0) + ta - tb)) < 3.0 * g)
+        return rotation_angle_deg(Ra @ Rb.T) < 1.0 and float(np.linalg.norm((Ra - Rb) @ centroid + ta - tb)) < 3.0 * g
 
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""

@@ -136,23 +136,25 @@ STACK = 128
 
 @njit(cache=True)
 def _select(order, keys, lo, hi, k):
-    """Reorder ``order[lo:hi + 1]`` so that ``keys[order[k]]`` is its ``k``-th smallest key, no key before
-    it larger and none after it smaller (Hoare's selection, median-of-three pivots: linear time)."""
+    """Reorder ``order[lo:hi + 1]`` and ``keys[lo:hi + 1]`` alike (``keys[s]``: the key of ``order[s]``) so
+    that ``keys[k]`` is their ``k``-th smallest key, no key before it larger and none after it smaller
+    (Hoare's selection, median-of-three pivots: linear time)."""
     while hi > lo:
         m = (lo + hi) // 2
-        a, b, c = keys[order[lo]], keys[order[m]], keys[order[hi]]
+        a, b, c = keys[lo], keys[m], keys[hi]
         pivot = max(min(a, b), min(max(a, b), c))
         i, j = lo, hi
         while i <= j:
-            while keys[order[i]] < pivot:
+            while keys[i] < pivot:
                 i += 1
-            while keys[order[j]] > pivot:
+            while keys[j] > pivot:
                 j -= 1
             if i <= j:
                 order[i], order[j] = order[j], order[i]
+                keys[i], keys[j] = keys[j], keys[i]
                 i += 1
                 j -= 1
-        # order[lo:j+1] <= pivot <= order[i:hi+1], and order[j+1:i] equal the pivot.
+        # keys[lo:j+1] <= pivot <= keys[i:hi+1], and keys[j+1:i] equal the pivot.
         if k <= j:
             hi = j
         elif k >= i:
@@ -172,6 +174,7 @@ def kdtree_build(points, leafsize):
     """
     n = points.shape[0]
     order = np.arange(n)
+    keys = np.empty(n)
     # A node splits only above leafsize points into halves of at least leafsize // 2 + 1 (or stays a leaf):
     # at most 2 n / (leafsize // 2 + 1) nodes; this bound is over twice that.
     cap = 4 * (n // max(leafsize, 1) + 1) + 2
@@ -192,21 +195,28 @@ def kdtree_build(points, leafsize):
         a, b = lo[k], hi[k]
         if b - a <= leafsize:
             continue
-        best, width = 0, -1.0
-        for d in range(3):
-            mn, mx = np.inf, -np.inf
-            for s in range(a, b):
-                v = points[order[s], d]
-                mn = min(mn, v)
-                mx = max(mx, v)
-            if mx - mn > width:
-                best, width = d, mx - mn
+        # The widest axis of the node's points (their bounding box in one pass).
+        x0 = y0 = z0 = np.inf
+        x1 = y1 = z1 = -np.inf
+        for s in range(a, b):
+            j = order[s]
+            x, y, z = points[j, 0], points[j, 1], points[j, 2]
+            x0, x1 = min(x0, x), max(x1, x)
+            y0, y1 = min(y0, y), max(y1, y)
+            z0, z1 = min(z0, z), max(z1, z)
+        best, width = 0, x1 - x0
+        if y1 - y0 > width:
+            best, width = 1, y1 - y0
+        if z1 - z0 > width:
+            best, width = 2, z1 - z0
         if width <= 0.0:
             continue  # every point equal: a leaf however many
         mid = (a + b) // 2
-        _select(order, points[:, best], a, b - 1, mid)
+        for s in range(a, b):  # the node's keys, contiguous for the selection
+            keys[s] = points[order[s], best]
+        _select(order, keys, a, b - 1, mid)
         axis[k] = best
-        split[k] = points[order[mid], best]
+        split[k] = keys[mid]
         lo[count], hi[count] = a, mid
         lo[count + 1], hi[count + 1] = mid, b
         left[k], right[k] = count, count + 1
@@ -215,6 +225,21 @@ def kdtree_build(points, leafsize):
         top += 2
         count += 2
     return order, lo[:count], hi[:count], axis[:count], split[:count], left[:count], right[:count]
+
+
+@njit(cache=True)
+def bounding_box(points):
+    """(2, 3): the least and greatest coordinates of ``points`` along each axis, in one pass over the rows
+    (numpy's ``points.min(axis=0)`` on ``(N, 3)`` rows is a strided reduction, far slower)."""
+    box = np.empty((2, 3))
+    box[0, :] = np.inf
+    box[1, :] = -np.inf
+    for i in range(points.shape[0]):
+        for a in range(3):
+            v = points[i, a]
+            box[0, a] = min(box[0, a], v)
+            box[1, a] = max(box[1, a], v)
+    return box
 
 
 @njit(cache=True, inline="always")
@@ -369,8 +394,7 @@ class KDTree:
         if self.points.ndim != 2 or self.points.shape[1] != 3 or self.points.shape[0] < 1:
             raise ValueError(f"Expected `points` of shape (N, 3), N >= 1, got {self.points.shape}.")
         #: ``(order, lo, hi, axis, split, left, right, box)``: the kernels' arguments after ``points``.
-        self.nodes = (*kdtree_build(self.points, int(leafsize)),
-                      np.stack([self.points.min(axis=0), self.points.max(axis=0)]))
+        self.nodes = (*kdtree_build(self.points, int(leafsize)), bounding_box(self.points))
 
     @property
     def data(self) -> np.ndarray:

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
+    bounding_box,
     KDTree,
     kdtree_build,
     neighbourhood_axes,
@@ -95,6 +96,13 @@ def test_kdtree_finds_the_nearest_point_within_the_bound_as_scipy(seed, n, radiu
     np.testing.assert_allclose(d[hit], d_ref[hit], rtol=0, atol=1e-12)
     assert np.all(j[~hit] == pts.shape[0])
     assert np.allclose(np.linalg.norm(queries[hit] - pts[j[hit]], axis=1), d_ref[hit], atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 500), scale=st.floats(1e-3, 1e6))
+def test_bounding_box_is_numpys_least_and_greatest_coordinates(seed, n, scale):
+    pts = np.random.default_rng(seed).normal(0.0, scale, (n, 3))
+    np.testing.assert_array_equal(bounding_box(pts), np.stack([pts.min(axis=0), pts.max(axis=0)]))
 
 
 def test_kdtree_nodes_partition_the_points():

@@ -165,7 +165,10 @@ def test_neighbourhood_normals_are_the_local_planes(seed, m, flat):
     # Up to sign; where the two least variances nearly tie, the axis is not defined: compare the variance.
     var = np.einsum("nki,ni->nk", local, got)
     np.testing.assert_allclose((var ** 2).sum(axis=1), values[:, 0], rtol=1e-8, atol=1e-12 * values[:, 2].max())
-    clear = values[:, 1] > 1.01 * values[:, 0] + 1e-12 * values[:, 2]
+    # An eigenvector is good to about eps * |scatter| / gap: 1e-9 of the largest variance keeps it within 1e-6
+    # (three points nearly on a line leave the two least variances both near 0).
+    clear = values[:, 1] - values[:, 0] > 0.01 * values[:, 0] + 1e-9 * values[:, 2]
+    assert clear.mean() > 0.5
     np.testing.assert_allclose(np.abs((got * want).sum(axis=1))[clear], 1.0, atol=1e-6)
 
 

@@ -368,6 +368,22 @@ def test_default_sigma_gives_about_k_neighbours():
     assert default_sigma(pts * 1000.0) == pytest.approx(1000.0 * s)
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 3000), k=st.integers(1, 60), duplicates=st.booleans())
+def test_default_sigma_is_half_the_median_kth_neighbour_distance(seed, n, k, duplicates):
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0, 1, (n, 3))
+    if duplicates:
+        pts[: n // 2] = pts[0]
+    kk = min(k, n - 1)
+    q = pts if n <= 2000 else pts[np.random.default_rng(0).choice(n, size=2000, replace=False)]
+    d = cKDTree(pts).query(q, k=[kk + 1])[0][:, 0]
+    r = np.median(d) if np.median(d) > 0 else np.median(d[d > 0])
+    assert default_sigma(pts, k=k) == r / _fields.RADIUS_FACTOR
+
+
 # ---------------------------------------------------------------------------
 # bad input, memory, cache
 # ---------------------------------------------------------------------------

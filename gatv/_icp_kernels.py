@@ -25,7 +25,7 @@ numpy (or scipy) reference in ``tests/test_scans_kernels.py``.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from ._fit_kernels import kabsch3
 from .models.rigid.congruent_kernels import build_grid, nearest_in_grid
@@ -164,6 +164,80 @@ def _select(order, keys, lo, hi, k):
 
 
 @njit(cache=True)
+def _split_node(points, order, keys, leafsize, k, lo, hi, axis, split, left, right, count):
+    """Split node ``k`` at the median of its points' widest axis into nodes ``count`` and ``count + 1``
+    (True), or leave it a leaf (False: at most ``leafsize`` points, or all of them equal)."""
+    a, b = lo[k], hi[k]
+    if b - a <= leafsize:
+        return False
+    # The widest axis of the node's points (their bounding box in one pass).
+    x0 = y0 = z0 = np.inf
+    x1 = y1 = z1 = -np.inf
+    for s in range(a, b):
+        j = order[s]
+        x, y, z = points[j, 0], points[j, 1], points[j, 2]
+        x0, x1 = min(x0, x), max(x1, x)
+        y0, y1 = min(y0, y), max(y1, y)
+        z0, z1 = min(z0, z), max(z1, z)
+    best, width = 0, x1 - x0
+    if y1 - y0 > width:
+        best, width = 1, y1 - y0
+    if z1 - z0 > width:
+        best, width = 2, z1 - z0
+    if width <= 0.0:
+        return False  # every point equal: a leaf however many
+    mid = (a + b) // 2
+    for s in range(a, b):  # the node's keys, contiguous for the selection
+        keys[s] = points[order[s], best]
+    _select(order, keys, a, b - 1, mid)
+    axis[k] = best
+    split[k] = keys[mid]
+    lo[count], hi[count] = a, mid
+    lo[count + 1], hi[count + 1] = mid, b
+    left[k], right[k] = count, count + 1
+    return True
+
+
+@njit(cache=True)
+def _grow(points, order, keys, leafsize, root, lo, hi, axis, split, left, right, count, stack):
+    """Split node ``root`` and its descendants down to the leaves, the new nodes numbered from ``count``;
+    returns the next free number."""
+    stack[0] = root
+    top = 1
+    while top > 0:
+        top -= 1
+        k = stack[top]
+        if _split_node(points, order, keys, leafsize, k, lo, hi, axis, split, left, right, count):
+            stack[top] = count
+            stack[top + 1] = count + 1
+            top += 2
+            count += 2
+    return count
+
+
+def _node_cap(n, leafsize):
+    """Nodes a tree of ``n`` points may need: a node splits only above ``leafsize`` points into halves of
+    at least ``leafsize // 2 + 1`` (or stays a leaf), at most ``2 n / (leafsize // 2 + 1)`` nodes; this
+    bound is over twice that."""
+    return 4 * (n // max(leafsize, 1) + 1) + 2
+
+
+_node_cap_jit = njit(cache=True)(_node_cap)
+
+
+@njit(cache=True)
+def _grown(a, size, fill):
+    """``a`` in an array of ``size`` entries, the rest ``fill``."""
+    out = np.full(size, fill, a.dtype)
+    out[:a.shape[0]] = a
+    return out
+
+
+#: Points from which :func:`kdtree_build` grows subtrees in parallel (below, starting the threads costs more
+#: than the build).
+PARALLEL_BUILD = 4096
+
+
 def kdtree_build(points, leafsize):
     """A balanced k-d tree of ``points`` (split at the median of the widest axis, found by selection).
 
@@ -171,60 +245,78 @@ def kdtree_build(points, leafsize):
     ``order[lo[k]:hi[k]]``; an inner node splits on ``axis[k]`` at
     ``split[k]`` into ``left[k]`` (at most ``split``) and ``right[k]``; a
     leaf has ``axis[k] == -1``.  Node 0 is the root.
+
+    The top levels split breadth first until twice as many nodes as numba
+    has threads wait; their subtrees then grow in parallel, each numbered
+    within its own share of the node arrays (a share's unused numbers are
+    empty leaves that no node points to).  Every node splits as it would
+    in any order, so ``order`` and the tree's shape do not depend on the
+    threads.
     """
+    if points.shape[0] < PARALLEL_BUILD:
+        return _kdtree_build_serial(points, leafsize)
+    return _kdtree_build(points, leafsize, 2 * get_num_threads())
+
+
+@njit(cache=True)
+def _empty_nodes(cap, n):
+    """``(lo, hi, axis, split, left, right)`` of ``cap`` nodes: the root holding all ``n`` points, the others
+    empty leaves."""
+    lo = np.zeros(cap, np.int64)
+    hi = np.zeros(cap, np.int64)
+    lo[0], hi[0] = 0, n
+    return lo, hi, np.full(cap, -1, np.int64), np.zeros(cap), np.full(cap, -1, np.int64), np.full(cap, -1, np.int64)
+
+
+@njit(cache=True)
+def _kdtree_build_serial(points, leafsize):
+    """:func:`kdtree_build` in one thread, its nodes numbered depth first."""
+    n = points.shape[0]
+    cap = _node_cap_jit(n, leafsize)
+    lo, hi, axis, split, left, right = _empty_nodes(cap, n)
+    order = np.arange(n)
+    used = _grow(points, order, np.empty(n), leafsize, 0, lo, hi, axis, split, left, right, 1, np.empty(cap, np.int64))
+    return order, lo[:used], hi[:used], axis[:used], split[:used], left[:used], right[:used]
+
+
+@njit(cache=True, parallel=True)
+def _kdtree_build(points, leafsize, frontier_size):
+    """:func:`kdtree_build` with ``frontier_size`` nodes at the top levels' end."""
     n = points.shape[0]
     order = np.arange(n)
     keys = np.empty(n)
-    # A node splits only above leafsize points into halves of at least leafsize // 2 + 1 (or stays a leaf):
-    # at most 2 n / (leafsize // 2 + 1) nodes; this bound is over twice that.
-    cap = 4 * (n // max(leafsize, 1) + 1) + 2
-    lo = np.empty(cap, np.int64)
-    hi = np.empty(cap, np.int64)
-    axis = np.full(cap, -1, np.int64)
-    split = np.zeros(cap)
-    left = np.full(cap, -1, np.int64)
-    right = np.full(cap, -1, np.int64)
-    lo[0], hi[0] = 0, n
-    count = 1
-    stack = np.empty(cap, np.int64)
-    stack[0] = 0
-    top = 1
-    while top > 0:
-        top -= 1
-        k = stack[top]
-        a, b = lo[k], hi[k]
-        if b - a <= leafsize:
-            continue
-        # The widest axis of the node's points (their bounding box in one pass).
-        x0 = y0 = z0 = np.inf
-        x1 = y1 = z1 = -np.inf
-        for s in range(a, b):
-            j = order[s]
-            x, y, z = points[j, 0], points[j, 1], points[j, 2]
-            x0, x1 = min(x0, x), max(x1, x)
-            y0, y1 = min(y0, y), max(y1, y)
-            z0, z1 = min(z0, z), max(z1, z)
-        best, width = 0, x1 - x0
-        if y1 - y0 > width:
-            best, width = 1, y1 - y0
-        if z1 - z0 > width:
-            best, width = 2, z1 - z0
-        if width <= 0.0:
-            continue  # every point equal: a leaf however many
-        mid = (a + b) // 2
-        for s in range(a, b):  # the node's keys, contiguous for the selection
-            keys[s] = points[order[s], best]
-        _select(order, keys, a, b - 1, mid)
-        axis[k] = best
-        split[k] = keys[mid]
-        lo[count], hi[count] = a, mid
-        lo[count + 1], hi[count + 1] = mid, b
-        left[k], right[k] = count, count + 1
-        stack[top] = count
-        stack[top + 1] = count + 1
-        top += 2
-        count += 2
-    return order, lo[:count], hi[:count], axis[:count], split[:count], left[:count], right[:count]
+    cap = _node_cap_jit(n, leafsize)  # every node of the tree, the top levels' among them
+    lo, hi, axis, split, left, right = _empty_nodes(cap, n)
+    # The top levels, breadth first.
+    queue = np.empty(cap, np.int64)
+    head, tail, count = 0, 1, 1
+    queue[0] = 0
+    while 0 < tail - head < frontier_size:
+        k = queue[head]
+        head += 1
+        if _split_node(points, order, keys, leafsize, k, lo, hi, axis, split, left, right, count):
+            queue[tail] = count
+            queue[tail + 1] = count + 1
+            tail += 2
+            count += 2
+    roots = queue[head:tail].copy()
+    m = roots.shape[0]
+    base = np.empty(m + 1, np.int64)
+    base[0] = count
+    for i in range(m):
+        base[i + 1] = base[i] + _node_cap_jit(hi[roots[i]] - lo[roots[i]], leafsize)
+    if base[m] > cap:  # the subtrees' shares past the arrays: larger ones, the top levels copied
+        lo, hi, axis, split, left, right = (_grown(lo, base[m], 0), _grown(hi, base[m], 0), _grown(axis, base[m], -1),
+                                            _grown(split, base[m], 0.0), _grown(left, base[m], -1),
+                                            _grown(right, base[m], -1))
+    ends = np.empty(m, np.int64)
+    for i in prange(m):
+        stack = np.empty(base[i + 1] - base[i] + 2, np.int64)
+        ends[i] = _grow(points, order, keys, leafsize, roots[i], lo, hi, axis, split, left, right, base[i], stack)
+    used = count
+    for i in range(m):
+        used = max(used, ends[i])
+    return order, lo[:used], hi[:used], axis[:used], split[:used], left[:used], right[:used]
 
 
 @njit(cache=True)

@@ -11,6 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
+    _kdtree_build,
+    _kdtree_build_serial,
     bounding_box,
     KDTree,
     kdtree_build,
@@ -96,6 +98,31 @@ def test_kdtree_finds_the_nearest_point_within_the_bound_as_scipy(seed, n, radiu
     np.testing.assert_allclose(d[hit], d_ref[hit], rtol=0, atol=1e-12)
     assert np.all(j[~hit] == pts.shape[0])
     assert np.allclose(np.linalg.norm(queries[hit] - pts[j[hit]], axis=1), d_ref[hit], atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 6000), frontier=st.integers(1, 64),
+       duplicates=st.floats(0.0, 0.9), leaf=st.integers(1, 32))
+def test_kdtree_grown_in_parallel_is_the_serial_tree(seed, n, frontier, duplicates, leaf):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    pts[: int(duplicates * n)] = pts[0]
+    serial = _kdtree_build_serial(pts, leaf)
+    order, lo, hi, axis, split, left, right = _kdtree_build(pts, leaf, frontier)
+    np.testing.assert_array_equal(order, serial[0])
+
+    def shape(nodes, k=0):  # the tree from node k, whatever the numbering: (lo, hi, axis, split, children)
+        o, lo, hi, axis, split, left, right = nodes
+        if axis[k] < 0:
+            return (lo[k], hi[k])
+        return (lo[k], hi[k], axis[k], split[k], shape(nodes, left[k]), shape(nodes, right[k]))
+
+    assert shape((order, lo, hi, axis, split, left, right)) == shape(serial)
+    # Numbers no node points to are empty leaves.
+    reached = np.zeros(lo.size, bool)
+    reached[0] = True
+    reached[left[axis >= 0]] = reached[right[axis >= 0]] = True
+    assert np.all(axis[~reached] == -1) and np.all(hi[~reached] == lo[~reached])
 
 
 @settings(max_examples=25, deadline=None)

@@ -980,15 +980,31 @@ def thickness(points: np.ndarray) -> float:
 
 
 def aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """A rotation taking unit vector ``a`` onto unit vector ``b``."""
+    """A rotation taking unit vector ``a`` onto unit vector ``b``; for ``(n, 3)`` rows, ``(n, 3, 3)`` of
+    each row of ``a`` onto the same row of ``b``."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.ndim == 1:
+        return aligning_rotation(a[None], b[None])[0]
     v = np.cross(a, b)
-    c = float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: a half-turn about any axis normal to a
-        u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        u /= np.linalg.norm(u)
-        return 2.0 * np.outer(u, u) - np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+    c = np.einsum("ij,ij->i", a, b)
+    opposite = c < -1.0 + 1e-12
+    vx = _skew(v)
+    out = np.eye(3) + vx + vx @ vx / np.where(opposite, 1.0, 1.0 + c)[:, None, None]
+    if np.any(opposite):  # a half-turn about any axis normal to a
+        ao = a[opposite]
+        u = np.cross(ao, np.where((np.abs(ao[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        out[opposite] = 2.0 * u[:, :, None] * u[:, None, :] - np.eye(3)
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``(n, 3, 3)`` cross-product matrices ``[v]×`` of the rows of ``v``."""
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
 
 
 def tangent_motions(source: np.ndarray, target: np.ndarray, n: int, rng: np.random.Generator, *,
@@ -1012,14 +1028,12 @@ def tangent_motions(source: np.ndarray, target: np.ndarray, n: int, rng: np.rand
     nb = local_scatter(Y, Y[ib], min(k, Y.shape[0]), sy).normals
     signs = rng.choice([-1.0, 1.0], n)
     spins = rng.uniform(0.0, 2.0 * np.pi, n)
-    out = []
-    for a, b, s, phi, p, q in zip(na, nb, signs, spins, X[ia], Y[ib]):
-        b = s * b
-        K = np.array([[0.0, -b[2], b[1]], [b[2], 0.0, -b[0]], [-b[1], b[0], 0.0]])
-        spin = np.eye(3) + np.sin(phi) * K + (1.0 - np.cos(phi)) * K @ K  # Rodrigues about b
-        R = spin @ aligning_rotation(a, b)
-        out.append((R, q - R @ p))
-    return out
+    b = signs[:, None] * nb
+    K = _skew(b)
+    spin = np.eye(3) + np.sin(spins)[:, None, None] * K + (1.0 - np.cos(spins))[:, None, None] * (K @ K)  # Rodrigues
+    R = spin @ aligning_rotation(na, b)
+    t = Y[ib] - np.einsum("nij,nj->ni", R, X[ia])
+    return list(zip(R, t))
 
 
 #: Wrong motions drawn for a scans motion's verdict (:func:`surface_verdict`),

@@ -28,7 +28,7 @@ from gatv._icp_kernels import (
 )
 from gatv.ga import Rotor
 from gatv.models.rigid.congruent import TargetGrid
-from gatv.scans import point_icp, refine_point_to_plane
+from gatv.scans import aligning_rotation, point_icp, refine_point_to_plane
 
 
 def _surface(rng, n, noise=0.0):
@@ -130,6 +130,23 @@ def test_kdtree_grown_in_parallel_is_the_serial_tree(seed, n, frontier, duplicat
 def test_bounding_box_is_numpys_least_and_greatest_coordinates(seed, n, scale):
     pts = np.random.default_rng(seed).normal(0.0, scale, (n, 3))
     np.testing.assert_array_equal(bounding_box(pts), np.stack([pts.min(axis=0), pts.max(axis=0)]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 40), opposite=st.integers(0, 40))
+def test_aligning_rotations_of_rows_are_each_rows_own(seed, n, opposite):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, 3))
+    a /= np.linalg.norm(a, axis=1)[:, None]
+    b = rng.normal(size=(n, 3))
+    b /= np.linalg.norm(b, axis=1)[:, None]
+    b[:opposite] = -a[:opposite]  # the half-turn's branch
+    Rs = aligning_rotation(a, b)
+    for R, u, v in zip(Rs, a, b):
+        np.testing.assert_allclose(R, aligning_rotation(u, v), atol=1e-15)
+        np.testing.assert_allclose(R @ u, v, atol=1e-12)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
 
 
 def test_kdtree_nodes_partition_the_points():

@@ -1718,7 +1718,15 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         if defer_rivals and rivals:
             # Polished as the verdict's wrong draws are, at once: a rival that does not end on the best is
             # left to a finer grid; rivals that do are the best found again.
-            (Rq, tq), *others = verdict_polish_many([(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]])
+            motions = [(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]]
+            if verdict:
+                # The verdict polishes its first draws anyway (as many as VERDICT_MIN_WRONG): those that fill
+                # the threads this polish would leave idle are polished with it.
+                draws = wrong_draws()
+                spare = min(-len(motions) % get_num_threads(), VERDICT_MIN_WRONG - draws.n_polished)
+                (Rq, tq), *others = draws.polish_with(draws.n_polished + max(spare, 0), others=motions)
+            else:
+                (Rq, tq), *others = verdict_polish_many(motions)
             for Rr, tr in others:
                 if not same_motion(Rr, tr, Rq, tq, fine):
                     return SurfaceMatch(None, None, gate, none, 0, dict(info, reason=(

@@ -1043,11 +1043,11 @@ VERDICT_STREAM = 0x7E4D1C7
 VERDICT_ITERATIONS = 10
 #: Source points each draw is screened on.
 VERDICT_SCREEN = 1000
-#: Source points the polish of a wrong draw moves (a random share of the search's coarse sample, a
-#: quarter of its :data:`FINE_SAMPLE`): the polish only has to reach the draw's local minimum, whose
-#: supports are then counted on every source point; the level moves with the draws by far less than
-#: the verdict's margins, at a quarter of the cost.
-VERDICT_SAMPLE = 2000
+#: Source points the polish of a wrong draw moves (a random share of the search's coarse sample, an
+#: eighth of its :data:`FINE_SAMPLE`): the polish only has to reach the draw's local minimum, whose
+#: supports are then counted on every source point; the levels move with the sample by far less than
+#: the verdict's margins (design notes, section 6).
+VERDICT_SAMPLE = 1000
 #: Gates the verdict counts supports at: the final gate and its halves (a true
 #: motion's pairs sit at the noise, a wrong one's fill the gate).
 VERDICT_GATES = 5

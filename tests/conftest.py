@@ -54,10 +54,11 @@ trial_motions(x, index, eps=0.01, max_triples=8, rng=rng, wide=2, sequential=Tru
               source_normals=normals, target_normals=normals, max_enumerated=4)
 vote(x, 0.3, normals, saliency=np.ones(40))  # the stick pass alone
 similar_trial_motions(x, index, eps=0.01, max_triples=2, rng=rng)
-from gatv._icp_kernels import (KDTree, local_heights, neighbourhood_normals, plane_icp, plane_icp_many,
+from gatv._icp_kernels import (PARALLEL_BUILD, KDTree, local_heights, neighbourhood_normals, plane_icp, plane_icp_many,
                                plane_icp_parallel, screen_icp)
 from gatv.models.rigid.congruent import TargetGrid
 tree = KDTree(x)
+KDTree(rng.uniform(-1.0, 1.0, (PARALLEL_BUILD, 3)))  # the parallel build
 local_heights(x, np.zeros(40, np.int64), x, normals, normals, np.zeros((40, 4), np.int64), 0.9)
 plane_icp_many(x, tree.points, normals, *tree.nodes, np.eye(3)[None], np.zeros((1, 3)), np.array([0.3]), 2,
                np.array([1e-9]))

@@ -156,6 +156,10 @@ def _scans():
     a, b = surf[surf[:, 0] > -1.0], surf[surf[:, 0] < 1.0]
     R = random_rotation(rng, (10.0, 30.0))
     register(a, b @ R.T + 0.5, seed=0, pipeline="scans")
+    # Real scans' k-d trees are built in parallel from PARALLEL_BUILD points (these views are smaller).
+    from .._icp_kernels import PARALLEL_BUILD, KDTree
+
+    KDTree(rng.uniform(-1.0, 1.0, (PARALLEL_BUILD, 3)))
 
 
 #: The parts of a warmup, in the order one process would run them.

@@ -215,14 +215,12 @@ def _grow(points, order, keys, leafsize, root, lo, hi, axis, split, left, right,
     return count
 
 
+@njit(cache=True)
 def _node_cap(n, leafsize):
     """Nodes a tree of ``n`` points may need: a node splits only above ``leafsize`` points into halves of
     at least ``leafsize // 2 + 1`` (or stays a leaf), at most ``2 n / (leafsize // 2 + 1)`` nodes; this
     bound is over twice that."""
     return 4 * (n // max(leafsize, 1) + 1) + 2
-
-
-_node_cap_jit = njit(cache=True)(_node_cap)
 
 
 @njit(cache=True)
@@ -272,7 +270,7 @@ def _empty_nodes(cap, n):
 def _kdtree_build_serial(points, leafsize):
     """:func:`kdtree_build` in one thread, its nodes numbered depth first."""
     n = points.shape[0]
-    cap = _node_cap_jit(n, leafsize)
+    cap = _node_cap(n, leafsize)
     lo, hi, axis, split, left, right = _empty_nodes(cap, n)
     order = np.arange(n)
     used = _grow(points, order, np.empty(n), leafsize, 0, lo, hi, axis, split, left, right, 1, np.empty(cap, np.int64))
@@ -285,7 +283,7 @@ def _kdtree_build(points, leafsize, frontier_size):
     n = points.shape[0]
     order = np.arange(n)
     keys = np.empty(n)
-    cap = _node_cap_jit(n, leafsize)  # every node of the tree, the top levels' among them
+    cap = _node_cap(n, leafsize)  # every node of the tree, the top levels' among them
     lo, hi, axis, split, left, right = _empty_nodes(cap, n)
     # The top levels, breadth first.
     queue = np.empty(cap, np.int64)
@@ -304,7 +302,7 @@ def _kdtree_build(points, leafsize, frontier_size):
     base = np.empty(m + 1, np.int64)
     base[0] = count
     for i in range(m):
-        base[i + 1] = base[i] + _node_cap_jit(hi[roots[i]] - lo[roots[i]], leafsize)
+        base[i + 1] = base[i] + _node_cap(hi[roots[i]] - lo[roots[i]], leafsize)
     if base[m] > cap:  # the subtrees' shares past the arrays: larger ones, the top levels copied
         lo, hi, axis, split, left, right = (_grown(lo, base[m], 0), _grown(hi, base[m], 0), _grown(axis, base[m], -1),
                                             _grown(split, base[m], 0.0), _grown(left, base[m], -1),

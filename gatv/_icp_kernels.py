@@ -447,6 +447,74 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
         top = _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, bounds)
 
 
+#: Neighbours from which :func:`kdtree_knn` keeps the nearest found so far in a heap (below, a sorted list:
+#: an insertion costs ``k`` moves against a heap's ``log k``).
+KNN_HEAP = 32
+
+
+@njit(cache=True, inline="always")
+def _sift_down(hd, hj, start, size):
+    """Restore the max-heap ``hd`` (``hj`` alike) below ``start`` among its first ``size`` entries."""
+    i = start
+    while True:
+        c = 2 * i + 1
+        if c >= size:
+            return
+        if c + 1 < size and hd[c + 1] > hd[c]:
+            c += 1
+        if hd[c] <= hd[i]:
+            return
+        hd[i], hd[c] = hd[c], hd[i]
+        hj[i], hj[c] = hj[c], hj[i]
+        i = c
+
+
+@njit(cache=True)
+def kdtree_knearest_heap(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds,
+                         best_d, best_j):
+    """:func:`kdtree_knearest` for a large ``k``: the ``k`` nearest found so far in a max-heap, sorted
+    nearest first at the end (among points at one distance, in another order)."""
+    k = best_d.shape[0]
+    n = points.shape[0]
+    r2 = radius * radius
+    size = 0
+    top = _push_root(p, box, stack, offsets, bounds)
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        lb = bounds[top]
+        if lb >= min(best_d[0] if size == k else np.inf, r2):
+            continue
+        if axis[node] < 0:
+            for s in range(lo[node], hi[node]):
+                j = order[s]
+                d2 = _distance2(points, j, p)
+                if d2 >= r2:
+                    continue
+                if size < k:  # sift up
+                    i = size
+                    size += 1
+                    best_d[i], best_j[i] = d2, j
+                    while i > 0 and best_d[(i - 1) // 2] < best_d[i]:
+                        q = (i - 1) // 2
+                        best_d[i], best_d[q] = best_d[q], best_d[i]
+                        best_j[i], best_j[q] = best_j[q], best_j[i]
+                        i = q
+                elif d2 < best_d[0]:
+                    best_d[0], best_j[0] = d2, j
+                    _sift_down(best_d, best_j, 0, size)
+            continue
+        top = _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, bounds)
+    # Heapsort: the farthest to the back, nearest first; the places no point filled: inf and n.
+    for end in range(size - 1, 0, -1):
+        best_d[0], best_d[end] = best_d[end], best_d[0]
+        best_j[0], best_j[end] = best_j[end], best_j[0]
+        _sift_down(best_d, best_j, 0, end)
+    for m in range(size, k):
+        best_d[m] = np.inf
+        best_j[m] = n
+
+
 @njit(cache=True, parallel=True)
 def kdtree_knn(queries, points, order, lo, hi, axis, split, left, right, box, radius, k):
     """:func:`kdtree_knearest` of every row of ``queries`` (in parallel): ``(distances, indices)``, each
@@ -462,8 +530,12 @@ def kdtree_knn(queries, points, order, lo, hi, axis, split, left, right, box, ra
         best_d = np.empty(k)
         best_j = np.empty(k, np.int64)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            kdtree_knearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
-                            offsets, bounds, best_d, best_j)
+            if k >= KNN_HEAP:
+                kdtree_knearest_heap(queries[i], points, order, lo, hi, axis, split, left, right, box, radius,
+                                     stack, offsets, bounds, best_d, best_j)
+            else:
+                kdtree_knearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
+                                offsets, bounds, best_d, best_j)
             for m in range(k):
                 dist[i, m] = np.sqrt(best_d[m])
                 idx[i, m] = best_j[m]

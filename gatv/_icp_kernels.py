@@ -416,7 +416,8 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
     point count where fewer than ``k`` are that close), ``best_d`` their squared distances (``inf`` there).
 
     The search of :func:`kdtree_nearest`, bounded by the ``k``-th nearest found so far (kept sorted by
-    insertion: ``k`` is a neighbourhood's size, a few tens).
+    insertion; from :data:`KNN_HEAP` neighbours on, :func:`kdtree_knn` keeps them in a heap instead,
+    :func:`kdtree_knearest_heap`).
     """
     k = best_d.shape[0]
     n = points.shape[0]
@@ -450,6 +451,16 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
 #: Neighbours from which :func:`kdtree_knn` keeps the nearest found so far in a heap (below, a sorted list:
 #: an insertion costs ``k`` moves against a heap's ``log k``).
 KNN_HEAP = 32
+
+
+@njit(cache=True, inline="always")
+def _sift_up(hd, hj, i):
+    """Restore the max-heap ``hd`` (``hj`` alike) above its new entry ``i``."""
+    while i > 0 and hd[(i - 1) // 2] < hd[i]:
+        q = (i - 1) // 2
+        hd[i], hd[q] = hd[q], hd[i]
+        hj[i], hj[q] = hj[q], hj[i]
+        i = q
 
 
 @njit(cache=True, inline="always")
@@ -491,15 +502,10 @@ def kdtree_knearest_heap(p, points, order, lo, hi, axis, split, left, right, box
                 d2 = _distance2(points, j, p)
                 if d2 >= r2:
                     continue
-                if size < k:  # sift up
-                    i = size
+                if size < k:
+                    best_d[size], best_j[size] = d2, j
+                    _sift_up(best_d, best_j, size)
                     size += 1
-                    best_d[i], best_j[i] = d2, j
-                    while i > 0 and best_d[(i - 1) // 2] < best_d[i]:
-                        q = (i - 1) // 2
-                        best_d[i], best_d[q] = best_d[q], best_d[i]
-                        best_j[i], best_j[q] = best_j[q], best_j[i]
-                        i = q
                 elif d2 < best_d[0]:
                     best_d[0], best_j[0] = d2, j
                     _sift_down(best_d, best_j, 0, size)

@@ -256,7 +256,7 @@ def _scatter_of(reference: np.ndarray, nb: np.ndarray):
     return centroid, local, values, axes
 
 
-def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | None = None, *,
+def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree | KDTree | None = None, *,
                 quadric: bool = False, residuals: bool = True):
     """Least-squares planes of each point's ``k`` nearest ``reference`` points.
 
@@ -374,12 +374,12 @@ def _noise_step(pts: np.ndarray, at: np.ndarray, rng: np.random.Generator, k: in
         ref = trees[k]
     work = 0
     if ref is pts and "all" not in trees:
-        trees["all"] = _fit_tree(pts)  # the whole scan's, built once for the neighbourhoods that use every point
+        trees["all"] = KDTree(pts)  # the whole scan's, built once for the neighbourhoods that use every point
         work += n
     if ref is pts:
         tree = trees["all"]
     else:
-        tree = _fit_tree(ref)
+        tree = KDTree(ref)
         work += ref.shape[0]
     kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
     work += at.shape[0] * kk
@@ -429,7 +429,7 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
     rng = np.random.default_rng(seed)
     ref = _reference(pts, min(1.0, FIT_POINTS / k), rng)
     kk = min(ref.shape[0], max(4, round(k * ref.shape[0] / n)))
-    tree = _fit_tree(ref)
+    tree = KDTree(ref)
     out = np.empty_like(moving)
     normals = np.empty_like(moving)
     # The rows in the order of cells as wide as the fits' radius: consecutive queries then visit the
@@ -443,12 +443,6 @@ def project_to_surface(points, noise: ScanNoise, *, seed: int = 0, chunk: int = 
         out[at] = p - np.einsum("ij,ij->i", p - centroid, normal)[:, None] * normal
         normals[at] = normal
     return SurfaceProjection(out, normals, int(k), int(ref.shape[0] + moving.shape[0] * kk))
-
-
-def _fit_tree(points: np.ndarray) -> KDTree:
-    """The k-d tree of the plane fits' reference points (:class:`gatv._icp_kernels.KDTree`: the same
-    nearest neighbours as ``cKDTree``'s, its build in parallel and its queries in a numba kernel)."""
-    return KDTree(points)
 
 
 def spatial_order(points: np.ndarray, cell: float) -> np.ndarray:

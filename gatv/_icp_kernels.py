@@ -626,10 +626,11 @@ def rotvec_matrix(w):
 
 
 @njit(cache=True)
-def _plane_step(Y, N, moved, idx, R, t, gate, tol):
+def _plane_step(Y, N, moved, idx, R, t, gate):
     """One step of :func:`plane_icp` from the moved source points and their nearest targets ``idx`` (-1:
-    none within the gate): ``(R, t, stop)``, the motion unchanged and ``stop`` when fewer than six pair,
-    the motion updated and ``stop`` when the step moved the source by less than ``tol`` gates."""
+    none within the gate): ``(R, t, step)``, the motion updated and ``step`` how far it moved the source,
+    in gates (the rotation at the farthest pair plus the translation); the motion unchanged and ``step``
+    -1 when fewer than six pair."""
     n = moved.shape[0]
     cnt = 0
     c = np.zeros(3)
@@ -638,7 +639,7 @@ def _plane_step(Y, N, moved, idx, R, t, gate, tol):
             cnt += 1
             c += moved[i]
     if cnt < 6:
-        return R, t, True
+        return R, t, -1.0
     c /= cnt
     huber = 0.3 * gate
     rcond = 6.0 * np.finfo(np.float64).eps  # numpy's lstsq default for a 6 x 6 system
@@ -669,7 +670,17 @@ def _plane_step(Y, N, moved, idx, R, t, gate, tol):
     Rinc = rotvec_matrix(omega)
     R = Rinc @ R
     t = Rinc @ (t - c) + c + delta
-    return R, t, np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta) < tol * gate
+    return R, t, (np.sqrt(omega @ omega) * reach + np.sqrt(delta @ delta)) / gate
+
+
+@njit(cache=True, inline="always")
+def _stops(step, last, tol, stall):
+    """Whether :func:`plane_icp` ends after a step of ``step`` gates (-1: fewer than six pairs) that followed
+    one of ``last``: under ``tol``, or under ``stall`` without halving the last.  Near its minimum a
+    well-held motion's steps shrink by an order of magnitude or more each; steps that stay alike are a
+    slide along a direction the surface barely holds, or pairs traded back and forth, which more steps
+    only repeat (``stall`` 0: polish on to ``tol``)."""
+    return step < tol or (step < stall and step > 0.5 * last)
 
 
 @njit(cache=True, inline="always")
@@ -682,14 +693,15 @@ def _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, 
 
 
 @njit(cache=True)
-def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
+def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol, stall):
     """Point-to-plane ICP inside ``gate``: :func:`gatv.scans.refine_point_to_plane` with its nearest
     targets from the k-d tree ``order, ..., box`` of ``Y`` (:class:`KDTree`); ``N``: ``Y``'s unit normals.
 
     Each iteration minimises ``sum w ((R x + t - y) · n_y)²`` linearised in a small rotation about the
     pairs' centroid (Huber weights at 0.3 ``gate``), its 6 x 6 normal equations solved for least squares
     of minimum norm (:func:`_plane_step`).  Stops after ``iterations``, when fewer than six points pair,
-    or once a step moves the source by less than ``tol`` gates.  Returns ``(R, t)``.  One thread (the
+    once a step moves the source by less than ``tol`` gates, or once a step under ``stall`` gates moves
+    it by more than half the step before (:func:`_stops`).  Returns ``(R, t)``.  One thread (the
     kernel of :func:`plane_icp_many`'s parallel starts); :func:`plane_icp_parallel` queries in parallel.
     """
     n = X.shape[0]
@@ -700,18 +712,20 @@ def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate,
     bounds = np.empty(STACK)
     R = R.copy()
     t = t.copy()
+    last = np.inf
     for _ in range(iterations):
         for i in range(n):
             _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, stack,
                            offsets, bounds)
-        R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
-        if stop:
+        R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
+        if _stops(step, last, tol, stall):
             break
+        last = step
     return R, t
 
 
 @njit(cache=True, parallel=True)
-def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol):
+def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate, iterations, tol, stall):
     """:func:`plane_icp` with each iteration's nearest-target queries in parallel (chunks of points; the
     step that follows sums in the points' order, so the result is :func:`plane_icp`'s to the last bit)."""
     n = X.shape[0]
@@ -719,6 +733,7 @@ def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R,
     moved = np.empty((n, 3))
     R = R.copy()
     t = t.copy()
+    last = np.inf
     chunk = 256
     for _ in range(iterations):
         for ch in prange((n + chunk - 1) // chunk):
@@ -728,18 +743,19 @@ def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R,
             for i in range(ch * chunk, min(n, (ch + 1) * chunk)):
                 _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate,
                                stack, offsets, bounds)
-        R, t, stop = _plane_step(Y, N, moved, idx, R, t, gate, tol)
-        if stop:
+        R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
+        if _stops(step, last, tol, stall):
             break
+        last = step
     return R, t
 
 
 @njit(cache=True, parallel=True)
 def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotations, translations, gates,
-                   iterations, tols):
+                   iterations, tols, stalls):
     """:func:`plane_icp` from each of ``rotations``, ``translations`` through every gate of ``gates`` in
-    turn (``iterations`` and ``tols[g]`` at gate ``g``), the starts in parallel: the coarse-to-fine polish of
-    several motions at once.  Returns ``(rotations, translations)``."""
+    turn (``iterations``, ``tols[g]`` and ``stalls[g]`` at gate ``g``), the starts in parallel: the
+    coarse-to-fine polish of several motions at once.  Returns ``(rotations, translations)``."""
     m = rotations.shape[0]
     out_R = np.empty_like(rotations)
     out_t = np.empty_like(translations)
@@ -748,7 +764,7 @@ def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotati
         t = translations[k].copy()
         for g in range(gates.shape[0]):
             R, t = plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gates[g], iterations,
-                             tols[g])
+                             tols[g], stalls[g])
         out_R[k] = R
         out_t[k] = t
     return out_R, out_t

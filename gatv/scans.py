@@ -580,7 +580,7 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
-                          iterations: int = 30, tree=None, tol: float = 1e-9):
+                          iterations: int = 30, tree=None, tol: float = 1e-9, stall: float = 0.0):
     """Point-to-plane ICP (Chen & Medioni 1991) inside a distance gate.
 
     Minimises ``sum w ((R x + t - y) · n_y)²`` over nearest pairs within
@@ -591,7 +591,9 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
 
     Stops after ``iterations``, or once a step moves the source by less
     than ``tol`` gates (its rotation at the farthest pair plus its
-    translation).  ``tree``: a :class:`gatv._icp_kernels.KDTree` of
+    translation), or once a step under ``stall`` gates moves it by more
+    than half the step before (a slide that more steps only repeat; 0:
+    never).  ``tree``: a :class:`gatv._icp_kernels.KDTree` of
     ``target`` when the caller refines against it often (built otherwise).
     Runs in one numba kernel (:func:`gatv._icp_kernels.plane_icp_parallel`, its queries in parallel).
     Returns ``(rotation, translation)``.
@@ -608,9 +610,11 @@ def refine_point_to_plane(source, target, target_normals, rotation, translation,
     gate = check_positive(gate, "gate")
     iterations = check_int(iterations, "iterations", 0)
     tol = check_nonnegative(tol, "tol")
+    stall = check_nonnegative(stall, "stall")
     if not isinstance(tree, KDTree) or tree.points.shape != Y.shape:
         tree = KDTree(Y)
-    return plane_icp_parallel(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol))
+    return plane_icp_parallel(X, tree.points, N, *tree.nodes, R, t, float(gate), int(iterations), float(tol),
+                              float(stall))
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -1407,8 +1411,13 @@ FINE_SAMPLE = 8000
 #: The polish's levels above the finest stop once a step moves the source by less than this share of their
 #: gate: they only have to bring the motion well within the next, halved gate.  A right motion's steps fall
 #: to 1e-4 of the gate in 4 iterations and then drift by 2e-5 a step for the other 26 (bun000<-bun045,
-#: voxel gate); the finest level still converges to rounding.  (The verdict's polish of its wrong draws,
-#: on :data:`VERDICT_SAMPLE` points, keeps its :data:`VERDICT_ITERATIONS`: its levels stay as measured.)
+#: voxel gate).  The finest level polishes on to rounding while its steps keep shrinking (exact data: an
+#: order of magnitude or more a step), and stops once a step under this share of its gate moves the source
+#: by more than half the step before: a slide along a direction the surface barely holds, which more steps
+#: only repeat (a parasaurolophus view: 1.66e-4 of the gate, step after step, for all 30 iterations;
+#: :func:`gatv._icp_kernels.plane_icp`'s ``stall``).  (The verdict's polish of its wrong draws, on
+#: :data:`VERDICT_SAMPLE` points, keeps its :data:`VERDICT_ITERATIONS` and its tolerance: its levels stay
+#: as measured.)
 COARSE_STEP = 1e-3
 
 #: Triples a batch of :func:`match_surfaces`'s adaptive search (the whole-budget search: 512): the
@@ -1581,7 +1590,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             Rs, ts = plane_icp_many(np.ascontiguousarray(sample), tree.points, normals_c, *tree.nodes,
                                     np.array([motions[k][0] for k in todo], np.float64).reshape(-1, 3, 3),
                                     np.array([motions[k][1] for k in todo], np.float64).reshape(-1, 3),
-                                    np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9))
+                                    np.array(levels, np.float64), VERDICT_ITERATIONS, np.full(len(levels), 1e-9),
+                                    np.zeros(len(levels)))
             verdict_polished.update((keys[k], (R, t)) for k, R, t in zip(todo, Rs, ts))
         return [verdict_polished[key] for key in keys]
 
@@ -1607,10 +1617,11 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             for g in levels:
                 moving = points if points is not None else sub if g <= fine else coarse
                 # refine_point_to_plane's kernel, its inputs checked once by the caller
+                # The motion's own polish stops at COARSE_STEP above the finest level, and there on a stall.
+                tol = 1e-9 if g <= fine or points is not None else COARSE_STEP
                 R, t = plane_icp_parallel(moving, tree.points, normals_c, *tree.nodes,
                                           np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64),
-                                          float(g), int(iterations),
-                                          1e-9 if g <= fine or points is not None else COARSE_STEP)
+                                          float(g), int(iterations), tol, 0.0 if points is not None else COARSE_STEP)
         return counted(R, t, g, count)
 
     def counted(R, t, g, count):
@@ -1634,7 +1645,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                                    (sub, [g for g in levels if g <= fine], 1e-9)):
             if gates:
                 Rs, ts = plane_icp_many(moving, tree.points, normals_c, *tree.nodes, Rs, ts,
-                                        np.array(gates, np.float64), 30, np.full(len(gates), tol))
+                                        np.array(gates, np.float64), 30, np.full(len(gates), tol),
+                                        np.full(len(gates), COARSE_STEP))
         return [counted(R, t, levels[-1], count) for R, t in zip(Rs, ts)]
 
     centroid = Xs.mean(axis=0)

@@ -61,12 +61,12 @@ tree = KDTree(x)
 KDTree(rng.uniform(-1.0, 1.0, (PARALLEL_BUILD, 3)))  # the parallel build
 local_heights(x, np.zeros(40, np.int64), x, normals, normals, np.zeros((40, 4), np.int64), 0.9)
 plane_icp_many(x, tree.points, normals, *tree.nodes, np.eye(3)[None], np.zeros((1, 3)), np.array([0.3]), 2,
-               np.array([1e-9]))
+               np.array([1e-9]), np.array([0.0]))
 tree.query(x, k=1, distance_upper_bound=0.1)
 tree.query(x, k=16)
 neighbourhood_normals(x, tree.query(x, k=12)[1], 12)
-plane_icp(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9)
-plane_icp_parallel(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9)
+plane_icp(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9, 0.0)
+plane_icp_parallel(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9, 0.0)
 grid = TargetGrid.of(x, 0.1)
 screen_icp(x, grid.target, grid.start, grid.order, grid.origin, grid.cell, grid.dims, np.eye(3)[None],
            np.zeros((1, 3)), 0.1, 2)

@@ -57,14 +57,15 @@ def test_an_empty_scan_is_named(which):
         register_scans(source, target)
 
 
+@pytest.mark.parametrize("name", ["tol", "stall"])
 @pytest.mark.parametrize("bad", [-1e-9, np.nan, np.inf, "1e-9", None])
-def test_a_bad_point_to_plane_tolerance_is_named(bad):
+def test_a_bad_point_to_plane_tolerance_is_named(bad, name):
     from gatv.scans import refine_point_to_plane
 
     target = _scan()
     normals = np.tile([0.0, 0.0, 1.0], (target.shape[0], 1))
-    with pytest.raises(InputError, match="`tol` to be a finite number >= 0"):
-        refine_point_to_plane(target, target, normals, np.eye(3), np.zeros(3), 0.1, tol=bad)
+    with pytest.raises(InputError, match=f"`{name}` to be a finite number >= 0"):
+        refine_point_to_plane(target, target, normals, np.eye(3), np.zeros(3), 0.1, **{name: bad})
 
 
 @pytest.mark.parametrize("bad", ["yes", 1, None, 0.0])

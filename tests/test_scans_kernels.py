@@ -51,12 +51,14 @@ def _pair(rng, n_target, n_source, noise, angle, shift):
     return Y, N, X, R, rng.normal(0.0, shift, 3)
 
 
-def reference_plane_icp(source, target, target_normals, rotation, translation, gate, iterations=30, tol=1e-9):
+def reference_plane_icp(source, target, target_normals, rotation, translation, gate, iterations=30, tol=1e-9,
+                        stall=0.0):
     """The numpy point-to-plane ICP that :func:`gatv._icp_kernels.plane_icp` replaces (scipy's k-d tree)."""
     tree = cKDTree(target)
     R = np.array(rotation, dtype=np.float64)
     t = np.array(translation, dtype=np.float64)
     huber = 0.3 * gate
+    last = np.inf
     for _ in range(iterations):
         moved = source @ R.T + t
         dist, j = tree.query(moved, k=1, distance_upper_bound=gate)
@@ -74,8 +76,11 @@ def reference_plane_icp(source, target, target_normals, rotation, translation, g
         Rinc = Rotor.from_rotvec(omega).as_matrix()
         R = Rinc @ R
         t = Rinc @ (t - c) + c + delta
-        if np.linalg.norm(omega) * np.abs(p - c).max() + np.linalg.norm(delta) < tol * gate:
+        step = (np.linalg.norm(omega) * np.abs(p - c).max() + np.linalg.norm(delta)) / gate
+        # Converged, or stalled: a small step that did not halve the one before.
+        if step < tol or 0.5 * last < step < stall:
             break
+        last = step
     return R, t
 
 
@@ -294,9 +299,10 @@ def test_screen_icp_is_point_icp_for_every_draw(seed, angle):
 @given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 10.0), noise=st.floats(0.0, 0.01))
 def test_plane_icp_is_the_numpy_point_to_plane_icp(seed, angle, noise):
     Y, N, X, R0, t0 = _pair(np.random.default_rng(seed), 1500, 500, noise, angle, 0.02)
-    for gate, iterations, tol in [(0.2, 30, 1e-9), (0.05, 10, 1e-3)]:
-        R_ref, t_ref = reference_plane_icp(X, Y, N, R0, t0, gate, iterations, tol)
-        R, t = refine_point_to_plane(X, Y, N, R0, t0, gate, iterations=iterations, tol=tol)
+    for gate, iterations, tol, stall in [(0.2, 30, 1e-9, 0.0), (0.05, 10, 1e-3, 0.0), (0.1, 30, 1e-9, 1e-3),
+                                         (0.1, 30, 1e-9, 0.05)]:
+        R_ref, t_ref = reference_plane_icp(X, Y, N, R0, t0, gate, iterations, tol, stall)
+        R, t = refine_point_to_plane(X, Y, N, R0, t0, gate, iterations=iterations, tol=tol, stall=stall)
         np.testing.assert_allclose(R, R_ref, atol=1e-9)
         np.testing.assert_allclose(t, t_ref, atol=1e-9)
 
@@ -308,7 +314,7 @@ def test_plane_icp_recovers_a_small_motion_of_a_surface():
     t_true = np.array([0.02, -0.01, 0.015])
     X = (_surface(rng, 1000)[0] - t_true) @ R_true  # Y ≈ R_true X + t_true, sampled apart
     tree = KDTree(Y)
-    R, t = plane_icp(X, tree.points, N, *tree.nodes, np.eye(3), np.zeros(3), 0.2, 50, 1e-9)
+    R, t = plane_icp(X, tree.points, N, *tree.nodes, np.eye(3), np.zeros(3), 0.2, 50, 1e-9, 0.0)
     assert np.degrees(np.arccos(np.clip((np.trace(R @ R_true.T) - 1) / 2, -1, 1))) < 0.2
     assert np.linalg.norm(t - t_true) < 5e-3
 
@@ -327,11 +333,12 @@ def test_plane_icp_many_is_plane_icp_through_the_gates_for_each_start():
     translations = rng.normal(0.0, 0.05, (5, 3))
     gates = np.array([0.3, 0.15, 0.08])
     tols = np.array([1e-3, 1e-9, 1e-9])
-    Rs, ts = plane_icp_many(X, tree.points, N, *tree.nodes, rotations, translations, gates, 7, tols)
+    stalls = np.array([0.0, 1e-3, 0.0])
+    Rs, ts = plane_icp_many(X, tree.points, N, *tree.nodes, rotations, translations, gates, 7, tols, stalls)
     for k in range(5):
         R, t = rotations[k], translations[k]
-        for g, tol in zip(gates, tols):
-            R, t = plane_icp(X, tree.points, N, *tree.nodes, R, t, g, 7, tol)
+        for g, tol, stall in zip(gates, tols, stalls):
+            R, t = plane_icp(X, tree.points, N, *tree.nodes, R, t, g, 7, tol, stall)
         np.testing.assert_array_equal(Rs[k], R)
         np.testing.assert_array_equal(ts[k], t)
 
@@ -432,7 +439,7 @@ def test_chance_support_is_its_numpy_reference(seed, gate):
 def test_plane_icp_parallel_is_plane_icp_to_the_last_bit(seed, angle, n, gate):
     Y, N, X, R0, t0 = _pair(np.random.default_rng(seed), 1500, n, 0.003, angle, 0.02)
     tree = KDTree(Y)
-    for iterations, tol in [(30, 1e-9), (5, 1e-3)]:
-        R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol)
-        R2, t2 = plane_icp_parallel(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol)
+    for iterations, tol, stall in [(30, 1e-9, 0.0), (5, 1e-3, 0.0), (30, 1e-9, 1e-3)]:
+        R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
+        R2, t2 = plane_icp_parallel(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
         assert np.array_equal(R1, R2) and np.array_equal(t1, t2)

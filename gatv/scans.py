@@ -1056,13 +1056,27 @@ NOISE_REACH = 3.0
 #: The sequential verdict (:func:`surface_verdict` with ``sure=``): once at least :data:`VERDICT_MIN_WRONG`
 #: wrong draws, best screened first, are polished and counted, a motion whose margin over them reaches
 #: ``VERDICT_SURE`` passes without the others.  A motion that fails is judged against every draw.  The
-#: threshold is more than twice the largest margin a failing verdict reached over its first three draws
-#: on the recorded null and true pairs (design notes, section 6, "The verdict: draws shared, polished in
-#: order").
+#: threshold is more than 1.5 times the largest margin a failing verdict reached over its first three
+#: draws or more on the recorded null and true pairs (1.94; design notes, section 6, "The verdict: draws
+#: shared, polished in order" and "The sequential verdict from the first draw").
 VERDICT_SURE = 3.0
-#: The wrong draws counted before the sequential verdict may stop: after one or two, failing verdicts
-#: reached margins above ``VERDICT_SURE`` / 2 (design notes, section 6).
+#: Wrong draws counted before the sequential verdict stops at ``VERDICT_SURE``: after one or two, failing
+#: verdicts reached margins of up to 3.37 (design notes, section 6).
 VERDICT_MIN_WRONG = 3
+#: Before :data:`VERDICT_MIN_WRONG` wrong draws are counted, the sequential verdict stops at this margin
+#: (or at ``sure`` where that is higher): three times the largest margin a failing verdict reached over
+#: its first one or two wrong draws on the recorded null and true pairs (3.37), where most clean scan
+#: pairs' reach 10-60 (design notes, section 6, "The sequential verdict from the first draw").
+VERDICT_SURE_FIRST = 10.0
+#: From this many wrong draws on (half of :data:`VERDICT_POLISHED`), the sequential verdict stops at
+#: :data:`VERDICT_SURE_LATE` (or at ``sure`` where that is lower).
+VERDICT_LATE_WRONG = 8
+#: The sequential verdict's margin from :data:`VERDICT_LATE_WRONG` wrong draws on: 1.75 times the largest
+#: margin a failing verdict reached over its first eight draws or more on the recorded null and true pairs
+#: (1.135), where a right motion that a draw follows closely (margin 2.5-2.9 over every prefix from the
+#: third draw on) would otherwise polish all 16 (design notes, section 6, "The sequential verdict from the
+#: first draw").
+VERDICT_SURE_LATE = 2.0
 
 
 def point_icp(X, Y, tree, R, t, gate, iterations=10, *, fit=fit_rigid):
@@ -1244,6 +1258,17 @@ def gate_verdicts(found, wrong, n_tested: float, n_points: int, n_drawn: int | N
                                  n_drawn=n_drawn) for i in range(found.size)]
 
 
+def sure_after(n_wrong: int, sure: float) -> float:
+    """The margin at which :func:`surface_verdict`'s sequential verdict (``sure``) stops, passing, after
+    ``n_wrong`` wrong draws: ``sure`` from :data:`VERDICT_MIN_WRONG` on, higher before
+    (:data:`VERDICT_SURE_FIRST`), lower from :data:`VERDICT_LATE_WRONG` on (:data:`VERDICT_SURE_LATE`)."""
+    if n_wrong < VERDICT_MIN_WRONG:
+        return max(sure, VERDICT_SURE_FIRST)
+    if n_wrong >= VERDICT_LATE_WRONG:
+        return min(sure, VERDICT_SURE_LATE)
+    return sure
+
+
 def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, voxel: float, gate: float,
                     n_tested: float, rng: np.random.Generator | None, tree: cKDTree | None = None,
                     noise: float = 0.0, n_draws: int = VERDICT_DRAWS,
@@ -1290,12 +1315,17 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     ``sure``: a sequential verdict.  The draws are polished best screened
     first, and once :data:`VERDICT_MIN_WRONG` wrong ones are counted the
     verdict stops, passing, as soon as the motion's margin over them
-    reaches ``sure`` (:data:`VERDICT_SURE`): a margin that far over the
-    best screened draws is not undone by the draws left (measured on
-    recorded verdicts, every draw polished: a failing verdict's margin
-    over its first three wrong draws or more was at most 1.14).  The
-    level is then that of the draws polished; a motion that fails still
-    fails as without ``sure`` (it only ends a verdict that passes).
+    reaches ``sure`` (:data:`VERDICT_SURE`); over fewer, from the first,
+    once it reaches :data:`VERDICT_SURE_FIRST` (or ``sure``, where
+    higher); over :data:`VERDICT_LATE_WRONG` or more, once it reaches
+    :data:`VERDICT_SURE_LATE` (or ``sure``, where lower).  A margin that
+    far over the best screened draws is not undone by the draws left
+    (measured on recorded verdicts, every draw polished: a failing
+    verdict's margin over its first wrong draw was at most 3.37, over its
+    first three or more at most 1.94, over its first eight or more at most
+    1.135).  The level is
+    then that of the draws polished; a motion that fails still fails as
+    without ``sure`` (it only ends a verdict that passes).
     ``figures["polished"]`` counts the draws polished.
 
     ``start``: ``(R, t)`` of the trial motion the search polished into
@@ -1325,9 +1355,10 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
                            n_draws=n_draws, n_polished=n_polished)
     alike = None
     if start is not None:
-        # Polished with the draws a sequential verdict counts at least (at once, in parallel, where the
-        # draws polish many at a time).
-        first = VERDICT_MIN_WRONG if sure is not None and draws.polish_many is not None else 0
+        # Polished with the first draws a sequential verdict may stop at, as many as fill the threads beside
+        # it (at once, in parallel, where the draws polish many at a time).
+        first = (draws.n_polished + max(1, get_num_threads() - 1)
+                 if sure is not None and draws.polish_many is not None else 0)
         (Ra, ta), = draws.polish_with(first, [start])
         alike = surface_support(Xs, Ys, target_normals, tree, Ra, ta, gates, reach, frame)
         found = np.minimum(found, alike)
@@ -1361,8 +1392,7 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
             if not any(v for v, _ in plain):
                 break
             # Sequential: far enough over the best screened wrong draws, the motion passes without the rest.
-            if (sure is not None and len(wrong) - n_searched >= VERDICT_MIN_WRONG
-                    and max(v.margin for v, _ in per_gate) >= sure):
+            if sure is not None and max(v.margin for v, _ in per_gate) >= sure_after(len(wrong) - n_searched, sure):
                 break
     per_gate = judged(wrong)
     wrong = np.array(wrong, dtype=np.int64).reshape(-1, len(gates))

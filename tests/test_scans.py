@@ -425,23 +425,47 @@ def _judge(case, R, t, **options):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_sequential_verdict_stops_only_on_a_pass(seed):
-    """``surface_verdict(sure=)`` polishes the best-screened draws first and stops once the margin over at
-    least VERDICT_MIN_WRONG of them reaches ``sure``: the right motion passes after those few, its wrong
-    supports the full verdict's first ones; a wrong motion's verdict is the full one, figure for figure."""
-    from gatv.scans import VERDICT_MIN_WRONG, VERDICT_SURE
+    """``surface_verdict(sure=)`` polishes the best-screened draws first and stops at the first of them
+    over which the margin reaches ``sure_after`` that many (``sure`` from VERDICT_MIN_WRONG on, more
+    before, less from VERDICT_LATE_WRONG on): the right motion passes after those few, its wrong supports
+    the full verdict's first ones; a wrong motion's verdict is the full one, figure for figure."""
+    from gatv.scans import VERDICT_SURE, gate_verdicts, sure_after
 
     case = _verdict_case(seed)
     full, full_figures = _judge(case, np.eye(3), np.zeros(3))
     fast, fast_figures = _judge(case, np.eye(3), np.zeros(3), sure=VERDICT_SURE)
     assert full and fast and fast.margin >= VERDICT_SURE
-    assert full_figures["polished"] == 16 and VERDICT_MIN_WRONG <= fast_figures["polished"] < 16
+    assert full_figures["polished"] == 16 and 1 <= fast_figures["polished"] < 16
     assert fast_figures["wrong_support"] == full_figures["wrong_support"][:len(fast_figures["wrong_support"])]
     assert fast.margin >= full.margin  # fewer draws, lower levels
+    # It stops at the first count of wrong draws whose margin reaches that count's threshold.
+    margins = [max(v.margin for v in gate_verdicts(full_figures["support"], full_figures["wrong_support"][:k], 1000,
+                                                    case[0].shape[0]))
+               for k in range(1, full_figures["wrong_motions"] + 1)]
+    stop = next(k for k, m in enumerate(margins, 1) if m >= sure_after(k, VERDICT_SURE))
+    assert fast_figures["wrong_motions"] == stop and fast.margin == pytest.approx(margins[stop - 1])
     R_wrong = Rotor.from_axis_angle([1.0, 0.2, -0.5], np.radians(70.0)).as_matrix()
     wrong, wrong_figures = _judge(case, R_wrong, np.zeros(3))
     wrong_fast, wrong_fast_figures = _judge(case, R_wrong, np.zeros(3), sure=VERDICT_SURE)
     assert not wrong and not wrong_fast
     assert wrong_fast.to_dict() == wrong.to_dict() and wrong_fast_figures == wrong_figures
+
+
+@settings(max_examples=50, deadline=None)
+@given(sure=st.floats(0.5, 20.0), n=st.integers(0, 40))
+def test_the_sequential_verdicts_margin_falls_with_the_draws(sure, n):
+    """``sure_after``: the margin the sequential verdict stops at never rises with the wrong draws counted,
+    is ``sure`` itself between VERDICT_MIN_WRONG and VERDICT_LATE_WRONG draws, never below it before them
+    and never above it after."""
+    from gatv.scans import VERDICT_LATE_WRONG, VERDICT_MIN_WRONG, sure_after
+
+    assert sure_after(n + 1, sure) <= sure_after(n, sure)
+    if n < VERDICT_MIN_WRONG:
+        assert sure_after(n, sure) >= sure
+    elif n < VERDICT_LATE_WRONG:
+        assert sure_after(n, sure) == sure
+    else:
+        assert sure_after(n, sure) <= sure
 
 
 def test_the_motion_is_judged_as_polished_like_its_draws():
@@ -493,8 +517,11 @@ def test_wrong_draws_are_polished_once_for_every_verdict():
 
 def test_draws_polished_many_at_a_time_give_the_same_verdict():
     """``WrongDraws(polish_many=)`` (match_surfaces' parallel polish) polishes several draws at a time and
-    the motion's start with the first VERDICT_MIN_WRONG: the same verdicts, figure for figure, as one by one."""
-    from gatv.scans import VERDICT_MIN_WRONG, VERDICT_SURE, SourceFrame, WrongDraws
+    the motion's start with the first draws, as many as fill numba's threads beside it (at least one): the
+    same verdicts, figure for figure, as one by one."""
+    from numba import get_num_threads
+
+    from gatv.scans import VERDICT_SURE, SourceFrame, WrongDraws
 
     case = _verdict_case(4)
     src, tgt, normals, tree, polish = case
@@ -512,7 +539,7 @@ def test_draws_polished_many_at_a_time_give_the_same_verdict():
         together = _judge(case, R, np.zeros(3), draws=draws, sure=VERDICT_SURE, start=start)
         alone = _judge(case, R, np.zeros(3), sure=VERDICT_SURE, start=start)
         assert together[0].to_dict() == alone[0].to_dict() and together[1] == alone[1]
-        assert batches[0] == VERDICT_MIN_WRONG + 1  # the start and the first draws, in one call
+        assert batches[0] == max(1, get_num_threads() - 1) + 1  # the start and the first draws, in one call
         assert draws.n_polished >= together[1]["polished"]
 
 

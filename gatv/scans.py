@@ -1176,8 +1176,8 @@ class WrongDraws:
     Every draw's screen runs in one numba kernel (:func:`gatv._icp_kernels.screened_supports`, equal to
     :func:`point_icp` with ``fit=kabsch3``), draws in parallel.  ``polish_many(motions) -> [(R, t), ...]``:
     ``polish`` of several motions at once (in parallel); draws are then polished as many at a time as numba
-    has threads, and :func:`surface_verdict` polishes its motion's start with the first
-    :data:`VERDICT_MIN_WRONG` draws.
+    has threads, and :func:`surface_verdict` polishes its motion's start with the first draws, as many as
+    fill the threads beside it.
     """
 
     def __init__(self, Xs, Ys, target_normals, tree: cKDTree | KDTree, frame: SourceFrame, *, polish, voxel: float,
@@ -1752,8 +1752,8 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             # left to a finer grid; rivals that do are the best found again.
             motions = [(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]]
             if verdict:
-                # The verdict polishes its first draws anyway (as many as VERDICT_MIN_WRONG): those that fill
-                # the threads this polish would leave idle are polished with it.
+                # The verdict polishes its first draws anyway (up to VERDICT_MIN_WRONG before it may stop at
+                # VERDICT_SURE): those that fill the threads this polish would leave idle are polished with it.
                 draws = wrong_draws()
                 spare = min(-len(motions) % get_num_threads(), VERDICT_MIN_WRONG - draws.n_polished)
                 (Rq, tq), *others = draws.polish_with(draws.n_polished + max(spare, 0), others=motions)

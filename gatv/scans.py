@@ -1065,8 +1065,9 @@ VERDICT_SURE = 3.0
 VERDICT_MIN_WRONG = 3
 #: Before :data:`VERDICT_MIN_WRONG` wrong draws are counted, the sequential verdict stops at this margin
 #: (or at ``sure`` where that is higher): three times the largest margin a failing verdict reached over
-#: its first one or two wrong draws on the recorded null and true pairs (3.37), where most clean scan
-#: pairs' reach 10-60 (design notes, section 6, "The sequential verdict from the first draw").
+#: its first one or two wrong draws on the recorded null and true pairs (3.37), where the clean scan
+#: pairs' reach 4-58, half of them 10 or more (design notes, section 6, "The sequential verdict from
+#: the first draw").
 VERDICT_SURE_FIRST = 10.0
 #: From this many wrong draws on (half of :data:`VERDICT_POLISHED`), the sequential verdict stops at
 #: :data:`VERDICT_SURE_LATE` (or at ``sure`` where that is lower).

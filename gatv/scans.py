@@ -1324,9 +1324,9 @@ def surface_verdict(Xs, Ys, target_normals, rotation, translation, *, polish, vo
     (measured on recorded verdicts, every draw polished: a failing
     verdict's margin over its first wrong draw was at most 3.37, over its
     first three or more at most 1.94, over its first eight or more at most
-    1.135).  The level is
-    then that of the draws polished; a motion that fails still fails as
-    without ``sure`` (it only ends a verdict that passes).
+    1.135).  The level is then that of the draws polished; a motion that
+    fails still fails as without ``sure`` (it only ends a verdict that
+    passes).
     ``figures["polished"]`` counts the draws polished.
 
     ``start``: ``(R, t)`` of the trial motion the search polished into
@@ -1647,9 +1647,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         if refine:
             for g in levels:
                 moving = points if points is not None else sub if g <= fine else coarse
-                # refine_point_to_plane's kernel, its inputs checked once by the caller
                 # The motion's own polish stops at COARSE_STEP above the finest level, and there on a stall.
                 tol = 1e-9 if g <= fine or points is not None else COARSE_STEP
+                # refine_point_to_plane's kernel, its inputs checked once by the caller
                 R, t = plane_icp_parallel(moving, tree.points, normals_c, *tree.nodes,
                                           np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64),
                                           float(g), int(iterations), tol, 0.0 if points is not None else COARSE_STEP)

@@ -982,8 +982,12 @@ def aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     v = np.cross(a, b)
     c = np.einsum("ij,ij->i", a, b)
     opposite = c < -1.0 + 1e-12
-    vx = _skew(v)
-    out = np.eye(3) + vx + vx @ vx / np.where(opposite, 1.0, 1.0 + c)[:, None, None]
+    # Rodrigues about the unit axis v / |v| by the angle whose sine is |v| and cosine c: orthonormal to
+    # rounding however near opposite a and b are (``I + [v]x + [v]x² / (1 + c)``, the same rotation, loses
+    # eps / (1 + c) there: 3e-12 at c = -0.9998).
+    s = np.linalg.norm(v, axis=1)
+    kx = _skew(v / np.where(s > 0.0, s, 1.0)[:, None])
+    out = np.eye(3) + s[:, None, None] * kx + (1.0 - c)[:, None, None] * (kx @ kx)
     if np.any(opposite):  # a half-turn about any axis normal to a
         ao = a[opposite]
         u = np.cross(ao, np.where((np.abs(ao[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))

@@ -198,6 +198,12 @@ class ScanNoise:
     #: Points the measurement handled: those put into k-d trees and the neighbours fitted.
     work: int = 0
 
+    @property
+    def settled(self) -> bool:
+        """Whether the neighbourhoods reached :data:`NOISE_RADIUS` deviations: on a surface they do, in
+        a volume of scattered points they reach the whole set first and ``sigma`` is its own spread."""
+        return self.radius >= NOISE_RADIUS * self.sigma
+
 
 def _reference(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
     """A random ``share`` of the rows (all of them when ``share >= 1``)."""
@@ -789,7 +795,8 @@ def register_surfaces(
         matched and judged on a random sample of that many rows each
         (:data:`MATCH_POINTS_PER_CELL`); where that gives no motion, on up
         to :data:`VOTE_POINTS` rows each (``info["sampled"]``: the sample's
-        rows and its reason).
+        rows and its reason).  A scan whose surface points lie on one plane
+        (:func:`flat_scan`) gives no motion before the search ("degenerate: ...").
     """
     t0 = _clock()
     X = RIGID.check_points(source, "source")
@@ -828,6 +835,13 @@ def register_surfaces(
                             max_points=cap)
         ix, iy = tx.rows, ty.rows
         Xs, Ys = tx.points[ix], ty.points[iy]
+        if k == 0:  # a plane in either scan: no search can determine the slide along it
+            flat = flat_scan(Xs, tx.noise, "source") or flat_scan(Ys, ty.noise, "target")
+            if flat is not None:
+                return stages.failure(RIGID, flat[0], {
+                    "mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0])),
+                    "thickness": flat[1], "scan_noise": (tx.noise.sigma, ty.noise.sigma),
+                    "time_s": time.perf_counter() - t0[0], "cpu_s": time.process_time() - t0[1]})
         nys = ty.normals if ty.normals is not None else _normals(Ys)
         prepared = np.subtract(_clock(), t0)
         match = match_surfaces(Xs, Ys, nys, n_points=cells, voxel=voxel, seed=seed, min_overlap=min_overlap,
@@ -971,6 +985,42 @@ def thickness(points: np.ndarray) -> float:
         return 0.0
     ev = np.linalg.eigvalsh(np.cov(pts.T))
     return float(np.sqrt(max(ev[0], 0.0)))
+
+
+#: A scan is a plane when its spread along its least axis is within this many times its noise along its
+#: surface (:func:`flat_scan`): a noisy plane's spread there is its noise, which :func:`scan_noise` may
+#: measure 10-15% low (the xfail of ``test_scans``).  Design notes §6, "A plane told before the search",
+#: has the ratios of planes and of real views.
+FLAT_NOISE = 1.5
+
+#: A scan whose spread along its least axis is within this share of its spread along all three is flat to
+#: rounding (an exact plane, noise 0): the covariance's least eigenvalue is known to about eps times its
+#: largest, so its square root, the thickness, to about ``sqrt(eps)`` = 1.5e-8 of the spread.
+FLAT_ROUNDING = 1e-6
+
+
+def flat_scan(points: np.ndarray, noise: ScanNoise, name: str) -> tuple[str, float] | None:
+    """``(reason, thickness)`` when a scan's surface points lie on one plane, else None.
+
+    Flat: the spread along the least axis (:func:`thickness`) within :data:`FLAT_NOISE` times the scan's
+    noise along its surface (``noise.sigma``, :func:`scan_noise`), or within :data:`FLAT_ROUNDING` of its
+    spread along all three axes (exact data): no more than the noise of a plane.  Any motion that maps
+    such a scan onto the other can slide along the plane and still fit as well, and every supporting set
+    is flat too (as :func:`register_surfaces` checks it, against the pairs' residuals, once a motion is
+    found), so the pipeline ends before its search.  None where the noise did not settle
+    (``noise.settled``): in a volume ``sigma`` is the volume's own spread, no measure of a surface's
+    thickness.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] < 4 or not noise.settled:
+        return None
+    sigma = noise.sigma
+    flat = thickness(pts)
+    spread = float(np.sqrt(np.trace(np.cov(pts.T))))
+    if flat > max(FLAT_NOISE * sigma, FLAT_ROUNDING * spread):
+        return None
+    return (f"degenerate: the {name}'s {pts.shape[0]} surface points lie on one plane (thickness {flat:.3g}, "
+            f"its noise {sigma:.3g}), along which any slide fits as well"), flat
 
 
 def aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from gatv import register
 from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair, rotation_error_deg
-from gatv.scans import (NOISE_REACH, NORMAL_AGREEMENT, VERDICT_GATES, SourceFrame, local_scatter, surface_support,
-                        surface_verdict)
+from gatv.scans import (FLAT_NOISE, NOISE_RADIUS, NOISE_REACH, NORMAL_AGREEMENT, VERDICT_GATES, ScanNoise,
+                        SourceFrame, flat_scan, local_scatter, scan_noise, surface_support, surface_verdict, thickness)
 from gatv.stats import chance_support
 from gatv.verdict import SEARCH_GAIN, Verdict, chance_verdict, poisson_verdict, wrong_motion_verdict
 
@@ -117,8 +117,47 @@ def test_a_plane_against_a_plane_is_degenerate():
 
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     m = register(square(3000) @ R.T + [1.0, 2.0, 3.0], square(3000), seed=0, pipeline="scans")
-    assert not m
-    assert "plane" in m.info["reason"] or "wrong motions" in m.info["reason"]
+    assert not m and len(m.correspondences) == 0
+    assert m.info["reason"].startswith("degenerate: the source's") and "one plane" in m.info["reason"]
+    assert "triples" not in m.info  # told before the search: no triple was drawn
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), sigma=st.floats(0.0, 0.05), scale=st.floats(1e-3, 1e3),
+       sag=st.floats(20.0, 100.0))
+def test_a_scan_is_flat_exactly_when_it_is_a_plane_to_its_noise(seed, sigma, scale, sag):
+    """flat_scan: a noisy plane in any pose and at any scale is flat; bent into a cylinder's arc of
+    ``sag`` noise deviations (at least 1.0 on the patch of width 2, for exact data) it is not."""
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed).as_matrix()
+    uv = rng.uniform(-1.0, 1.0, (2000, 2))
+    height = sag * max(sigma, 0.05) * uv[:, 0] ** 2
+    noise = rng.normal(0.0, sigma, 2000)
+    plane = np.column_stack([uv, noise])
+    bent = np.column_stack([uv, noise + height])
+    for pts, flat in ((plane, True), (bent, False)):
+        moved = (pts @ R.T + rng.normal(0.0, 10.0, 3)) * scale
+        got = flat_scan(moved, ScanNoise(sigma * scale, 8, 2.0 * NOISE_RADIUS * sigma * scale), "source")
+        assert (got is not None) == flat
+        if flat:
+            assert "source's 2000 surface points lie on one plane" in got[0]
+            assert got[1] == pytest.approx(thickness(moved))
+
+
+def test_a_volume_is_never_flat_and_a_surface_settles_its_noise():
+    """A uniform volume's noise never settles (its ``sigma`` is the volume's spread), so no slab of it is
+    called a plane; a noisy closed surface's does, and is not flat."""
+    rng = np.random.default_rng(3)
+    cloud = rng.uniform(0.0, 10.0, (3000, 3))
+    noise = scan_noise(cloud)
+    assert not noise.settled and noise.neighbours == cloud.shape[0] - 1
+    slab = cloud[np.abs(cloud[:, 2] - 5.0) < 0.2]  # thinner than the volume's noise measure
+    assert thickness(slab) < FLAT_NOISE * noise.sigma
+    assert flat_scan(slab, noise, "source") is None
+    blob = _blob(rng, 3000) + rng.normal(0.0, 0.005, (3000, 3))
+    noise = scan_noise(blob)
+    assert noise.settled and noise.radius >= NOISE_RADIUS * noise.sigma
+    assert flat_scan(blob, noise, "target") is None
 
 
 def _blob(rng, n):

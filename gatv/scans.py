@@ -795,8 +795,8 @@ def register_surfaces(
         matched and judged on a random sample of that many rows each
         (:data:`MATCH_POINTS_PER_CELL`); where that gives no motion, on up
         to :data:`VOTE_POINTS` rows each (``info["sampled"]``: the sample's
-        rows and its reason).  A scan whose surface points lie on one plane
-        (:func:`flat_scan`) gives no motion before the search ("degenerate: ...").
+        rows and its reason).  A scan whose points lie on one plane to their
+        noise (:func:`flat_scan`) gives no motion before the search ("degenerate: ...").
     """
     t0 = _clock()
     X = RIGID.check_points(source, "source")
@@ -836,7 +836,8 @@ def register_surfaces(
         ix, iy = tx.rows, ty.rows
         Xs, Ys = tx.points[ix], ty.points[iy]
         if k == 0:  # a plane in either scan: no search can determine the slide along it
-            flat = flat_scan(Xs, tx.noise, "source") or flat_scan(Ys, ty.noise, "target")
+            flat = (flat_scan(X if tx.sampled is None else X[tx.sampled], tx.noise, "source")
+                    or flat_scan(Y if ty.sampled is None else Y[ty.sampled], ty.noise, "target"))
             if flat is not None:
                 return stages.failure(RIGID, flat[0], {
                     "mode": "scans", "surface_points": (int(Xs.shape[0]), int(Ys.shape[0])),
@@ -1000,16 +1001,18 @@ FLAT_ROUNDING = 1e-6
 
 
 def flat_scan(points: np.ndarray, noise: ScanNoise, name: str) -> tuple[str, float] | None:
-    """``(reason, thickness)`` when a scan's surface points lie on one plane, else None.
+    """``(reason, thickness)`` when a scan's points lie on one plane, else None.
 
     Flat: the spread along the least axis (:func:`thickness`) within :data:`FLAT_NOISE` times the scan's
     noise along its surface (``noise.sigma``, :func:`scan_noise`), or within :data:`FLAT_ROUNDING` of its
-    spread along all three axes (exact data): no more than the noise of a plane.  Any motion that maps
-    such a scan onto the other can slide along the plane and still fit as well, and every supporting set
-    is flat too (as :func:`register_surfaces` checks it, against the pairs' residuals, once a motion is
-    found), so the pipeline ends before its search.  None where the noise did not settle
-    (``noise.settled``): in a volume ``sigma`` is the volume's own spread, no measure of a surface's
-    thickness.
+    spread along all three axes (exact data): no more than the noise of a plane.  ``points``: the scan's
+    rows as given, as the noise was measured on them (not the vote's rows, which keep the points nearest
+    the surface and so are thinner than the noise; clutter makes a plane thicker, and a cluttered plane
+    goes on to the search).  Any motion that maps a plane onto the other scan can slide along it and
+    still fit as well, and every supporting set is flat too (as :func:`register_surfaces` checks it,
+    against the pairs' residuals, once a motion is found), so the pipeline ends before its search.
+    None where the noise did not settle (``noise.settled``): in a volume ``sigma`` is the volume's own
+    spread, no measure of a surface's thickness.
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.shape[0] < 4 or not noise.settled:
@@ -1019,7 +1022,7 @@ def flat_scan(points: np.ndarray, noise: ScanNoise, name: str) -> tuple[str, flo
     spread = float(np.sqrt(np.trace(np.cov(pts.T))))
     if flat > max(FLAT_NOISE * sigma, FLAT_ROUNDING * spread):
         return None
-    return (f"degenerate: the {name}'s {pts.shape[0]} surface points lie on one plane (thickness {flat:.3g}, "
+    return (f"degenerate: the {name}'s {pts.shape[0]} points lie on one plane (thickness {flat:.3g}, "
             f"its noise {sigma:.3g}), along which any slide fits as well"), flat
 
 

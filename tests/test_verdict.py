@@ -169,6 +169,27 @@ def _blob(rng, n):
     return u * r[:, None] * [1.2, 0.9, 0.6]
 
 
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "known defect: the scans path has no symmetry rival (the exact path's symmetry_rival); on a shallow bowl "
+    "that a half-turn about its axis maps onto itself (c = 0.005, noise 0.02, seed 1) it returns the true motion "
+    "composed with the half-turn, 179.5 deg off, margin 1.38: no search or draw held the true one (design notes, "
+    "section 6, 'A plane told before the search')"))
+def test_a_symmetric_surface_gives_the_motion_or_ambiguous():
+    """A surface its own half-turn maps onto itself: either the true motion or no motion, never its twin."""
+    rng = np.random.default_rng(1)
+
+    def bowl(n):
+        xy = rng.uniform(-5.0, 5.0, (n, 2))
+        z = 0.005 * (xy**2).sum(axis=1) + 0.0015 * xy[:, 0] * xy[:, 1]
+        return np.column_stack([xy, z]) + rng.normal(0.0, 0.02, (n, 3))
+
+    a, b = bowl(15000), bowl(15000)
+    R = Rotation.random(random_state=1).as_matrix()
+    m = register(a, b @ R.T + rng.normal(0.0, 3.0, 3), seed=1, pipeline="scans")
+    assert not m or rotation_error_deg(m.rotation, R) < 2.0
+
+
 def test_a_true_scans_motion_passes_its_verdict():
     """Two samplings of one surface, moved: the motion is found and beats its wrong motions."""
     rng = np.random.default_rng(4)

@@ -679,6 +679,74 @@ def _rivals(best, others, voxel: float) -> list:
     return out
 
 
+#: The step along the direction a surface leaves freest (:func:`surface_symmetries`): the root-mean-square
+#: displacement of the surface's points, as a share of their root-mean-square distance from its centroid
+#: (about 9 degrees of a turn about an axis through the centroid).
+SYMMETRY_STEP = 0.15
+
+#: The turns about each principal axis of a surface that :func:`surface_symmetries` tries: a half-turn (every
+#: axis of rotational symmetry of even order, and every continuous one, contains it) and a third of a turn.
+SYMMETRY_TURNS = (np.pi, 2.0 * np.pi / 3.0)
+
+
+def _turn(axis: np.ndarray, angle: float, through: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The turn by ``angle`` about the line along unit ``axis`` through ``through``, as ``(R, t)``."""
+    R = Rotor.from_axis_angle(axis, angle).as_matrix()
+    return R, through - R @ through
+
+
+def surface_symmetries(points, normals) -> tuple[list, list]:
+    """Rigid motions ``(R, t)`` that may map the surface ``points`` onto itself: candidates, not checked.
+
+    The rival a symmetric surface gives every motion found onto it: the
+    motion composed with the surface's own symmetry explains the data as
+    well (the exact path's :func:`gatv.registration.symmetry_rival`, for
+    surfaces).  The candidates, for the caller to polish and count:
+
+    * turns about the principal axes of ``points`` through their centroid
+      (:data:`SYMMETRY_TURNS`).  An axis of rotational symmetry is a principal
+      axis, so a surface of revolution, or one a half-turn or a third of a
+      turn maps onto itself, has its symmetry among them;
+    * a step of :data:`SYMMETRY_STEP` each way along the motion that moves the
+      points least off their tangent planes: the least eigenvector of the
+      point-to-plane stability matrix ``Σ J Jᵀ``, ``J = [q × n / L, n]`` (``q``
+      about the centroid, ``L`` their RMS radius; Gelfand et al. 2003), as a
+      screw.  A view of a surface of revolution or of an extrusion, whose
+      axis is no principal axis of the view, slides along itself so.
+
+    ``points``: (N, 3) points of one surface (the part of the target a
+    motion covers); ``normals``: their (N, 3) unit normals.
+    """
+    q = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    if q.shape[0] < 6:
+        return [], []
+    c = q.mean(axis=0)
+    q = q - c
+    L = float(np.sqrt((q * q).sum(axis=1).mean()))
+    if not L > 0.0:
+        return [], []
+    axes = np.linalg.eigh(q.T @ q)[1].T
+    turns = [_turn(a, angle, c) for a in axes for angle in SYMMETRY_TURNS]
+    slides = []
+    J = np.hstack([np.cross(q, n) / L, n])
+    v = np.linalg.eigh(J.T @ J)[1][:, 0]
+    w, b = v[:3] / L, v[3:]  # the twist about the centroid: rotation rate and the centroid's velocity
+    rms = float(np.sqrt(((np.cross(w, q) + b) ** 2).sum(axis=1).mean()))
+    if rms > 0.0:
+        for sign in (1.0, -1.0):
+            k = sign * SYMMETRY_STEP * L / rms
+            ww = float(w @ w)
+            if np.sqrt(ww) * abs(k) < 1e-6:  # a turn too small to place its axis: a slide
+                slides.append((np.eye(3), b * k))
+                continue
+            # The screw: a turn by |w| k about the axis through c + w × b / |w|², and a slide along it.
+            axis = w / np.sqrt(ww)
+            R, t = _turn(axis, np.sqrt(ww) * k, c + np.cross(w, b) / ww)
+            slides.append((R, t + axis * (float(w @ b) / ww) * np.sqrt(ww) * k))
+    return turns, slides
+
+
 #: Default smallest share of the downsampled source points that have a
 #: partner on the target: a view overlapping its target by 40% keeps about
 #: that share among its surface points once a share of clutter survives the
@@ -1583,6 +1651,14 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     the rival alone sets a level it does not reach, the reason begins
     ``"ambiguous: two motions ... apart explain the data alike"`` and
     ``info["rival"]["supports"]`` has the rival's supports at the gates.
+    The surface's own symmetry gives a rival too, whether or not the search
+    found one: the motion composed with each of :func:`surface_symmetries`
+    of the target's points it covers, screened (a turn must lay
+    :data:`RIVAL_SHARE` of the motion's sample points within a voxel, a
+    slide within the final gate) and polished as the verdict's wrong draws;
+    one that stays apart and keeps :data:`RIVAL_SHARE` of the support is
+    ``info["symmetric_rival"]`` and counts in the verdict as the search's
+    rival does.
     False leaves the verdict to the caller (motion segmentation has its
     own levels).  ``noise``: the two scans' noise
     combined, for the verdict's reach (:func:`surface_verdict`).
@@ -1743,6 +1819,34 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         """Whether two polished motions are one: within 1° and three gates ``g`` at the source's centroid."""
         return rotation_angle_deg(Ra @ Rb.T) < 1.0 and float(np.linalg.norm((Ra - Rb) @ centroid + ta - tb)) < 3.0 * g
 
+    def symmetric_rival(R, t, g, on, count):
+        """The motion ``(R, t)`` composed with a symmetry of the surface it covers (:func:`surface_symmetries`
+        of the target's points the source's sample lands on within ``g``), polished as the verdict's wrong
+        draws: the best distinct one keeping :data:`RIVAL_SHARE` of its support ``on`` (counted as
+        ``count``), as ``(R, t, support)``, or None."""
+        def landed(R, t, g):  # the sample's points within g of a target point
+            return np.count_nonzero(tree.nearest(np.ascontiguousarray(sample @ R.T + t), g) >= 0)
+
+        j = tree.nearest(np.ascontiguousarray(sample @ R.T + t), g)
+        j = j[j >= 0]
+        turns, slides = surface_symmetries(Ys[j], normals_c[j])
+        motions = [(Rs @ R, Rs @ t + ts) for Rs, ts in turns]
+        # A turn the surface allows lays its points within a voxel before any polish (it is exact but for the
+        # principal axes' error, which the turn carries across the surface); a slide along a direction the
+        # surface leaves free, a small step, keeps them within the finest gate.
+        own = RIVAL_SHARE * landed(R, t, gate)
+        motions = [(Rr, tr) for Rr, tr in motions if landed(Rr, tr, gate) >= own]
+        own = RIVAL_SHARE * landed(R, t, g)
+        motions += [(Rs @ R, Rs @ t + ts) for Rs, ts in slides if landed(Rs @ R, Rs @ t + ts, g) >= own]
+        found = None
+        for Rr, tr in (verdict_polish_many(motions) if motions else []):
+            if same_motion(Rr, tr, R, t, g) or landed(Rr, tr, g) < own:
+                continue  # the polish brought it back (the surface holds the motion there), or it holds less
+            on_r = counted(Rr, tr, g, count)[3]
+            if on_r >= RIVAL_SHARE * on and (found is None or on_r > found[2]):
+                found = (Rr, tr, on_r)
+        return found
+
     def ranked_on_surface(trials) -> list:
         """The trial motions polished as the verdict's wrong draws, best supported on the surface first."""
         out = []
@@ -1839,6 +1943,17 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                 info["rival"] = {"on_surface": on_r, "best_on_surface": on, "angle_deg": rotation_angle_deg(Rr @ R.T)}
                 rival_motion = (Rr, tr)
                 break
+        rival_motions = {} if rival_motion is None else {"rival": rival_motion}
+        if verdict and refine:
+            # The surface's own symmetry may give a rival the search never drew: it finds one of the motions
+            # a symmetric surface holds alike, and rivals only among those it found.
+            symmetric = symmetric_rival(R, t, g, on, count)
+            if symmetric is not None:
+                Rr, tr, on_r = symmetric
+                info["ambiguous"] = True
+                info["symmetric_rival"] = {"on_surface": on_r, "best_on_surface": on,
+                                           "angle_deg": rotation_angle_deg(Rr @ R.T)}
+                rival_motions["symmetric_rival"] = (Rr, tr)
         info.update(final_gate=g, on_surface=on)
         _stamp(info, "polish", t0)
         if verdict:
@@ -1847,7 +1962,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             # motions do, so that the verdict decides between the two at the gate where they differ most (a
             # right motion's points sit at the noise, a wrong one laid across the surface fills the gate);
             # where it cannot, the answer is no motion, not one of two motions the data hold equally.
-            searched = [] if rival_motion is None else [rival_motion]
+            searched = list(rival_motions.values())
             if partial:
                 searched += [(f.matrix[:3, :3], f.matrix[:3, 3]) for f in fits]
             judged, figures = surface_verdict(Xs, Ys, target_normals, R, t, voxel=voxel, gate=g,
@@ -1859,18 +1974,19 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             _stamp(info, "verdict", t0)
             if not judged:
                 reason = judged.reason()
-                if rival_motion is not None:
+                for key, motion in rival_motions.items():
                     # Against the rival alone (the level it sets at each gate; the gate where this motion
                     # stands out most): failing there, the data do not tell the two apart.
-                    rival_support = surface_support(Xs, Ys, target_normals, tree, *rival_motion,
+                    rival_support = surface_support(Xs, Ys, target_normals, tree, *motion,
                                                     figures["gates"], figures["reach"], source_frame())
                     rival = max(gate_verdicts(figures["support"], [rival_support], max(trials.n_congruent, 1),
                                               Xs.shape[0]), key=lambda v: v.margin)
-                    info["rival"].update(supports=[int(x) for x in rival_support])
+                    info[key].update(supports=[int(x) for x in rival_support])
                     if not rival:
-                        reason = (f"ambiguous: two motions {info['rival']['angle_deg']:.0f} deg apart explain the "
+                        reason = (f"ambiguous: two motions {info[key]['angle_deg']:.0f} deg apart explain the "
                                   f"data alike (at best {rival.support} points against the other's level of "
                                   f"{rival.chance:.0f}); " + reason)
+                        break
                 return SurfaceMatch(None, None, g, none, 0, dict(info, reason=reason))
         pairs = stages.nearest_pairs(Xs @ R.T + t, tree, g)
         return SurfaceMatch(R, t, g, pairs, on, info)

@@ -715,10 +715,14 @@ def surface_symmetries(points, normals) -> tuple[list, list]:
       axis is no principal axis of the view, slides along itself so.
 
     ``points``: (N, 3) points of one surface (the part of the target a
-    motion covers); ``normals``: their (N, 3) unit normals.
+    motion covers); ``normals``: their (N, 3) unit normals.  Returns
+    ``(turns, slides)``, two lists of ``(R, t)``; both empty for fewer than
+    six points or points all at one place.
     """
-    q = np.asarray(points, np.float64)
-    n = np.asarray(normals, np.float64)
+    q = as_points(points, "points", min_points=0)
+    n = as_points(normals, "normals", min_points=0)
+    if n.shape[0] != q.shape[0]:
+        raise InputError(f"Expected `normals` to have one row per point ({q.shape[0]}), got {n.shape[0]}.")
     if q.shape[0] < 6:
         return [], []
     c = q.mean(axis=0)

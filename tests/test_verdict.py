@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from gatv import register
 from gatv.datasets import DataNotFoundError, load_bunny_pair, load_uwa_pair, rotation_error_deg
+from gatv.errors import InputError
 from gatv.scans import (FLAT_NOISE, NOISE_RADIUS, NOISE_REACH, NORMAL_AGREEMENT, SYMMETRY_STEP, VERDICT_GATES,
                         ScanNoise, SourceFrame, flat_scan, local_scatter, scan_noise, surface_support,
                         surface_symmetries, surface_verdict, thickness)
@@ -233,10 +234,19 @@ def test_a_view_of_a_cone_slides_along_itself(pose, arc, seed):
         assert step == pytest.approx(SYMMETRY_STEP * L, rel=0.02)
 
 
-def test_too_few_points_give_no_symmetry_candidates():
+def test_too_few_points_give_no_symmetry_candidates_and_bad_input_is_named():
     pts = np.random.default_rng(0).normal(size=(5, 3))
     assert surface_symmetries(pts, pts / np.linalg.norm(pts, axis=1, keepdims=True)) == ([], [])
     assert surface_symmetries(np.ones((50, 3)), np.tile([0.0, 0.0, 1.0], (50, 1))) == ([], [])
+    pts = np.random.default_rng(1).normal(size=(50, 3))
+    with pytest.raises(InputError, match="`normals` to have one row per point"):
+        surface_symmetries(pts, pts[:40])
+    bad = pts.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError, match="`points` contains 1 NaN"):
+        surface_symmetries(bad, pts)
+    with pytest.raises(InputError, match="`normals` to have shape"):
+        surface_symmetries(pts, pts[:, :2])
 
 
 @pytest.mark.slow

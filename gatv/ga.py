@@ -60,6 +60,7 @@ __all__ = [
     "eq41",
     "eq41_length_residual",
     "rotation_angle_deg",
+    "turn_about",
     "eq41_residual",
 ]
 
@@ -478,3 +479,11 @@ def rotation_angle_deg(rotation) -> float:
     c = (np.trace(r) - 1.0) / 2.0
     s = 0.5 * np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     return float(np.degrees(np.arctan2(s, c)))
+
+
+def turn_about(axis, angle: float, through) -> tuple[np.ndarray, np.ndarray]:
+    """The turn by ``angle`` (radians) about the line along unit ``axis`` through the point ``through``, as
+    ``(R, t)`` with ``x -> R x + t``: ``through`` stays where it is."""
+    R = Rotor.from_axis_angle(axis, angle).as_matrix()
+    c = np.asarray(through, dtype=np.float64)
+    return R, c - R @ c

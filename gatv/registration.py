@@ -73,9 +73,9 @@ from ._validation import (
 from .candidates import bounded_pairs
 from .models.rigid.congruent import TargetGrid, TargetIndex, trial_motions
 from .errors import InputError
-from .ga import Rotor, rotation_angle_deg
+from .ga import rotation_angle_deg, turn_about
 from .models import Motion, apply_matrix, get_model
-from .models.base import MAX_WORK
+from .models.base import MAX_WORK, homogeneous
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
 from .stats import samples_needed
@@ -651,12 +651,8 @@ class Rivals:
 
 
 def _turn(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
-    """The 4×4 rotation by ``degrees`` about ``axis`` through ``centre``."""
-    R = Rotor.from_axis_angle(axis, np.radians(degrees)).as_matrix()
-    Q = np.eye(4)
-    Q[:3, :3] = R
-    Q[:3, 3] = centre - R @ centre
-    return Q
+    """The 4×4 rotation by ``degrees`` about ``axis`` through ``centre`` (:func:`gatv.ga.turn_about`)."""
+    return homogeneous(*turn_about(axis, np.radians(degrees), centre))
 
 
 def _turn2(degrees: float, centre: np.ndarray) -> np.ndarray:

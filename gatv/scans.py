@@ -71,7 +71,7 @@ from .candidates import median_spacing
 from .models.rigid.congruent import TargetGrid, TargetIndex, n_triples_needed, trial_motions
 from .errors import InputError
 from .fitting import fit_rigid
-from .ga import Rotor, rotation_angle_deg
+from .ga import rotation_angle_deg, turn_about
 from .models.base import homogeneous
 from .models.rigid import MODEL as RIGID
 from .motion import RigidMotion
@@ -689,12 +689,6 @@ SYMMETRY_STEP = 0.15
 SYMMETRY_TURNS = (np.pi, 2.0 * np.pi / 3.0)
 
 
-def _turn(axis: np.ndarray, angle: float, through: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The turn by ``angle`` about the line along unit ``axis`` through ``through``, as ``(R, t)``."""
-    R = Rotor.from_axis_angle(axis, angle).as_matrix()
-    return R, through - R @ through
-
-
 def surface_symmetries(points, normals) -> tuple[list, list]:
     """Rigid motions ``(R, t)`` that may map the surface ``points`` onto itself: candidates, not checked.
 
@@ -731,7 +725,7 @@ def surface_symmetries(points, normals) -> tuple[list, list]:
     if not L > 0.0:
         return [], []
     axes = np.linalg.eigh(q.T @ q)[1].T
-    turns = [_turn(a, angle, c) for a in axes for angle in SYMMETRY_TURNS]
+    turns = [turn_about(a, angle, c) for a in axes for angle in SYMMETRY_TURNS]
     slides = []
     J = np.hstack([np.cross(q, n) / L, n])
     v = np.linalg.eigh(J.T @ J)[1][:, 0]
@@ -746,7 +740,7 @@ def surface_symmetries(points, normals) -> tuple[list, list]:
                 continue
             # The screw: a turn by |w| k about the axis through c + w × b / |w|², and a slide along it.
             axis = w / np.sqrt(ww)
-            R, t = _turn(axis, np.sqrt(ww) * k, c + np.cross(w, b) / ww)
+            R, t = turn_about(axis, np.sqrt(ww) * k, c + np.cross(w, b) / ww)
             slides.append((R, t + axis * (float(w @ b) / ww) * np.sqrt(ww) * k))
     return turns, slides
 

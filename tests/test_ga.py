@@ -15,6 +15,7 @@ from gatv.ga import (
     joint_space_coordinates,
     joint_space_planes,
     rotor_product,
+    turn_about,
 )
 
 unit = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
@@ -213,3 +214,21 @@ def test_eq41_residual_normalisation_is_scale_free():
         c, 7 * eq41_residual(d[:10], s[:10], d[10:], s[10:], R.axis), rtol=1e-12)
     with pytest.raises(ValueError, match="normalize"):
         eq41_residual(d, s, d, s, R.axis, normalize="bogus")
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=seeds, angle=st.floats(-2.0 * np.pi, 2.0 * np.pi))
+def test_a_turn_about_a_line_fixes_the_line_and_keeps_distances_to_it(seed, angle):
+    """``turn_about``: the points of the line stay put; every other point keeps its distance to the line
+    and its height along it, and is turned by ``angle`` about it (scipy's rotation vector, a reference)."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    through = rng.uniform(-10.0, 10.0, 3)
+    R, t = turn_about(axis, angle, through)
+    line = through + np.outer(rng.uniform(-5.0, 5.0, 4), axis)
+    np.testing.assert_allclose(line @ R.T + t, line, atol=1e-9)
+    x = rng.uniform(-10.0, 10.0, (20, 3))
+    expected = (x - through) @ Rotation.from_rotvec(angle * axis).as_matrix().T + through
+    np.testing.assert_allclose(x @ R.T + t, expected, atol=1e-9)
+

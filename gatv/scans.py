@@ -732,9 +732,9 @@ def surface_symmetries(points, normals) -> tuple[list, list]:
     w, b = v[:3] / L, v[3:]  # the twist about the centroid: rotation rate and the centroid's velocity
     rms = float(np.sqrt(((np.cross(w, q) + b) ** 2).sum(axis=1).mean()))
     if rms > 0.0:
+        ww = float(w @ w)
         for sign in (1.0, -1.0):
             k = sign * SYMMETRY_STEP * L / rms
-            ww = float(w @ w)
             if np.sqrt(ww) * abs(k) < 1e-6:  # a turn too small to place its axis: a slide
                 slides.append((np.eye(3), b * k))
                 continue
@@ -1826,16 +1826,15 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
             return np.count_nonzero(tree.nearest(np.ascontiguousarray(sample @ R.T + t), g) >= 0)
 
         j = tree.nearest(np.ascontiguousarray(sample @ R.T + t), g)
-        j = j[j >= 0]
+        j = j[j >= 0]  # the target points the sample lands on: as many as landed(R, t, g)
         turns, slides = surface_symmetries(Ys[j], normals_c[j])
-        motions = [(Rs @ R, Rs @ t + ts) for Rs, ts in turns]
         # A turn the surface allows lays its points within a voxel before any polish (it is exact but for the
         # principal axes' error, which the turn carries across the surface); a slide along a direction the
         # surface leaves free, a small step, keeps them within the finest gate.
         own = RIVAL_SHARE * landed(R, t, gate)
-        motions = [(Rr, tr) for Rr, tr in motions if landed(Rr, tr, gate) >= own]
-        own = RIVAL_SHARE * landed(R, t, g)
-        motions += [(Rs @ R, Rs @ t + ts) for Rs, ts in slides if landed(Rs @ R, Rs @ t + ts, g) >= own]
+        motions = [(Rr, tr) for Rr, tr in ((Rs @ R, Rs @ t + ts) for Rs, ts in turns) if landed(Rr, tr, gate) >= own]
+        own = RIVAL_SHARE * j.size
+        motions += [(Rr, tr) for Rr, tr in ((Rs @ R, Rs @ t + ts) for Rs, ts in slides) if landed(Rr, tr, g) >= own]
         found = None
         for Rr, tr in (verdict_polish_many(motions) if motions else []):
             if same_motion(Rr, tr, R, t, g) or landed(Rr, tr, g) < own:

@@ -82,6 +82,8 @@ def test_static_plane_gives_the_identity_only(static_plane):
     assert m.info["kind"] == "identity" and seg.info["static"]
     # a plane: a slide along it would fit as well, which the result says
     assert [d["motion"] for d in seg.info["degenerate"]] == ["identity"]
+    # a sliver the identity left is no plane of the scene unless it beats its chance level
+    assert all(r["support"] > r["chance"] for r in seg.info["rounds"] if r.get("verdict") == "degenerate")
     assert np.mean(seg.source_labels == 0) > 0.9
     assert seg.info["reason"]
     _labels_match(seg)

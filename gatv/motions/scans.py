@@ -564,8 +564,9 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
         """The verdict on motion ``(R, t)`` for source points ``src`` of the unexplained ones.
 
         A plane is reported degenerate only when its support reaches ``least``,
-        the size a part needs to be searched at all (fewer thin points are a
-        sliver of some surface, not a plane of the scene).
+        the size a part needs to be searched at all, and beats the chance level
+        (fewer thin points are a sliver of some surface, not a plane of the
+        scene).
         """
         tgt = np.flatnonzero(free_t)
         tree = KDTree(Y[tgt])  # the many nearest queries below (supports, displaced counts) in numba kernels
@@ -596,7 +597,7 @@ def segment_scans(source, target, *, max_motions: int | None = None, seed=0, con
             # which random motions of the whole pool do not show.  Its own chance level does.
             rec["part_chance"] = chance_support(X[src], Y[tgt], gate, n_draws=N_PART_CHANCE,
                                                 seed=seed + len(rounds), tree=tree)
-        if searched and support >= least and flat <= PLANE_THICKNESS * scan_noise:
+        if searched and support >= least and support > chance and flat <= PLANE_THICKNESS * scan_noise:
             verdict = "degenerate"
             degenerate.append({"points": support, "thickness": flat,
                                "centroid": X[src[inl]].mean(axis=0).tolist()})

@@ -20,6 +20,7 @@ from gatv.voting import (
     RADIUS_FACTOR,
     SurfaceResult,
     TensorVotes,
+    chance_surfaceness,
     default_sigma,
     extract_surfaces,
     stick_vote,
@@ -347,6 +348,66 @@ def test_extract_surfaces_keeps_plane_and_drops_noise():
     assert len(res.n_surviving) == 3 and res.n_surviving[0] >= res.n_surviving[-1]
 
 
+def _ball_ratio(t6):
+    w = np.linalg.eigvalsh(t6[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3))
+    return (w[:, 2] - w[:, 1]) / w[:, 2]
+
+
+@pytest.mark.parametrize("voters", [3, 8, 20, 48])
+def test_chance_surfaceness_is_what_the_ball_kernel_gives_isotropic_voters(voters):
+    """The Monte Carlo null (numpy, the ball table) against the numba ball pass on isolated tokens, each
+    with ``voters`` others uniform in its voting ball: the share above the level is the chance."""
+    rng = np.random.default_rng(voters)
+    n, chance = 3000, 0.05
+    u = rng.normal(size=(n, voters, 3))
+    u /= np.linalg.norm(u, axis=2, keepdims=True)
+    r = 2.0 * 0.999 * rng.uniform(size=(n, voters, 1)) ** (1.0 / 3.0)
+    centres = 10.0 * np.arange(n)[:, None] * np.array([1.0, 0.0, 0.0])  # far apart: no vote between groups
+    pts = np.concatenate([centres[:, None, :], centres[:, None, :] + u * r], axis=1).reshape(-1, 3)
+    ball = vote(pts, sigma=1.0)
+    head = np.arange(n) * (voters + 1)
+    assert np.all(ball.n_votes[head] == voters + 1)
+    above = np.mean(_ball_ratio(ball.components[head]) >= chance_surfaceness(voters, chance))
+    assert abs(above - chance) < 4.0 * math.sqrt(chance * (1 - chance) / n) + 0.01
+
+
+def test_chance_surfaceness_levels():
+    levels = chance_surfaceness(np.arange(0, 300), 0.01)
+    assert np.all(np.isinf(levels[:2]))  # one voter: lambda1 = lambda2 exactly
+    assert np.all((levels[2:] > 0.05) & (levels[2:] < 0.25))
+    # a lower chance asks for more
+    assert np.all(chance_surfaceness(np.arange(2, 300), 0.001) >= chance_surfaceness(np.arange(2, 300), 0.01))
+    for bad in (0.0, 1.0, -0.1):
+        with pytest.raises(ValueError, match="chance"):
+            chance_surfaceness(5, bad)
+    with pytest.raises(ValueError, match="voters"):
+        chance_surfaceness([-1, 3])
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=seeds, scale=st.floats(1e-3, 1e3), density=st.floats(0.5, 1.0))
+def test_planar_chance_keeps_a_sparse_plane_beside_a_dense_one(seed, scale, density):
+    """Two planes, one sampled ``density`` times as finely as the other, in clutter: the paper's threshold
+    (relative to the densest token) drops up to half of the sparse one at half the density; with
+    ``planar_chance`` it keeps it, at any scale, and the clutter at about its chance.  (Sparser still, a
+    plane has too few voters at the dense one's σ to tell from clutter: about 16 at 1%.)"""
+    rng = np.random.default_rng(seed)
+    n_dense = 4000
+    n_sparse = int(density * n_dense)
+    dense = np.c_[rng.uniform(-1, 1, (n_dense, 2)), np.zeros(n_dense)]
+    sparse = np.c_[rng.uniform(-1, 1, (n_sparse, 2)), np.full(n_sparse, 3.0)]
+    clutter = rng.uniform([-1.5, -1.5, -1.0], [1.5, 1.5, 4.0], (1000, 3))
+    pts = scale * np.vstack([dense, sparse, clutter])
+    paper = extract_surfaces(pts, n_stick_passes=1)
+    res = extract_surfaces(pts, n_stick_passes=1, planar_chance=0.01)
+    assert set(paper.indices.tolist()) <= set(res.indices.tolist())  # only adds
+    kept = np.zeros(len(pts), bool)
+    kept[res.indices] = True
+    assert kept[:n_dense].mean() > 0.9
+    assert kept[n_dense:n_dense + n_sparse].mean() > 0.8
+    assert kept[n_dense + n_sparse:].mean() < 0.05
+
+
 def test_coincident_cluster_has_large_ball_saliency():
     # section 3.4: a pure translation makes the true matches coincide in the joint
     # space; after the ball pass they carry a large absolute saliency (λ1).
@@ -429,6 +490,8 @@ def test_vote_rejects_bad_input(kwargs, match, monkeypatch):
         ({"threshold": 1.5}, "threshold"),
         ({"threshold": (0.1, 0.2, 0.3)}, "threshold"),
         ({"sigma": 0}, "sigma"),
+        ({"planar_chance": 0.0}, "planar_chance"),
+        ({"planar_chance": 1.5}, "planar_chance"),
     ],
 )
 def test_extract_surfaces_rejects_bad_input(kwargs, match):

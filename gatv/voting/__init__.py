@@ -9,6 +9,7 @@ from gatv.voting._fields import RADIUS_FACTOR, ball_vote, stick_vote
 from gatv.voting.api import (
     SurfaceResult,
     TensorVotes,
+    chance_surfaceness,
     default_sigma,
     extract_surfaces,
     vote,
@@ -19,6 +20,7 @@ __all__ = [
     "vote",
     "extract_surfaces",
     "default_sigma",
+    "chance_surfaceness",
     "voting_radius",
     "TensorVotes",
     "SurfaceResult",

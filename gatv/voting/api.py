@@ -46,6 +46,7 @@ tests).  Each is faster than its scalar loop on those hosts.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -583,8 +584,80 @@ def _parse_threshold(threshold) -> tuple[float, float]:
     return out[0], out[1]
 
 
+#: Draws of :func:`chance_surfaceness`'s Monte Carlo null, per voter count.
+CHANCE_DRAWS = 4000
+
+
+@functools.lru_cache(maxsize=None)
+def _chance_table(voters: int, chance: float) -> float:
+    # n voters uniform in the ball of radius RADIUS_FACTOR·σ (σ = 1, the ratio is scale-free), each a ball
+    # vote b I + (a − b) v̂v̂ᵀ (eqs. 46–48), and the votee's own identity (see :func:`vote`).
+    rng = np.random.default_rng([voters, 7])
+    u = rng.normal(size=(CHANCE_DRAWS, voters, 3))
+    u /= np.linalg.norm(u, axis=2, keepdims=True)
+    q = _fields.RADIUS_FACTOR ** 2 * rng.uniform(size=(CHANCE_DRAWS, voters)) ** (2.0 / 3.0)
+    A, B, _ = _fields.ball_table()  # linear in q on a uniform grid, as the kernels read it
+    x = q * (_fields.BALL_TABLE_SIZE / _fields.RADIUS_FACTOR ** 2)
+    k = np.minimum(x.astype(np.int64), _fields.BALL_TABLE_SIZE - 1)
+    f = x - k
+    a, b = A[k] + f * (A[k + 1] - A[k]), B[k] + f * (B[k + 1] - B[k])
+    t = np.matmul(((a - b)[:, :, None] * u).transpose(0, 2, 1), u)
+    t += (1.0 + b.sum(axis=1))[:, None, None] * np.eye(3)
+    w = np.linalg.eigvalsh(t)
+    return float(np.quantile((w[:, 2] - w[:, 1]) / w[:, 2], 1.0 - chance))
+
+
+#: Voter counts at which :func:`chance_surfaceness` runs its null; counts between them take the larger of
+#: the two neighbouring quantiles, counts beyond the last the last's.
+CHANCE_VOTERS = (2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)
+
+
+def chance_surfaceness(voters, chance: float = 0.01) -> np.ndarray:
+    """What a ball-pass token's surfaceness ``(λ1 − λ2)/λ1`` reaches by chance.
+
+    The ``1 − chance`` quantile of ``(λ1 − λ2)/λ1`` of the ball pass
+    (eqs. 46–48, the token's own unit ball included) at a token whose
+    ``voters`` other tokens lie uniformly at random in its voting ball:
+    unstructured clutter, at any density.  Tokens on a plane reach about
+    0.25 (the ball field's ``(b − a)/2b`` summed over the plane), and more
+    the more voters they have; isotropic voters reach 0.11–0.18 at
+    ``chance`` 0.01.  The ratio does not depend on the scale or the density,
+    only on the number of voters, which is why it tells a sparse surface
+    from clutter where the saliency ``λ1 − λ2``, which grows with the
+    voters, cannot (:func:`extract_surfaces`' ``planar_chance``).
+
+    Parameters
+    ----------
+    voters : int or array_like of int
+        Other tokens within the voting radius (``n_votes − 1``).
+    chance : float, default: 0.01
+        Share of isotropic tokens above the returned level, in (0, 1).
+
+    Returns
+    -------
+    ndarray of float
+        One level per entry of ``voters`` (a Monte Carlo estimate over
+        :data:`CHANCE_DRAWS` draws a count, seeded by the count: the same
+        on every call); ``inf`` below two voters (with one, ``λ1 = λ2``
+        exactly: no plane).
+    """
+    chance = float(chance)
+    if not 0.0 < chance < 1.0:
+        raise InputError(f"Expected `chance` in (0, 1), got {chance!r}.")
+    n = np.asarray(voters)
+    if n.size and (not np.issubdtype(n.dtype, np.integer) or n.min() < 0):
+        raise InputError("Expected `voters` to be non-negative integers.")
+    grid = np.asarray(CHANCE_VOTERS)
+    levels = np.array([_chance_table(int(v), chance) for v in grid])
+    k = np.clip(np.searchsorted(grid, n, side="right") - 1, 0, grid.size - 1)  # grid[k] <= n
+    above = np.minimum(k + 1, grid.size - 1)
+    exact = grid[k] == n
+    out = np.where(exact | (n > grid[-1]), levels[k], np.maximum(levels[k], levels[above]))
+    return np.where(n < 2, np.inf, out)
+
+
 def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growth: float = 1.5,
-                     threshold=0.1, k: int = 40,
+                     threshold=0.1, k: int = 40, planar_chance: float | None = None,
                      memory_budget: float | None = None) -> SurfaceResult:
     """Detect the most salient surface(s) among 3D tokens (section 3.3).
 
@@ -595,6 +668,8 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     3. Thresholding relative to the most salient token t* (largest λ1 − λ2):
        a token survives if ``λ1 ≥ τ1·λ1(t*)`` and ``λ1 − λ2 ≥ τ2·(λ1 − λ2)(t*)``.
        Discarded tokens are set to zero: they never vote or count again.
+       With ``planar_chance``, a token whose ball pass alone looks planar
+       beyond chance survives too (below).
     4. Steps 2–3 are repeated, ``n_stick_passes`` stick passes in all, σ being
        multiplied by ``sigma_growth`` before each pass after the first, and
        only the survivors voting (and being voted on).
@@ -612,6 +687,14 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
     threshold : float or (float, float), default: 0.1
         ``(τ1, τ2)`` fractions of the most salient token's λ1 and λ1 − λ2; one
         number sets both.
+    planar_chance : float, optional
+        Also keep, at every pass, each token whose ball pass's ``(λ1 − λ2)/λ1``
+        reaches :func:`chance_surfaceness` of its voters at this chance: one
+        whose neighbourhood is planar beyond what isotropic clutter gives.
+        Step 3's rule is relative to the *densest* surface (saliency grows with
+        the voters), so a surface sampled more sparsely than another drops out
+        whole; the ratio depends on the shape of the neighbourhood alone.
+        None (default): step 3 alone, the paper's rule.
     k, memory_budget
         As in :func:`vote`.
 
@@ -640,11 +723,20 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         msg = f"Expected `sigma_growth` >= 1, got {sigma_growth!r}."
         raise InputError(msg)
     tau1, tau2 = _parse_threshold(threshold)
+    if planar_chance is not None:
+        planar_chance = float(planar_chance)
+        if not 0.0 < planar_chance < 1.0:
+            raise InputError(f"Expected `planar_chance` in (0, 1) or None, got {planar_chance!r}.")
 
     eng = Engine(pts, sigma, max_pairs)
     res = eng.ball(record=True)  # neighbour lists for the first stick pass
     ball = _votes(eng, "ball", res)
-    _, vals, e1, _ = res  # sorted order
+    _, vals, e1, cnt = res  # sorted order
+    if planar_chance is None:
+        planar = np.zeros(vals.shape[0], bool)
+    else:  # density-free: the ball tensor's shape against isotropic voters as many
+        ratio = (vals[:, 0] - vals[:, 1]) / np.maximum(vals[:, 0], np.finfo(np.float64).tiny)
+        planar = ratio >= chance_surfaceness(np.maximum(cnt.astype(np.int64) - 1, 0), planar_chance)
     idx = eng.grid.order.copy()  # original index of each current token
     cur_pts = eng.points
     counts = []
@@ -656,6 +748,7 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
             sub = Engine(cur_pts, s)  # larger σ: the ball pass's lists are too short
             e1 = sub.to_sorted(e1)
             sal = sub.to_sorted(sal)
+            planar = sub.to_sorted(planar)
             idx = idx[sub.grid.order]
             eng = sub
         else:
@@ -670,10 +763,12 @@ def extract_surfaces(tokens, sigma=None, *, n_stick_passes: int = 3, sigma_growt
         else:
             star = int(np.argmax(sal))
             keep = (vals[:, 0] >= tau1 * vals[star, 0]) & (sal >= tau2 * sal[star])
+        keep |= planar & (sal > 0)
         cur_pts = np.ascontiguousarray(eng.points[keep])
         e1 = np.ascontiguousarray(e1[keep])
         vals = vals[keep]
         sal = sal[keep]
+        planar = planar[keep]
         idx = idx[keep]
         counts.append(int(keep.sum()))
         if not keep.any():

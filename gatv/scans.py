@@ -466,9 +466,21 @@ def spatial_order(points: np.ndarray, cell: float) -> np.ndarray:
     return np.lexsort((index[:, 2], index[:, 1], index[:, 0]))
 
 
+#: Chance at which :func:`surface_points` keeps, beside the paper's threshold relative to the most salient
+#: token, a token whose ball pass is planar beyond what isotropic clutter of as many voters gives
+#: (:func:`gatv.voting.chance_surfaceness`): a surface sampled more sparsely than the scan's densest one.
+PLANAR_CHANCE = 0.01
+
+
 def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0,
                    memory_budget: float | None = None):
     """Points on salient surfaces and their normals, by tensor voting (section 3.3).
+
+    One ball pass and one stick pass (:func:`~gatv.voting.extract_surfaces`);
+    a token is kept by the paper's threshold relative to the most salient
+    token, or where its ball votes are planar beyond what isotropic clutter
+    of as many voters gives at :data:`PLANAR_CHANCE`, so that a surface
+    sampled more sparsely than the scan's densest one is kept too.
 
     Parameters
     ----------
@@ -490,7 +502,7 @@ def surface_points(points: np.ndarray, *, max_points: int = 60000, seed: int = 0
     pick = vote_sample(pts.shape[0], seed, max_points)
     if pick is None:
         pick = np.arange(pts.shape[0])
-    surf = extract_surfaces(pts[pick], n_stick_passes=1, memory_budget=memory_budget)
+    surf = extract_surfaces(pts[pick], n_stick_passes=1, memory_budget=memory_budget, planar_chance=PLANAR_CHANCE)
     idx = np.asarray(surf.indices)
     order = np.argsort(idx, kind="stable")
     return pick[idx[order]], np.asarray(surf.normals)[order]

@@ -853,12 +853,101 @@ def neighbourhood_noise(points, neighbours, m, centroids, axes, radius, quadric)
                 basis[a, 0], basis[a, 1], basis[a, 2] = u * u, u * v, v * v
                 basis[a, 3], basis[a, 4], basis[a, 5] = u, v, 1.0
         if quadric:
-            normal = basis.T @ basis + 1e-9 * np.eye(6)
-            rhs = basis.T @ (h / scale)
-            coef = np.linalg.solve(normal, rhs)
-            h = h - scale * (basis @ coef)
-        sd[i] = factor * np.median(np.abs(h))
+            normal = np.empty((6, 6))
+            rhs = np.empty(6)
+            for p in range(6):
+                for q in range(p, 6):
+                    acc = 0.0
+                    for a in range(m):
+                        acc += basis[a, p] * basis[a, q]
+                    normal[p, q] = acc
+                    normal[q, p] = acc
+                normal[p, p] += 1e-9
+                acc = 0.0
+                for a in range(m):
+                    acc += basis[a, p] * h[a]
+                rhs[p] = acc / scale
+            coef = _cholesky_solve(normal, rhs)
+            for a in range(m):
+                fit = 0.0
+                for p in range(6):
+                    fit += basis[a, p] * coef[p]
+                h[a] -= scale * fit
+        for a in range(m):
+            h[a] = abs(h[a])
+        sd[i] = factor * _median(h)
     return sd
+
+
+@njit(cache=True)
+def _cholesky_solve(A, b):
+    """``A⁻¹ b`` for a small symmetric positive definite ``A`` (the ridged normal equations of
+    :func:`neighbourhood_noise`'s quadric), by Cholesky: hand-written, as numba's ``np.linalg.solve`` in a
+    ``prange`` body cost seconds of compilation."""
+    n = b.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        d = np.sqrt(max(d, 1e-300))
+        L[j, j] = d
+        for r in range(j + 1, n):
+            v = A[r, j]
+            for k in range(j):
+                v -= L[r, k] * L[j, k]
+            L[r, j] = v / d
+    y = np.empty(n)
+    for r in range(n):
+        v = b[r]
+        for k in range(r):
+            v -= L[r, k] * y[k]
+        y[r] = v / L[r, r]
+    x = np.empty(n)
+    for r in range(n - 1, -1, -1):
+        v = y[r]
+        for k in range(r + 1, n):
+            v -= L[k, r] * x[k]
+        x[r] = v / L[r, r]
+    return x
+
+
+@njit(cache=True)
+def _kth_smallest(a, k):
+    """The ``k``-th smallest of ``a`` (reordered in place; Hoare's selection)."""
+    lo, hi = 0, a.shape[0] - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@njit(cache=True)
+def _median(a):
+    """``np.median(a)`` of a non-empty array, reordering it: the middle value, or the mean of the two."""
+    n = a.shape[0]
+    upper = _kth_smallest(a, n // 2)
+    if n % 2:
+        return upper
+    lower = a[0]
+    for t in range(n // 2):  # after the selection the lower half holds the n // 2 smallest
+        lower = max(lower, a[t])
+    return 0.5 * (lower + upper)
 
 
 # ------------------------------------------------------------------ the verdict's local heights

@@ -11,7 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
+    _cholesky_solve,
     _kdtree_build,
+    _median,
     _kdtree_build_serial,
     bounding_box,
     KDTree,
@@ -255,6 +257,25 @@ def test_neighbourhood_noise_is_the_residuals_about_the_local_fit(seed, m, noise
     got = neighbourhood_noise(pts, neighbours, m, centroids, axes, radius, quadric)
     want = _noise_reference(pts, neighbours, radius, quadric)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), levels=st.integers(1, 1000))
+def test_median_kernel_is_numpys(seed, n, levels):
+    """The selection median of :func:`neighbourhood_noise` against ``np.median``, ties included."""
+    a = np.random.default_rng(seed).integers(0, levels, n) * 0.37
+    assert _median(a.copy()) == np.median(a)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), ridge=st.floats(1e-9, 1.0))
+def test_cholesky_kernel_solves_as_numpy(seed, n, ridge):
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(3 * n, n))
+    A = B.T @ B + ridge * np.eye(n)
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(A @ _cholesky_solve(A, b), b, rtol=0, atol=1e-8 * np.linalg.cond(A))
+    np.testing.assert_allclose(_cholesky_solve(A, b), np.linalg.solve(A, b), rtol=1e-6, atol=1e-9 * np.linalg.cond(A))
 
 
 @settings(max_examples=30, deadline=None)

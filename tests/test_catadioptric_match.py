@@ -275,6 +275,7 @@ def _parse(argv):
     return parser.parse_args(argv)
 
 
+@pytest.mark.slow  # fast suite: the CLI's own tests (tests/test_cli.py) and the real pair's detector test
 @needs_mei
 def test_cli_end_to_end_on_real_pair(tmp_path, capsys):
     out, pic = tmp_path / "m.json", tmp_path / "m.png"

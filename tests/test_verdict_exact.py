@@ -51,7 +51,7 @@ def test_register_found_carries_its_verdict():
     assert v["method"] == "poisson"
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=2, deadline=None)  # beside the three examples that once failed
 @given(k=st.integers(0, 10_000))
 @example(k=24)  # passed at a finer level than its own; the verdict said "failed" at 0b98c68
 @example(k=32)

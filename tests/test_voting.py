@@ -178,7 +178,7 @@ def test_stick_kernel_matches_reference(seed, n, sigma):
     np.testing.assert_allclose(tv.tensors, ref, rtol=0, atol=1e-10 * max(1.0, np.abs(ref).max()))
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=5, deadline=None)
 @given(seed=seeds, n=st.integers(20, 1500), spread=st.floats(0.05, 0.5))
 def test_a_dense_cluster_votes_in_private_chunks_as_in_race_free_ones(seed, n, spread):
     """A cluster within a few voting radii (a judge's): its ball pass runs in chunks with accumulators of

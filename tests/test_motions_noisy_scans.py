@@ -267,6 +267,32 @@ def test_an_object_on_a_static_floor_is_found(seed):
     _labels_match(seg)
 
 
+def test_a_part_whose_first_search_fails_is_searched_again_with_wider_normal_invariants(monkeypatch):
+    """The first search of every part fails (as where the normals at the matching voxel are too far off
+    their partners' for the triples' invariants): the part is searched once more at WIDER_NORMALS times
+    the tolerance, and the object's motion is found there."""
+    import gatv.motions.scans as S
+
+    source, target, floor, (R, t) = object_on_a_floor(0)
+    real, tolerances = S.register_part, []
+
+    def narrow_fails(*args, **options):
+        tolerances.append(options["feature_tol"])
+        if options["feature_tol"] == S.FEATURE_TOL:
+            return None, {"reason": "no motion at the first tolerance"}
+        return real(*args, **options)
+
+    monkeypatch.setattr(S, "register_part", narrow_fails)
+    seg = segment(source, target)
+    assert [m.info["kind"] for m in seg] == ["identity", "search"]
+    assert seg[1].info["feature_tol"] == S.FEATURE_TOL * S.WIDER_NORMALS
+    assert rotation_error_deg(seg[1].rotation, R) < 1.0 and np.linalg.norm(seg[1].translation - t) < 0.005
+    assert tolerances[:2] == [S.FEATURE_TOL, S.FEATURE_TOL * S.WIDER_NORMALS]
+    first = next(r for r in seg.info["rounds"] if r["kind"] == "search")
+    assert first["verdict"] == "none" and first["feature_tol"] == S.FEATURE_TOL
+    _labels_match(seg)
+
+
 def object_in_clutter(seed, share=0.4, noise=0.001):
     """A bumpy object, tilted and moved in the source, in uniform clutter (``share`` of each scan) drawn
     independently in the two scans over the object's box; nothing in the scene is static.
@@ -503,43 +529,47 @@ def test_a_leftover_of_clutter_does_not_beat_its_part_level():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, at_least", [(1002, 4), (1008, 3)])
-def test_a_part_rejected_once_is_searched_again_with_wider_normal_invariants(seed, at_least):
+@pytest.mark.parametrize("seed", [1002, 1004, 1008])
+def test_every_motion_of_a_cluttered_real_scene_is_found(seed):
     # 20,000 points a scene and 30% clutter: the chef's and the bunny's normals at the matching voxel
-    # are 15-23 degrees off their partners' (7-10 on the benchmark's 40,000-point scenes), the true
-    # triples' matches fail the normal invariants, and a part's best motion is wrong (rejected as chance
-    # or ambiguous).  Searched again at twice the tolerance, it is found (1002: all four motions, two of
-    # them found before; 1008: three, the ambiguity its first search reported withdrawn).
-    from gatv.motions.scans import FEATURE_TOL, WIDER_NORMALS
-
+    # are 15-23 degrees off their partners' (7-10 on the benchmark's 40,000-point scenes).  With the
+    # vote keeping only each scan's densest surfaces (the paper's threshold alone) these seeds found 4,
+    # 2 and 3 of the 4 motions, the first two after a search at the wider normal invariants; with
+    # PLANAR_CHANCE all four at the first tolerance (/work/bench/s37/wider.py, seeds 1000-1008).
     pairs = [_bunny("bun000", "bun315"), _uwa("chef"), _uwa("parasaurolophus")]
     scene = scan_scene(pairs, n_points=20000, clutter=0.3, static_patch=0.1, seed=np.random.default_rng(seed))
     seg = segment(scene.source, scene.target)
-    assert len(seg) >= at_least and seg[0].info["kind"] == "identity"
-    for m in seg:  # every motion reported is a true one
+    assert len(seg) == 4 and seg[0].info["kind"] == "identity"
+    for m in seg:  # every motion reported is a true one, each once
         errs = [(rotation_error_deg(m.rotation, R), 1000 * np.linalg.norm(m.translation - t))
                 for R, t in zip(scene.rotations, scene.translations)]
         k = int(np.argmin([e[0] + e[1] for e in errs]))
         assert errs[k][0] < 1.0 and errs[k][1] < 3.0
-    assert FEATURE_TOL * WIDER_NORMALS in [m.info["feature_tol"] for m in seg if m.info["kind"] == "search"]
     assert seg.info["ambiguous"] == []
-    searched = [r for r in seg.info["rounds"] if r["kind"] == "search"]
-    assert all(r["feature_tol"] in (FEATURE_TOL, FEATURE_TOL * WIDER_NORMALS) for r in searched)
     _labels_match(seg)
 
 
-@pytest.mark.slow
-def test_a_part_searched_twice_is_reported_ambiguous_once():
-    # Seed 1004 of the 20,000-point, 30%-clutter scene: the bunny's part is ambiguous (a rival 180
-    # degrees off) at both normal tolerances; its second search's verdict replaces its first's.
-    pairs = [_bunny("bun000", "bun315"), _uwa("chef"), _uwa("parasaurolophus")]
-    scene = scan_scene(pairs, n_points=20000, clutter=0.3, static_patch=0.1, seed=np.random.default_rng(1004))
-    seg = segment(scene.source, scene.target)
+def test_a_part_ambiguous_at_both_tolerances_is_reported_ambiguous_once(monkeypatch):
+    """The object's part has a rival at both normal tolerances (made so here): its second search's
+    verdict replaces its first's, so ``info["ambiguous"]`` lists it once."""
+    import gatv.motions.scans as S
+
+    source, target, floor, (R, t) = object_on_a_floor(0)
+    real = S.register_part
+
+    def with_a_rival(*args, **options):
+        found, info = real(*args, **options)
+        return found, dict(info, ambiguous=True, rival={"angle_deg": 180.0})
+
+    monkeypatch.setattr(S, "register_part", with_a_rival)
+    seg = segment(source, target)
+    assert [m.info["kind"] for m in seg] == ["identity"]
     searched = [r for r in seg.info["rounds"] if r["kind"] == "search"]
-    assert sum(r["verdict"] == "ambiguous" for r in searched) > len(seg.info["ambiguous"]) >= 1
+    tolerances = [r["feature_tol"] for r in searched if r["verdict"] == "ambiguous"]
+    assert S.FEATURE_TOL in tolerances and S.FEATURE_TOL * S.WIDER_NORMALS in tolerances
+    assert len(seg.info["ambiguous"]) == 1
     centroids = np.array([a["centroid"] for a in seg.info["ambiguous"]])
-    gaps = np.linalg.norm(centroids[:, None] - centroids[None], axis=-1)[np.triu_indices(len(centroids), 1)]
-    assert np.all(gaps > seg.info["gate"])  # no part twice
+    assert np.linalg.norm(centroids[0] - source[:-len(floor)].mean(axis=0)) < 0.2  # the object's part
 
 
 # ------------------------------------------------------------------ CLI

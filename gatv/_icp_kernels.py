@@ -913,35 +913,11 @@ def _cholesky_solve(A, b):
 
 
 @njit(cache=True)
-def _kth_smallest(a, k):
-    """The ``k``-th smallest of ``a`` (reordered in place; Hoare's selection)."""
-    lo, hi = 0, a.shape[0] - 1
-    while lo < hi:
-        pivot = a[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return a[k]
-
-
-@njit(cache=True)
 def _median(a):
     """``np.median(a)`` of a non-empty array, reordering it: the middle value, or the mean of the two."""
     n = a.shape[0]
-    upper = _kth_smallest(a, n // 2)
+    _select(np.empty(n, np.int64), a, np.int64(0), np.int64(n - 1), np.int64(n // 2))  # the k-d tree's selection
+    upper = a[n // 2]
     if n % 2:
         return upper
     lower = a[0]

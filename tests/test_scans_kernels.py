@@ -13,8 +13,8 @@ from gatv._fit_kernels import kabsch3
 from gatv._icp_kernels import (
     _cholesky_solve,
     _kdtree_build,
-    _median,
     _kdtree_build_serial,
+    _median,
     bounding_box,
     KDTree,
     kdtree_build,

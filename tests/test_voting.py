@@ -348,11 +348,6 @@ def test_extract_surfaces_keeps_plane_and_drops_noise():
     assert len(res.n_surviving) == 3 and res.n_surviving[0] >= res.n_surviving[-1]
 
 
-def _ball_ratio(t6):
-    w = np.linalg.eigvalsh(t6[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3))
-    return (w[:, 2] - w[:, 1]) / w[:, 2]
-
-
 @pytest.mark.parametrize("voters", [3, 8, 20, 48])
 def test_chance_surfaceness_is_what_the_ball_kernel_gives_isotropic_voters(voters):
     """The Monte Carlo null (numpy, the ball table) against the numba ball pass on isolated tokens, each
@@ -367,7 +362,8 @@ def test_chance_surfaceness_is_what_the_ball_kernel_gives_isotropic_voters(voter
     ball = vote(pts, sigma=1.0)
     head = np.arange(n) * (voters + 1)
     assert np.all(ball.n_votes[head] == voters + 1)
-    above = np.mean(_ball_ratio(ball.components[head]) >= chance_surfaceness(voters, chance))
+    w = np.linalg.eigvalsh(ball.tensors[head])
+    above = np.mean((w[:, 2] - w[:, 1]) / w[:, 2] >= chance_surfaceness(voters, chance))
     assert abs(above - chance) < 4.0 * math.sqrt(chance * (1 - chance) / n) + 0.01
 
 

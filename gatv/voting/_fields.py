@@ -64,6 +64,7 @@ __all__ = [
     "decay",
     "ball_coefficients",
     "ball_table",
+    "ball_radial",
 ]
 
 #: Voting radius in units of σ: votes reach tokens with ``l < RADIUS_FACTOR·σ``.
@@ -202,18 +203,29 @@ def ball_table4() -> np.ndarray:
     return _TABLE4
 
 
+def ball_radial(q) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, b)``: the normalised ball field's radial functions at ``q = (l/σ)² ≥ 0`` (numpy).
+
+    Read off :func:`ball_table` linearly in ``q``, as ``A[k] + (A[k+1] − A[k])·f``
+    (the kernels' interpolant, :func:`ball_table4`); beyond the voting radius,
+    the last sample's.
+    """
+    A, B, _ = ball_table()
+    x = np.minimum(np.asarray(q, dtype=np.float64) * (BALL_TABLE_SIZE / RADIUS_FACTOR**2), BALL_TABLE_SIZE)
+    k = np.minimum(x.astype(np.int64), BALL_TABLE_SIZE - 1)
+    f = x - k
+    return A[k] + (A[k + 1] - A[k]) * f, B[k] + (B[k + 1] - B[k]) * f
+
+
 def ball_vote(offset, sigma: float) -> np.ndarray:
     """Normalised ball vote tensor at ``offset`` from the lookup table (numpy).
 
     Identity at ``l = 0``; zero at and beyond the voting radius.
     """
-    A, B, _ = ball_table()
     v = np.asarray(offset, dtype=np.float64)
     l2 = np.einsum("...i,...i->...", v, v)
     q = l2 / sigma**2
-    grid = np.linspace(0.0, RADIUS_FACTOR**2, BALL_TABLE_SIZE + 1)
-    a = np.interp(q, grid, A[:-1])
-    b = np.interp(q, grid, B[:-1])
+    a, b = ball_radial(q)
     inside = q < RADIUS_FACTOR**2
     safe = np.where(l2 > 0, l2, 1.0)
     c = np.where(l2 > 0, (a - b) / safe, 0.0)

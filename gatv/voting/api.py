@@ -596,11 +596,7 @@ def _chance_table(voters: int, chance: float) -> float:
     u = rng.normal(size=(CHANCE_DRAWS, voters, 3))
     u /= np.linalg.norm(u, axis=2, keepdims=True)
     q = _fields.RADIUS_FACTOR ** 2 * rng.uniform(size=(CHANCE_DRAWS, voters)) ** (2.0 / 3.0)
-    A, B, _ = _fields.ball_table()  # linear in q on a uniform grid, as the kernels read it
-    x = q * (_fields.BALL_TABLE_SIZE / _fields.RADIUS_FACTOR ** 2)
-    k = np.minimum(x.astype(np.int64), _fields.BALL_TABLE_SIZE - 1)
-    f = x - k
-    a, b = A[k] + f * (A[k + 1] - A[k]), B[k] + f * (B[k + 1] - B[k])
+    a, b = _fields.ball_radial(q)
     t = np.matmul(((a - b)[:, :, None] * u).transpose(0, 2, 1), u)
     t += (1.0 + b.sum(axis=1))[:, None, None] * np.eye(3)
     w = np.linalg.eigvalsh(t)

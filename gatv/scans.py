@@ -840,8 +840,9 @@ def register_surfaces(
         Bytes; a voting run or a congruent-triple index needing more fails
         at once (see :func:`gatv._validation.check_memory`).
     coarse_first : bool, default: True
-        Without ``voxel``, try first on half the ``n_points`` cells (and
-        :func:`match_points` of them a scan) with the adaptive search alone
+        Without ``voxel``, try first on half the ``n_points`` cells, each
+        scan sampled at half the density too (:func:`match_points` of them
+        at :data:`COARSE_POINTS_PER_CELL`), with the adaptive search alone
         (:data:`SEARCHES`); a motion that passes the verdict there is the
         answer, and where none does the call goes on at ``n_points``
         (``info["coarse"]``: the coarse try's rows, cells and reason).
@@ -901,7 +902,7 @@ def register_surfaces(
     if tries[0][0] < min(VOTE_POINTS, max(X.shape[0], Y.shape[0])):
         tries.append((VOTE_POINTS, n_points, SEARCHES))
     if coarse_first and voxel is None and n_points // 2 >= COARSE_MIN_POINTS:
-        tries.insert(0, (match_points(n_points // 2), n_points // 2, SEARCHES[:1]))
+        tries.insert(0, (match_points(n_points // 2, COARSE_POINTS_PER_CELL), n_points // 2, SEARCHES[:1]))
     work: dict = {}
     sampled = coarse = None
     for k, (cap, cells, searches) in enumerate(tries):
@@ -1006,9 +1007,18 @@ COARSE_MIN_POINTS = 100
 MATCH_POINTS_PER_CELL = 25
 
 
-def match_points(n_points: int) -> int:
-    """Rows of a scan :func:`register_surfaces` works on for a matching grid of ``n_points`` target cells."""
-    return int(min(VOTE_POINTS, MATCH_POINTS_PER_CELL * n_points))
+#: Points of each scan per target cell in :func:`register_surfaces`' coarse try: half of
+#: :data:`MATCH_POINTS_PER_CELL`, as its grid is half of ``n_points``.  The try's work (voting, the
+#: verdict's supports and frames, the polish) follows its rows; the verdict judges its answer against
+#: wrong motions on the same rows, and where no motion passes there the call goes on at
+#: :data:`MATCH_POINTS_PER_CELL`.  Design notes, section 6, "Speed: the coarse try at half the density".
+COARSE_POINTS_PER_CELL = MATCH_POINTS_PER_CELL // 2
+
+
+def match_points(n_points: int, per_cell: int | None = None) -> int:
+    """Rows of a scan :func:`register_surfaces` works on for a matching grid of ``n_points`` target cells,
+    ``per_cell`` a cell (default :data:`MATCH_POINTS_PER_CELL`; at most :data:`VOTE_POINTS` in all)."""
+    return int(min(VOTE_POINTS, (MATCH_POINTS_PER_CELL if per_cell is None else per_cell) * n_points))
 
 
 def surface_rows(tokens: SurfaceTokens, *, clutter: bool = True) -> np.ndarray:

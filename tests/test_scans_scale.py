@@ -244,7 +244,8 @@ def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypa
     monkeypatch.setattr(S, "match_surfaces", coarse_fails)
     m = register_scans(source, target, n_points=n_points, seed=0)
     assert calls == [(n_points // 2, S.SEARCHES[:1]), (n_points, S.SEARCHES)]
-    assert m and m.info["coarse"] == {"rows": match_points(n_points // 2), "n_points": n_points // 2,
+    assert m and m.info["coarse"] == {"rows": match_points(n_points // 2, S.COARSE_POINTS_PER_CELL),
+                                      "n_points": n_points // 2,
                                       "reason": "no motion on the coarse grid"}
     monkeypatch.setattr(S, "match_surfaces", real)
     without = register_scans(source, target, n_points=n_points, seed=0, coarse_first=False)

@@ -11,7 +11,9 @@
 * :func:`occupied_cells`: the cells of a voxel grid that hold a point.
 * :func:`plane_icp`, :func:`plane_icp_parallel`, :func:`plane_icp_many`:
   the point-to-plane polish (:func:`gatv.scans.refine_point_to_plane`) of
-  one motion, its queries in parallel, or of several motions in parallel.
+  one motion, its queries in parallel, or of several motions in parallel;
+  a point's nearest target is searched again only when the point has
+  moved far enough to change it (:func:`nearest_kept`).
 * :func:`neighbourhood_axes`, :func:`neighbourhood_normals`,
   :func:`neighbourhood_noise`: local least-squares planes and the noise
   about them (the scans' noise and projection onto their surface, the
@@ -409,6 +411,42 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
 
 
 @njit(cache=True)
+def kdtree_nearest2(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds):
+    """``(j, d1, d2)``: ``j`` the point :func:`kdtree_nearest` answers for ``p`` within ``radius`` (-1: none
+    closer), ``d1`` its squared distance and ``d2`` the next nearest point's (``radius²`` where none is
+    closer; both ``radius²`` without ``j``).
+
+    The same search, bounded by the second nearest found instead of the nearest: it visits the nodes
+    :func:`kdtree_nearest` visits, in the same order, and more, none of which holds a point nearer than
+    the nearest found before it (its box is no nearer), so ``j`` is the same point, ties included.
+    """
+    best = -1
+    r2 = radius * radius
+    d1 = r2
+    d2 = r2
+    top = _push_root(p, box, stack, offsets, bounds)
+    while top > 0:
+        top -= 1
+        k = stack[top]
+        lb = bounds[top]
+        if lb >= d2:
+            continue
+        if axis[k] < 0:
+            for s in range(lo[k], hi[k]):
+                j = order[s]
+                d = _distance2(points, j, p)
+                if d < d1:
+                    d2 = d1
+                    d1 = d
+                    best = j
+                elif d < d2:
+                    d2 = d
+            continue
+        top = _push_children(p, k, top, lb, axis, split, left, right, stack, offsets, bounds)
+    return best, d1, d2
+
+
+@njit(cache=True)
 def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds,
                     best_d, best_j):
     """The ``k = best_d.shape[0]`` points of ``points`` nearest ``p`` closer than ``radius``, as
@@ -683,13 +721,71 @@ def _stops(step, last, tol, stall):
     return step < tol or (step < stall and step > 0.5 * last)
 
 
+#: The reach of :func:`nearest_kept`'s searches, in gates: how far a point's next nearest target is looked
+#: for; a point with no target that close stays without one, unsearched, until it has moved ``REACH - 1``
+#: gates.  A farther reach keeps more points unsearched and makes every search dearer: on the clean and
+#: 50% clutter benchmark rows' polishes, 1.25-1.5 gates searched least (design notes, section 6, "Speed:
+#: the polish's searches kept between its steps").
+REACH = 1.5
+
+
 @njit(cache=True, inline="always")
-def _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets,
-                   bounds):
-    """``moved[i] = R X[i] + t`` and ``idx[i]`` its nearest target within ``gate`` (-1: none)."""
+def nearest_kept(q, Y, order, lo, hi, axis, split, left, right, box, gate, margin, anchor, near, gap, i, stack,
+                 offsets, bounds):
+    """:func:`kdtree_nearest` of ``q`` within ``gate`` (the same index, to the last bit), searched again
+    only when the point ``i`` has moved far enough since its last search to need it.
+
+    A search from ``anchor[i]`` found its nearest target ``near[i]`` (-1: none within :data:`REACH`
+    gates) and ``gap[i]``: the next nearest one's distance less the nearest's, less ``margin`` (rounding).
+    After a move by ``D = |q - anchor[i]|`` the nearest is ``near[i]`` still while ``2 D < gap[i]`` (it
+    came at most ``D`` nearer, every other target at most ``D`` farther: the triangle inequality), and
+    it pairs where its own distance is under the gate, as the search would find; a point with no
+    target within the reach has none within the gate while ``D`` is under the reach less the gate and
+    ``margin``.  Otherwise a search (:func:`kdtree_nearest2` at the reach) starts again from ``q``.  Set
+    ``anchor[i]`` to NaN to search the first time.  An ICP near its minimum moves its points by a small
+    share of the sampling each step, so most of its steps search for few of them.
+    """
+    d = 0.0
+    for a in range(3):
+        d += (q[a] - anchor[i, a]) ** 2
+    moved = np.sqrt(d)  # NaN before the first search: no test below passes
+    j = near[i]
+    reach = REACH * gate
+    if j >= 0:
+        if 2.0 * moved < gap[i]:
+            return j if _distance2(Y, j, q) < gate * gate else -1
+    elif moved < reach - gate - margin:
+        return -1
+    j, d1, d2 = kdtree_nearest2(q, Y, order, lo, hi, axis, split, left, right, box, reach, stack, offsets, bounds)
+    for a in range(3):
+        anchor[i, a] = q[a]
+    near[i] = j
+    gap[i] = np.sqrt(d2) - np.sqrt(d1) - margin
+    return j if j >= 0 and d1 < gate * gate else -1
+
+
+@njit(cache=True, inline="always")
+def _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, margin, anchor,
+                   near, gap, stack, offsets, bounds):
+    """``moved[i] = R X[i] + t`` and ``idx[i]`` its nearest target within ``gate`` (-1: none), by
+    :func:`nearest_kept`."""
     for a in range(3):
         moved[i, a] = R[a, 0] * X[i, 0] + R[a, 1] * X[i, 1] + R[a, 2] * X[i, 2] + t[a]
-    idx[i] = kdtree_nearest(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, stack, offsets, bounds)
+    idx[i] = nearest_kept(moved[i], Y, order, lo, hi, axis, split, left, right, box, gate, margin, anchor, near, gap,
+                          i, stack, offsets, bounds)
+
+
+@njit(cache=True)
+def pairing_state(n, box, gate):
+    """``(anchor, near, gap, margin)`` of :func:`nearest_kept` for ``n`` points, before any search, on
+    targets in ``box``: ``margin`` covers the rounding of distances between coordinates of that size."""
+    anchor = np.full((n, 3), np.nan)
+    near = np.full(n, -1, np.int64)
+    gap = np.zeros(n)
+    scale = 0.0
+    for a in range(3):
+        scale = max(scale, abs(box[0, a]), abs(box[1, a]))
+    return anchor, near, gap, 1e-9 * gate + 1e-12 * scale
 
 
 @njit(cache=True)
@@ -710,13 +806,14 @@ def plane_icp(X, Y, N, order, lo, hi, axis, split, left, right, box, R, t, gate,
     stack = np.empty(STACK, np.int64)
     offsets = np.empty((STACK, 3))
     bounds = np.empty(STACK)
+    anchor, near, gap, margin = pairing_state(n, box, gate)
     R = R.copy()
     t = t.copy()
     last = np.inf
     for _ in range(iterations):
         for i in range(n):
-            _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, stack,
-                           offsets, bounds)
+            _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate, margin,
+                           anchor, near, gap, stack, offsets, bounds)
         R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
         if _stops(step, last, tol, stall):
             break
@@ -731,6 +828,7 @@ def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R,
     n = X.shape[0]
     idx = np.empty(n, np.int64)
     moved = np.empty((n, 3))
+    anchor, near, gap, margin = pairing_state(n, box, gate)
     R = R.copy()
     t = t.copy()
     last = np.inf
@@ -742,7 +840,7 @@ def plane_icp_parallel(X, Y, N, order, lo, hi, axis, split, left, right, box, R,
             bounds = np.empty(STACK)
             for i in range(ch * chunk, min(n, (ch + 1) * chunk)):
                 _move_and_pair(i, X, R, t, moved, idx, Y, order, lo, hi, axis, split, left, right, box, gate,
-                               stack, offsets, bounds)
+                               margin, anchor, near, gap, stack, offsets, bounds)
         R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
         if _stops(step, last, tol, stall):
             break

@@ -15,13 +15,19 @@ from gatv._icp_kernels import (
     _kdtree_build,
     _kdtree_build_serial,
     _median,
+    _plane_step,
+    _stops,
     bounding_box,
     KDTree,
     kdtree_build,
+    kdtree_nearest2,
+    kdtree_query,
     neighbourhood_axes,
     neighbourhood_noise,
     neighbourhood_normals,
+    nearest_kept,
     occupied_cells,
+    pairing_state,
     plane_icp,
     plane_icp_many,
     plane_icp_parallel,
@@ -464,3 +470,79 @@ def test_plane_icp_parallel_is_plane_icp_to_the_last_bit(seed, angle, n, gate):
         R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
         R2, t2 = plane_icp_parallel(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
         assert np.array_equal(R1, R2) and np.array_equal(t1, t2)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), radius=st.floats(0.01, 3.0),
+       duplicates=st.booleans(), leaf=st.integers(1, 20))
+def test_kdtree_nearest2_is_kdtree_nearest_and_the_next_distance(seed, n, radius, duplicates, leaf):
+    """The same index as ``kdtree_nearest`` (ties too), its squared distance and the next nearest point's
+    (the radius's square where fewer than two are closer), against a brute-force sort."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    if duplicates:
+        pts = np.vstack([pts, pts[: n // 2]])
+        pts[:, 2] = np.round(pts[:, 2], 1)
+    queries = rng.normal(scale=1.5, size=(200, 3))
+    tree = KDTree(pts, leafsize=leaf)
+    want = kdtree_query(queries, pts, *tree.nodes, radius)
+    stack, offsets, bounds = np.empty(128, np.int64), np.empty((128, 3)), np.empty(128)
+    for q, j_ref in zip(queries, want):
+        j, d1, d2 = kdtree_nearest2(q, pts, *tree.nodes, radius, stack, offsets, bounds)
+        assert j == j_ref
+        near = np.sort(((pts - q) ** 2).sum(axis=1))
+        near = near[near < radius * radius]
+        first, second = (list(near[:2]) + [radius * radius] * 2)[:2]
+        np.testing.assert_allclose([d1, d2], [first, second], rtol=1e-14, atol=0)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), gate=st.floats(0.02, 0.5),
+       step=st.floats(1e-6, 0.3), duplicates=st.booleans(), offset=st.sampled_from([0.0, 1e4]))
+def test_nearest_kept_answers_as_a_fresh_search_every_step(seed, n, gate, step, duplicates, offset):
+    """Points walked by small and large random motions: at every step ``nearest_kept`` names the target
+    ``kdtree_nearest`` finds from scratch within the gate (-1 where none), to the index, whether it
+    searched again or not; and it searches less often than every step once the steps are small."""
+    rng = np.random.default_rng(seed)
+    Y = rng.uniform(-1.0, 1.0, (n, 3)) + offset
+    if duplicates:
+        Y = np.vstack([Y, Y[: n // 2]])
+    tree = KDTree(Y)
+    q = rng.uniform(-1.2, 1.2, (150, 3)) + offset
+    anchor, near, gap, margin = pairing_state(q.shape[0], tree.nodes[-1], gate)
+    stack, offsets, bounds = np.empty(128, np.int64), np.empty((128, 3)), np.empty(128)
+    searched = 0
+    for k in range(25):
+        jump = step if k % 8 else 10.0 * step  # now and then a larger move
+        R = Rotation.from_rotvec(rng.normal(size=3) * jump * 0.2).as_matrix()
+        q = (q - offset) @ R.T + offset + rng.normal(0.0, jump, 3)
+        want = kdtree_query(q, Y, *tree.nodes, gate)
+        before = anchor.copy()
+        got = [nearest_kept(q[i], Y, *tree.nodes, gate, margin, anchor, near, gap, i, stack, offsets, bounds)
+               for i in range(q.shape[0])]
+        np.testing.assert_array_equal(got, want)
+        searched += int(np.count_nonzero(np.any(anchor != before, axis=1) | np.isnan(before[:, 0])))
+    if step < 1e-3 and not duplicates:
+        assert searched < 0.5 * 25 * q.shape[0]
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), angle=st.floats(0.0, 20.0), n=st.integers(3, 800),
+       gate=st.sampled_from([0.02, 0.1, 0.3]))
+def test_plane_icp_pairs_as_a_fresh_search_every_iteration_to_the_last_bit(seed, angle, n, gate):
+    """``plane_icp`` (its searches kept between iterations) equals the loop that searches every point
+    afresh each iteration (``kdtree_query``) with the same step, to the last bit."""
+    Y, N, X, R0, t0 = _pair(np.random.default_rng(seed), 1500, n, 0.003, angle, 0.02)
+    tree = KDTree(Y)
+    for iterations, tol, stall in [(30, 1e-9, 0.0), (30, 1e-9, 1e-3)]:
+        R, t, last = R0.copy(), t0.copy(), np.inf
+        for _ in range(iterations):
+            moved = np.stack([R[a, 0] * X[:, 0] + R[a, 1] * X[:, 1] + R[a, 2] * X[:, 2] + t[a] for a in range(3)],
+                             axis=1)
+            idx = kdtree_query(moved, Y, *tree.nodes, gate)
+            R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
+            if _stops(step, last, tol, stall):
+                break
+            last = step
+        R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
+        assert np.array_equal(R1, R) and np.array_equal(t1, t)

@@ -52,7 +52,9 @@ Methods, on the same inputs and in the same run:
 Each method's rows run in a fresh process of its own (without
 ``--scheduler``), and the summary reports that process's resident peak
 (``peak MiB``: its imports and all its rows), so that the methods' memory
-compares.
+compares.  The rows run one at a time, the methods alternating row by row
+(each pair and clutter level: every method, then the next), so that a drift
+in the shared machine's speed during the run falls on every method alike.
 
 Sets sampled differently (``--pairs``, not run by default): ``res2<-bun045``
 registers the bun045 scan to the bunny's reconstruction decimated to res2
@@ -294,26 +296,23 @@ def _fresh_process(task, noise_mm):
         return pool.submit(_row_with_noise, (task, noise_mm)).result()
 
 
-def _rows_of_a_method(tasks: list) -> tuple[list, float]:
-    """``[run_row(task) for task in tasks]`` (one method's rows) and this process's peak memory (MiB)."""
-    rows = [run_row(task) for task in tasks]
-    return rows, peak_rss_mib()
-
-
 def rows_by_method(tasks: list) -> tuple[list, dict]:
-    """Every method's rows in a fresh process of its own: the rows in the order of ``tasks`` and each
-    method's peak resident memory (MiB: the whole process, its imports and all its rows)."""
+    """Every method's rows in a fresh process of its own, the rows run one at a time in the order of ``tasks``
+    (methods alternating row by row, so that the machine's drift in speed falls on every method alike):
+    the rows in that order and each method's peak resident memory (MiB: the whole process, its imports and
+    all its rows)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     methods = list(dict.fromkeys(task[4] for task in tasks))
-    done, peak = {}, {}
-    for method in methods:
-        mine = [k for k, task in enumerate(tasks) if task[4] == method]
-        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            rows, peak[method] = pool.submit(_rows_of_a_method, [tasks[k] for k in mine]).result()
-        done.update(zip(mine, rows))
-    return [done[k] for k in range(len(tasks))], peak
+    pools = {m: ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) for m in methods}
+    try:
+        rows = [pools[task[4]].submit(run_row, task).result() for task in tasks]
+        peak = {m: pools[m].submit(peak_rss_mib).result() for m in methods}
+    finally:
+        for pool in pools.values():
+            pool.shutdown()
+    return rows, peak
 
 
 def sweep_kiss_voxel(seed: int) -> tuple[float, list]:

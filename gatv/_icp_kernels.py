@@ -487,8 +487,10 @@ def kdtree_knearest(p, points, order, lo, hi, axis, split, left, right, box, rad
 
 
 #: Neighbours from which :func:`kdtree_knn` keeps the nearest found so far in a heap (below, a sorted list:
-#: an insertion costs ``k`` moves against a heap's ``log k``).
-KNN_HEAP = 32
+#: an insertion moves up to ``k`` entries against a heap's ``log k``, but most move few): the two cost alike
+#: at about 128 neighbours on a bunny scan (design notes, section 6, "Speed: the coarse try at half the
+#: density").
+KNN_HEAP = 128
 
 
 @njit(cache=True, inline="always")

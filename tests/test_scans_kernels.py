@@ -177,10 +177,11 @@ def test_kdtree_nodes_partition_the_points():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), k=st.one_of(st.integers(2, 20), st.integers(30, 90)),
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), k=st.one_of(st.integers(2, 20), st.integers(30, 90),
+                                                                           st.integers(120, 200)),
        radius=st.sampled_from([0.3, 1.0, np.inf]), duplicates=st.booleans(), leaf=st.integers(1, 20))
 def test_kdtree_k_nearest_are_scipys(seed, n, k, radius, duplicates, leaf):
-    # k from KNN_HEAP (32) on: the nearest found so far kept in a heap, not a sorted list.
+    # k from KNN_HEAP (128) on: the nearest found so far kept in a heap, not a sorted list.
     rng = np.random.default_rng(seed)
     pts = rng.normal(size=(n, 3))
     if duplicates:

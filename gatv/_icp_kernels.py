@@ -379,9 +379,10 @@ def _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, b
 
 
 @njit(cache=True)
-def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds):
+def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds, keep):
     """Index of the point of ``points`` nearest ``p`` closer than ``radius`` (or -1), as
-    ``cKDTree.query(p, distance_upper_bound=radius)``.
+    ``cKDTree.query(p, distance_upper_bound=radius)``; of the points ``keep`` marks alone where ``keep``
+    is not empty (a search among some of the points, on the tree of all of them).
 
     ``box``: (2, 3) the points' bounding box.  A node is skipped when its
     box is no closer than the best found: each deferred node keeps its
@@ -389,6 +390,7 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
     distance).  ``stack``, ``offsets`` (:data:`STACK`, 3), ``bounds``:
     scratch of :data:`STACK` entries.
     """
+    some = keep.shape[0] > 0
     best = -1
     bd = radius * radius
     top = _push_root(p, box, stack, offsets, bounds)
@@ -401,6 +403,8 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
         if axis[k] < 0:
             for s in range(lo[k], hi[k]):
                 j = order[s]
+                if some and not keep[j]:
+                    continue
                 d2 = _distance2(points, j, p)
                 if d2 < bd:
                     bd = d2
@@ -614,21 +618,29 @@ class KDTree:
         """The point count (as ``cKDTree.n``)."""
         return int(self.points.shape[0])
 
-    def nearest(self, queries: np.ndarray, radius: float) -> np.ndarray:
-        """Index of each query's nearest point closer than ``radius``, or -1."""
+    def nearest(self, queries: np.ndarray, radius: float, keep: np.ndarray | None = None) -> np.ndarray:
+        """Index of each query's nearest point closer than ``radius``, or -1; ``keep``: a boolean mask of
+        the points, the nearest among those it marks."""
         q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
-        return kdtree_query(q, self.points, *self.nodes, float(radius))
+        if keep is None:
+            keep = np.zeros(0, np.bool_)
+        elif np.shape(keep) != (self.n,):
+            raise ValueError(f"Expected `keep` of shape ({self.n},), got {np.shape(keep)}.")
+        return kdtree_query(q, self.points, *self.nodes, float(radius), np.asarray(keep, dtype=np.bool_))
 
-    def query(self, x, k=1, distance_upper_bound=np.inf, **options):
-        """``(distances, indices)`` as :meth:`scipy.spatial.cKDTree.query`."""
+    def query(self, x, k=1, distance_upper_bound=np.inf, *, keep: np.ndarray | None = None, **options):
+        """``(distances, indices)`` as :meth:`scipy.spatial.cKDTree.query`; for ``k = 1``, among the points
+        the boolean mask ``keep`` marks where given (:meth:`nearest`)."""
         x = np.asarray(x, dtype=np.float64)
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
             raise ValueError(f"Expected `k` to be a positive integer, got {k!r}.")
         if k != 1:
+            if keep is not None:
+                raise ValueError("`keep` is for the nearest point alone (k=1).")
             q = np.ascontiguousarray(x).reshape(-1, 3)
             d, j = kdtree_knn(q, self.points, *self.nodes, float(distance_upper_bound), int(k))
             return d.reshape(x.shape[:-1] + (k,)), j.reshape(x.shape[:-1] + (k,))
-        j = self.nearest(x, distance_upper_bound)
+        j = self.nearest(x, distance_upper_bound, keep)
         d = np.full(j.shape[0], np.inf)
         ok = j >= 0
         d[ok] = np.sqrt(((x.reshape(-1, 3)[ok] - self.points[j[ok]]) ** 2).sum(axis=1))
@@ -637,8 +649,9 @@ class KDTree:
 
 
 @njit(cache=True, parallel=True)
-def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, radius):
-    """:func:`kdtree_nearest` of every row of ``queries`` (in parallel)."""
+def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, radius, keep):
+    """:func:`kdtree_nearest` of every row of ``queries`` (in parallel; ``keep``: its mask, empty for
+    every point)."""
     n = queries.shape[0]
     out = np.empty(n, np.int64)
     chunk = 256
@@ -648,7 +661,7 @@ def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, 
         bounds = np.empty(STACK)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             out[i] = kdtree_nearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
-                                    offsets, bounds)
+                                    offsets, bounds, keep)
     return out
 
 

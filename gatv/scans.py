@@ -291,7 +291,7 @@ def _plane_fits(points: np.ndarray, reference: np.ndarray, k: int, tree: cKDTree
     return centroid, normal, sd, radius
 
 
-def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
+def scan_noise(points, *, at=None, seed: int = 0, trees: dict | None = None) -> ScanNoise:
     """A scan's noise along its surface, measured at the scale the noise itself sets.
 
     Local fits of growing neighbourhoods (8, 16, 32, ... points) about
@@ -317,6 +317,10 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     not count as noise); every point is in the fits.  Pass all points, not
     the surface ones alone: tensor voting keeps a noisy scan's points near
     the surface and drops the rest, which halves the measured noise.
+
+    ``trees``: a dict that receives the k-d trees the fits built (``"all"``:
+    the whole scan's :class:`~gatv._icp_kernels.KDTree`, where one was), for
+    a caller that searches the scan again.
     """
     pts = as_points(points, "points", min_points=4)
     n = pts.shape[0]
@@ -333,7 +337,7 @@ def scan_noise(points, *, at=None, seed: int = 0) -> ScanNoise:
     k = 8
     while k < n - 1 and n * min(1.0, 2 * FIT_POINTS / k) > NOISE_SAMPLE * 2 * FIT_POINTS:
         k *= 2
-    trees: dict = {}
+    trees = {} if trees is None else trees
     work = 0
     if k > 8:
         noise, settled = _noise_step(pts, at, rng, k, trees)
@@ -526,6 +530,8 @@ class SurfaceTokens:
         Points tensor voting ran on (each vote counted).
     sampled : (M,) ndarray of int or None
         The rows the pipeline worked on (:func:`vote_sample`), ascending; None: every row.
+    tree : KDTree or None
+        The k-d tree of every row of ``points`` where stage 1 built one (the noise's fits), else None.
     """
 
     points: np.ndarray
@@ -535,6 +541,7 @@ class SurfaceTokens:
     projection: SurfaceProjection | None
     voted: int = 0
     sampled: np.ndarray | None = None
+    tree: KDTree | None = None
 
 
 #: Most points of a scan that tensor voting, and so the whole scans pipeline past its noise, works on
@@ -581,7 +588,8 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
         voted += min(n, max_points)
     else:
         rows, normals = (np.arange(n) if sample is None else sample), None
-    noise = scan_noise(points, at=rows, seed=seed)
+    trees: dict = {}
+    noise = scan_noise(points, at=rows, seed=seed, trees=trees)
     projection = project_to_surface(points, noise, seed=seed, rows=sample)
     if projection is not None:
         if sample is None:
@@ -594,7 +602,9 @@ def surface_tokens(points: np.ndarray, *, clutter: bool = True, seed: int = 0,
             voted += min(n, max_points)
         else:
             normals = projection.normals  # of every row, or of the sample's (then ``rows``)
-    return SurfaceTokens(points, rows, normals, noise, projection, voted, sample)
+    # The noise's tree of every row, where the points it holds are still the scan's.
+    tree = trees.get("all") if projection is None else None
+    return SurfaceTokens(points, rows, normals, noise, projection, voted, sample, tree)
 
 
 def refine_point_to_plane(source, target, target_normals, rotation, translation, gate, *,
@@ -975,9 +985,15 @@ def register_surfaces(
         kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
     else:
         sx, sy = (surface_rows(tk, clutter=clutter) for tk in (tx, ty))
-        whole = stages.nearest_pairs(tx.points[sx] @ match.rotation.T + match.translation, KDTree(ty.points[sy]),
-                                     match.gate)
-        kept = np.stack([sx[whole[:, 0]], sy[whole[:, 1]]], axis=1)
+        moved = tx.points[sx] @ match.rotation.T + match.translation
+        if ty.tree is not None:  # the noise's tree of the whole target, searched among its surface rows
+            on = np.zeros(ty.points.shape[0], dtype=bool)
+            on[sy] = True
+            whole = stages.nearest_pairs(moved, ty.tree, match.gate, keep=on)
+            kept = np.stack([sx[whole[:, 0]], whole[:, 1]], axis=1)
+        else:
+            whole = stages.nearest_pairs(moved, KDTree(ty.points[sy]), match.gate)
+            kept = np.stack([sx[whole[:, 0]], sy[whole[:, 1]]], axis=1)
         info["work"]["output"] = int(sx.shape[0] + sy.shape[0])
     info.update(noise=noise, thickness=flat,
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,

@@ -668,9 +668,13 @@ def likelihood_pose(problem: Problem, fit: Fit, sigma: float, rounds: int = 8) -
     return pose, sigma
 
 
-def nearest_pairs(moved: np.ndarray, tree: cKDTree, gate_radius: float) -> np.ndarray:
-    """One-to-one ``(row of moved, point of tree)`` pairs: each moved point's nearest within ``gate_radius``, cheapest first."""
-    dist, j = tree.query(moved, k=1, distance_upper_bound=gate_radius)
+def nearest_pairs(moved: np.ndarray, tree: cKDTree, gate_radius: float,
+                  keep: np.ndarray | None = None) -> np.ndarray:
+    """One-to-one ``(row of moved, point of tree)`` pairs: each moved point's nearest within ``gate_radius``,
+    cheapest first; ``keep``: a boolean mask of the tree's points, the nearest among those it marks (a
+    :class:`~gatv._icp_kernels.KDTree` alone)."""
+    options = {} if keep is None else {"keep": keep}
+    dist, j = tree.query(moved, k=1, distance_upper_bound=gate_radius, **options)
     ok = np.flatnonzero(np.isfinite(dist))
     pairs = np.stack([ok, j[ok]], axis=1)
     return pairs[one_to_one(pairs, dist[ok])]

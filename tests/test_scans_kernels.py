@@ -486,7 +486,7 @@ def test_kdtree_nearest2_is_kdtree_nearest_and_the_next_distance(seed, n, radius
         pts[:, 2] = np.round(pts[:, 2], 1)
     queries = rng.normal(scale=1.5, size=(200, 3))
     tree = KDTree(pts, leafsize=leaf)
-    want = kdtree_query(queries, pts, *tree.nodes, radius)
+    want = kdtree_query(queries, pts, *tree.nodes, radius, np.zeros(0, bool))
     stack, offsets, bounds = np.empty(128, np.int64), np.empty((128, 3)), np.empty(128)
     for q, j_ref in zip(queries, want):
         j, d1, d2 = kdtree_nearest2(q, pts, *tree.nodes, radius, stack, offsets, bounds)
@@ -517,7 +517,7 @@ def test_nearest_kept_answers_as_a_fresh_search_every_step(seed, n, gate, step, 
         jump = step if k % 8 else 10.0 * step  # now and then a larger move
         R = Rotation.from_rotvec(rng.normal(size=3) * jump * 0.2).as_matrix()
         q = (q - offset) @ R.T + offset + rng.normal(0.0, jump, 3)
-        want = kdtree_query(q, Y, *tree.nodes, gate)
+        want = kdtree_query(q, Y, *tree.nodes, gate, np.zeros(0, bool))
         before = anchor.copy()
         got = [nearest_kept(q[i], Y, *tree.nodes, gate, margin, anchor, near, gap, i, stack, offsets, bounds)
                for i in range(q.shape[0])]
@@ -540,10 +540,31 @@ def test_plane_icp_pairs_as_a_fresh_search_every_iteration_to_the_last_bit(seed,
         for _ in range(iterations):
             moved = np.stack([R[a, 0] * X[:, 0] + R[a, 1] * X[:, 1] + R[a, 2] * X[:, 2] + t[a] for a in range(3)],
                              axis=1)
-            idx = kdtree_query(moved, Y, *tree.nodes, gate)
+            idx = kdtree_query(moved, Y, *tree.nodes, gate, np.zeros(0, bool))
             R, t, step = _plane_step(Y, N, moved, idx, R, t, gate)
             if _stops(step, last, tol, stall):
                 break
             last = step
         R1, t1 = plane_icp(X, Y, N, *tree.nodes, R0, t0, gate, iterations, tol, stall)
         assert np.array_equal(R1, R) and np.array_equal(t1, t)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), radius=st.floats(0.01, 3.0),
+       share=st.floats(0.0, 1.0), leaf=st.integers(1, 20))
+def test_kdtree_nearest_among_marked_points_is_the_tree_of_those_points(seed, n, radius, share, leaf):
+    """``KDTree.nearest(..., keep=mask)`` on the tree of every point finds what a tree of the marked points
+    alone finds (their indices mapped back), and -1 where none of them is within the radius."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    keep = rng.uniform(size=n) < share
+    queries = rng.normal(scale=1.5, size=(200, 3))
+    got = KDTree(pts, leafsize=leaf).nearest(queries, radius, keep)
+    rows = np.flatnonzero(keep)
+    if rows.size == 0:
+        assert np.all(got == -1)
+        return
+    j = KDTree(pts[rows], leafsize=leaf).nearest(queries, radius)
+    np.testing.assert_array_equal(got, np.where(j >= 0, rows[np.maximum(j, 0)], -1))
+    with pytest.raises(ValueError, match="keep"):
+        KDTree(pts).nearest(queries, radius, keep[:-1] if n > 1 else np.ones(2, bool))

@@ -740,7 +740,7 @@ def _stops(step, last, tol, stall):
 #: for; a point with no target that close stays without one, unsearched, until it has moved ``REACH - 1``
 #: gates.  A farther reach keeps more points unsearched and makes every search dearer: on the clean and
 #: 50% clutter benchmark rows' polishes, 1.25-1.5 gates searched least (design notes, section 6, "Speed:
-#: the polish's searches kept between its steps").
+#: the coarse try at half the density").
 REACH = 1.5
 
 

@@ -1359,8 +1359,8 @@ class WrongDraws:
         Yq = Ys if screen_target is None else screen_target
         # Every draw's point_icp(screen, Yq, ..., voxel, fit=kabsch3) in one kernel (draws in parallel).  On
         # voxel centroids (about one a voxel) a lookup visits the 2 x 2 x 2 cells of two voxels, not the
-        # 3 x 3 x 3 of one: the same answers, 10% faster (design notes, section 6, "Speed: the coarse try at
-        # half the density").
+        # 3 x 3 x 3 of one, for the same answers (design notes, section 6, "Speed: the coarse try at half
+        # the density").
         grid = TargetGrid.of(Yq, voxel, cell_radii=2.0 if screen_target is not None else 1.0)
         ranks = screened_supports(screen, grid, starts, voxel, 10)
         order = np.argsort(ranks, kind="stable")[::-1][:n_polished]

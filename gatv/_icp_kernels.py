@@ -378,6 +378,41 @@ def _push_children(p, node, top, lb, axis, split, left, right, stack, offsets, b
     return top + 2
 
 
+@njit(cache=True, inline="always")
+def _nearest_two(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds, keep,
+                 second):
+    """``(j, d1, d2)``: the search of :func:`kdtree_nearest` (``j``, ``d1`` its squared distance, both -1 and
+    ``radius²`` where no point is closer) and ``d2``, the squared distance of the next nearest point found;
+    ``second``: nodes are skipped by ``d2`` rather than ``d1``, so that ``d2`` is the next nearest point's
+    (or ``radius²``) and not only the nearest found before ``j``."""
+    some = keep.shape[0] > 0
+    best = -1
+    d1 = radius * radius
+    d2 = d1
+    top = _push_root(p, box, stack, offsets, bounds)
+    while top > 0:
+        top -= 1
+        k = stack[top]
+        lb = bounds[top]
+        if lb >= (d2 if second else d1):
+            continue
+        if axis[k] < 0:
+            for s in range(lo[k], hi[k]):
+                j = order[s]
+                if some and not keep[j]:
+                    continue
+                d = _distance2(points, j, p)
+                if d < d1:
+                    d2 = d1
+                    d1 = d
+                    best = j
+                elif d < d2:
+                    d2 = d
+            continue
+        top = _push_children(p, k, top, lb, axis, split, left, right, stack, offsets, bounds)
+    return best, d1, d2
+
+
 @njit(cache=True)
 def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds, keep):
     """Index of the point of ``points`` nearest ``p`` closer than ``radius`` (or -1), as
@@ -390,28 +425,8 @@ def kdtree_nearest(p, points, order, lo, hi, axis, split, left, right, box, radi
     distance).  ``stack``, ``offsets`` (:data:`STACK`, 3), ``bounds``:
     scratch of :data:`STACK` entries.
     """
-    some = keep.shape[0] > 0
-    best = -1
-    bd = radius * radius
-    top = _push_root(p, box, stack, offsets, bounds)
-    while top > 0:
-        top -= 1
-        k = stack[top]
-        lb = bounds[top]
-        if lb >= bd:
-            continue
-        if axis[k] < 0:
-            for s in range(lo[k], hi[k]):
-                j = order[s]
-                if some and not keep[j]:
-                    continue
-                d2 = _distance2(points, j, p)
-                if d2 < bd:
-                    bd = d2
-                    best = j
-            continue
-        top = _push_children(p, k, top, lb, axis, split, left, right, stack, offsets, bounds)
-    return best
+    return _nearest_two(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds, keep,
+                        False)[0]
 
 
 @njit(cache=True)
@@ -424,30 +439,12 @@ def kdtree_nearest2(p, points, order, lo, hi, axis, split, left, right, box, rad
     :func:`kdtree_nearest` visits, in the same order, and more, none of which holds a point nearer than
     the nearest found before it (its box is no nearer), so ``j`` is the same point, ties included.
     """
-    best = -1
-    r2 = radius * radius
-    d1 = r2
-    d2 = r2
-    top = _push_root(p, box, stack, offsets, bounds)
-    while top > 0:
-        top -= 1
-        k = stack[top]
-        lb = bounds[top]
-        if lb >= d2:
-            continue
-        if axis[k] < 0:
-            for s in range(lo[k], hi[k]):
-                j = order[s]
-                d = _distance2(points, j, p)
-                if d < d1:
-                    d2 = d1
-                    d1 = d
-                    best = j
-                elif d < d2:
-                    d2 = d
-            continue
-        top = _push_children(p, k, top, lb, axis, split, left, right, stack, offsets, bounds)
-    return best, d1, d2
+    return _nearest_two(p, points, order, lo, hi, axis, split, left, right, box, radius, stack, offsets, bounds,
+                        EVERY_POINT, True)
+
+
+#: The empty mask of :func:`kdtree_nearest`'s ``keep``: every point (a constant of the compiled kernels).
+EVERY_POINT = np.zeros(0, np.bool_)
 
 
 @njit(cache=True)
@@ -623,7 +620,7 @@ class KDTree:
         the points, the nearest among those it marks."""
         q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
         if keep is None:
-            keep = np.zeros(0, np.bool_)
+            keep = EVERY_POINT
         elif np.shape(keep) != (self.n,):
             raise ValueError(f"Expected `keep` of shape ({self.n},), got {np.shape(keep)}.")
         return kdtree_query(q, self.points, *self.nodes, float(radius), np.asarray(keep, dtype=np.bool_))

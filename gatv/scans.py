@@ -853,9 +853,8 @@ def register_surfaces(
         Without ``voxel``, try first on half the ``n_points`` cells, each
         scan sampled at half the density too (:func:`match_points` of them
         at :data:`COARSE_POINTS_PER_CELL`), with the adaptive search alone
-        (:data:`SEARCHES`), its rivals polished and judged as at
-        ``n_points``; a motion that passes the verdict there is the answer,
-        and where none does the call goes on at ``n_points``
+        (:data:`SEARCHES`); a motion that passes the verdict there is the
+        answer, and where none does the call goes on at ``n_points``
         (``info["coarse"]``: the coarse try's rows, cells and reason).
     progress : callable, optional
         ``progress(fraction, message)``.
@@ -939,7 +938,7 @@ def register_surfaces(
                                confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                                n_judged=n_judged, refine=refine, memory_budget=memory_budget,
                                verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
-                               searches=searches,
+                               searches=searches, defer_rivals=cells < n_points,
                                progress=lambda f, m, lo=low, hi=high: report(lo + (hi - lo) * (0.05 + 0.95 * f), m))
         # Points each step handled, summed over both scans and every try: what grows with the scans' size
         # (the matching past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples
@@ -1728,8 +1727,7 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
     search gives no motion (``"ambiguous: ... not judged on this grid"``)
     instead of polishing and judging the two, for a caller that tries a
     finer grid next; where every rival ends on the best, the best alone is
-    polished on (:func:`register_surfaces` judges its rivals on every grid:
-    design notes, section 6, "Speed: the coarse try at half the density").
+    polished on.
     """
     t0 = _clock()
     if not searches or any(m not in SEARCHES for m in searches):

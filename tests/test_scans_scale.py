@@ -217,8 +217,9 @@ def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypa
     """``register_surfaces`` tries half the cells first, with the adaptive search alone; where that gives no
     motion, the answer is the call's without the coarse try (motion and pairs equal), ``info["coarse"]``
     saying why.  A clean pair ends at the coarse try: no ``info["coarse"]``, the motion within 1°.  (The
-    bumpy ellipsoid is within the coarse grid's voxel of its own half-turn: the coarse try judges that
-    rival as the full grid does, and ends there at seeds 0-5 of ``_pair``.)"""
+    bumpy ellipsoid is within the coarse grid's voxel of its own half-turn: where the vote keeps most of
+    its surface, as at seeds 0, 2-5, the coarse try finds the rival 176-180° away and leaves the answer to
+    the full grid.  Seed 1 keeps 40% of it, a part without that rival.)"""
     import gatv.scans as S
 
     n, n_points = 12000, 400

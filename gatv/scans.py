@@ -985,15 +985,12 @@ def register_surfaces(
         kept = np.stack([ix[match.pairs[:, 0]], iy[match.pairs[:, 1]]], axis=1)
     else:
         sx, sy = (surface_rows(tk, clutter=clutter) for tk in (tx, ty))
-        moved = tx.points[sx] @ match.rotation.T + match.translation
-        if ty.tree is not None:  # the noise's tree of the whole target, searched among its surface rows
-            on = np.zeros(ty.points.shape[0], dtype=bool)
-            on[sy] = True
-            whole = stages.nearest_pairs(moved, ty.tree, match.gate, keep=on)
-            kept = np.stack([sx[whole[:, 0]], whole[:, 1]], axis=1)
-        else:
-            whole = stages.nearest_pairs(moved, KDTree(ty.points[sy]), match.gate)
-            kept = np.stack([sx[whole[:, 0]], sy[whole[:, 1]]], axis=1)
+        # The whole target's tree (the noise's, where it has one) searched among its surface rows.
+        on = np.zeros(ty.points.shape[0], dtype=bool)
+        on[sy] = True
+        whole = stages.nearest_pairs(tx.points[sx] @ match.rotation.T + match.translation,
+                                     ty.tree if ty.tree is not None else KDTree(ty.points), match.gate, keep=on)
+        kept = np.stack([sx[whole[:, 0]], whole[:, 1]], axis=1)
         info["work"]["output"] = int(sx.shape[0] + sy.shape[0])
     info.update(noise=noise, thickness=flat,
                 scan_noise=(tx.noise.sigma, ty.noise.sigma), residual_noise=residual,

@@ -855,7 +855,11 @@ def register_surfaces(
         at :data:`COARSE_POINTS_PER_CELL`), with the adaptive search alone
         (:data:`SEARCHES`); a motion that passes the verdict there is the
         answer, and where none does the call goes on at ``n_points``
-        (``info["coarse"]``: the coarse try's rows, cells and reason).
+        (``info["coarse"]``: the coarse try's rows, cells and reason).  Its
+        rivals are polished and judged as at ``n_points``, but for scans
+        noisier than their sampling (projected, :func:`project_to_surface`):
+        there a rival that does not end on the best leaves the pair to
+        ``n_points``, whose twice as many rows polish the answer closer.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -933,12 +937,16 @@ def register_surfaces(
                     "thickness": flat[1], "scan_noise": (tx.noise.sigma, ty.noise.sigma),
                     "time_s": time.perf_counter() - t0[0], "cpu_s": time.process_time() - t0[1]})
         nys = ty.normals if ty.normals is not None else _normals(Ys)
+        # The coarse try leaves a rival to the finer grid only where a scan is noisier than its sampling
+        # (projected): there the finer grid's twice as many rows polish the answer closer, while a clean
+        # scan's coarse answer is as close as the finer grid's and its rivals are judged where they are.
+        noisy = tx.projection is not None or ty.projection is not None
         prepared = np.subtract(_clock(), t0)
         match = match_surfaces(Xs, Ys, nys, n_points=cells, voxel=voxel, seed=seed, min_overlap=min_overlap,
                                confidence=confidence, max_triples=max_triples, feature_tol=feature_tol,
                                n_judged=n_judged, refine=refine, memory_budget=memory_budget,
                                verdict=True, noise=float(np.hypot(tx.noise.sigma, ty.noise.sigma)),
-                               searches=searches, defer_rivals=cells < n_points,
+                               searches=searches, defer_rivals=cells < n_points and noisy,
                                progress=lambda f, m, lo=low, hi=high: report(lo + (hi - lo) * (0.05 + 0.95 * f), m))
         # Points each step handled, summed over both scans and every try: what grows with the scans' size
         # (the matching past the voxel grid works on at most VOTE_POINTS surface points a scan, and samples

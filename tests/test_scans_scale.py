@@ -217,9 +217,8 @@ def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypa
     """``register_surfaces`` tries half the cells first, with the adaptive search alone; where that gives no
     motion, the answer is the call's without the coarse try (motion and pairs equal), ``info["coarse"]``
     saying why.  A clean pair ends at the coarse try: no ``info["coarse"]``, the motion within 1°.  (The
-    bumpy ellipsoid is within the coarse grid's voxel of its own half-turn: where the vote keeps most of
-    its surface, as at seeds 0, 2-5, the coarse try finds the rival 176-180° away and leaves the answer to
-    the full grid.  Seed 1 keeps 40% of it, a part without that rival.)"""
+    bumpy ellipsoid is within the coarse grid's voxel of its own half-turn: the coarse try of this
+    noise-free pair judges that rival as the full grid does, and ends there at seeds 0-5 of ``_pair``.)"""
     import gatv.scans as S
 
     n, n_points = 12000, 400
@@ -252,3 +251,27 @@ def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypa
     assert "coarse" not in without.info
     np.testing.assert_array_equal(m.rotation, without.rotation)
     np.testing.assert_array_equal(m.correspondences, without.correspondences)
+
+
+def test_the_coarse_try_leaves_rivals_to_the_finer_grid_only_for_noisy_scans(monkeypatch):
+    """The coarse try judges its rivals itself on scans within their sampling's noise (not projected); on
+    scans noisier than their sampling (projected) it leaves a rival that does not end on the best to the
+    finer grid, whose twice as many rows polish the answer closer.  Either way the motion is found."""
+    import gatv.scans as S
+
+    real, deferred = S.match_surfaces, []
+
+    def recorded(Xs, Ys, *args, **options):
+        deferred.append((options["n_points"], options["defer_rivals"]))
+        return real(Xs, Ys, *args, **options)
+
+    monkeypatch.setattr(S, "match_surfaces", recorded)
+    R = Rotor.from_axis_angle([0.3, -1.0, 0.4], np.radians(140.0)).as_matrix()
+    n_points = 400
+    for noise, projected in ((0.0, False), (0.03, True)):
+        deferred.clear()
+        m = register_scans(*_pair(12000, seed=1, noise=noise), n_points=n_points, seed=0)
+        assert (min(m.info["projected"]) > 0) == projected
+        assert deferred[0] == (n_points // 2, projected)  # the coarse try
+        assert all(not d for _, d in deferred[1:])  # the finer grid judges its rivals
+        assert m and np.degrees(np.arccos(np.clip((np.trace(m.rotation @ R.T) - 1) / 2, -1, 1))) < 1.0

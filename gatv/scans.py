@@ -859,7 +859,10 @@ def register_surfaces(
         rivals are polished and judged as at ``n_points``, but for scans
         noisier than their sampling (projected, :func:`project_to_surface`):
         there a rival that does not end on the best leaves the pair to
-        ``n_points``, whose twice as many rows polish the answer closer.
+        ``n_points``, whose twice as many rows polish the answer closer.  A
+        motion that passes there against a rival keeping
+        :data:`RIVAL_SHARE` of its support (``info["ambiguous"]``) is left
+        to ``n_points`` too.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -956,9 +959,15 @@ def register_surfaces(
                            ("vote", tx.voted + ty.voted + (Ys.shape[0] if ty.normals is None else 0)),
                            ("match", Xs.shape[0] + Ys.shape[0])):
             work[key] = int(value) if key == "input" else work.get(key, 0) + int(value)
-        if match or k == len(tries) - 1:
+        # The coarse try's motion stands where no rival keeps RIVAL_SHARE of its support; where one does,
+        # it passed against that rival on the coarse rows, and the finer grid tells the two apart.
+        close = match.info.get("rival") or match.info.get("symmetric_rival") if match and cells < n_points else None
+        if (match and not close) or k == len(tries) - 1:
             break
-        gave = {"rows": int(cap), "reason": match.info.get("reason", "")}
+        reason = match.info.get("reason", "") if not match else (
+            f"ambiguous: a rival {close['angle_deg']:.0f} deg away keeps {close['on_surface']} of the motion's "
+            f"{close['best_on_surface']} points on the surface (passed on this grid, left to the finer one)")
+        gave = {"rows": int(cap), "reason": reason}
         if cells < n_points:
             coarse = dict(gave, n_points=int(cells))
         else:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -275,3 +277,32 @@ def test_the_coarse_try_leaves_rivals_to_the_finer_grid_only_for_noisy_scans(mon
         assert deferred[0] == (n_points // 2, projected)  # the coarse try
         assert all(not d for _, d in deferred[1:])  # the finer grid judges its rivals
         assert m and np.degrees(np.arccos(np.clip((np.trace(m.rotation @ R.T) - 1) / 2, -1, 1))) < 1.0
+
+
+def test_a_coarse_motion_with_a_close_rival_is_left_to_the_finer_grid(monkeypatch):
+    """A motion that passes the coarse try's verdict against a rival keeping ``RIVAL_SHARE`` of its support
+    (``info["rival"]`` or ``info["symmetric_rival"]``) is not the answer: the finer grid tells the two apart,
+    and the answer is the call's without the coarse try, ``info["coarse"]`` naming the rival."""
+    import gatv.scans as S
+
+    n, n_points = 12000, 400
+    source, target = _pair(n, seed=1, noise=0.0)
+    real, calls = S.match_surfaces, []
+    for key in ("rival", "symmetric_rival"):
+        def close_rival(Xs, Ys, *args, **options):
+            calls.append(options["n_points"])
+            out = real(Xs, Ys, *args, **options)
+            if options["n_points"] == n_points or not out:
+                return out
+            return dataclasses.replace(out, info=dict(out.info, ambiguous=True, **{key: {
+                "on_surface": 90, "best_on_surface": 100, "angle_deg": 150.0}}))
+
+        calls.clear()
+        monkeypatch.setattr(S, "match_surfaces", close_rival)
+        m = register_scans(source, target, n_points=n_points, seed=0)
+        assert calls == [n_points // 2, n_points]
+        assert m and m.info["coarse"]["reason"].startswith("ambiguous: a rival 150 deg away keeps 90 of")
+        monkeypatch.setattr(S, "match_surfaces", real)
+        without = register_scans(source, target, n_points=n_points, seed=0, coarse_first=False)
+        np.testing.assert_array_equal(m.rotation, without.rotation)
+        np.testing.assert_array_equal(m.correspondences, without.correspondences)

@@ -961,7 +961,7 @@ def register_surfaces(
             work[key] = int(value) if key == "input" else work.get(key, 0) + int(value)
         # The coarse try's motion stands where no rival keeps RIVAL_SHARE of its support; where one does,
         # it passed against that rival on the coarse rows, and the finer grid tells the two apart.
-        close = match.info.get("rival") or match.info.get("symmetric_rival") if match and cells < n_points else None
+        close = (match.info.get("rival") or match.info.get("symmetric_rival")) if match and cells < n_points else None
         if (match and not close) or k == len(tries) - 1:
             break
         reason = match.info.get("reason", "") if not match else (
@@ -976,7 +976,7 @@ def register_surfaces(
     info.update(match.info)
     info["work"] = work
     if coarse is not None:
-        info["coarse"] = coarse  # the coarse try, which gave no motion
+        info["coarse"] = coarse  # the coarse try, which gave no motion or one with a close rival
     if sampled is not None:
         info["sampled"] = sampled  # the sample's try, which gave no motion
     # Stage timings from the start of the call.

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gatv.candidates import median_spacing
+from gatv.datasets import rotation_error_deg
 from gatv.scans import (FIT_POINTS, NOISE_SAMPLE, VOTE_POINTS, match_points, project_to_surface, scan_noise,
                         spatial_order, surface_rows, surface_tokens, SURFACE_REACH)
 
@@ -143,7 +144,7 @@ def test_a_scan_past_its_matching_sample_pairs_every_point_on_its_surface():
     target = (R >> _bumpy(rng, n, 0.0)) + t
     m = register_scans(source, target, n_points=n_points, seed=0)
     assert m, m.info.get("reason")
-    assert np.degrees(np.arccos(np.clip((np.trace(m.rotation @ R.as_matrix().T) - 1) / 2, -1, 1))) < 1.0
+    assert rotation_error_deg(m.rotation, R.as_matrix()) < 1.0
     assert m.info["work"]["match"] <= 2 * cap < m.info["work"]["output"] <= 2 * n
     c = m.correspondences
     assert np.unique(c[:, 0]).size == c.shape[0] == np.unique(c[:, 1]).size
@@ -230,7 +231,7 @@ def test_a_coarse_try_that_gives_no_motion_leads_to_the_call_without_it(monkeypa
     assert first and "coarse" not in first.info
     assert first.info["search"] == "adaptive"
     assert sum(first.info["n_downsampled"]) < 2 * 0.75 * n_points  # the coarse grid's cells
-    assert np.degrees(np.arccos(np.clip((np.trace(first.rotation @ R.T) - 1) / 2, -1, 1))) < 1.0
+    assert rotation_error_deg(first.rotation, R) < 1.0
 
     real, calls = S.match_surfaces, []
 
@@ -276,7 +277,7 @@ def test_the_coarse_try_leaves_rivals_to_the_finer_grid_only_for_noisy_scans(mon
         assert (min(m.info["projected"]) > 0) == projected
         assert deferred[0] == (n_points // 2, projected)  # the coarse try
         assert all(not d for _, d in deferred[1:])  # the finer grid judges its rivals
-        assert m and np.degrees(np.arccos(np.clip((np.trace(m.rotation @ R.T) - 1) / 2, -1, 1))) < 1.0
+        assert m and rotation_error_deg(m.rotation, R) < 1.0
 
 
 def test_a_coarse_motion_with_a_close_rival_is_left_to_the_finer_grid(monkeypatch):

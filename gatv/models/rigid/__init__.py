@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..._fit_kernels import centred_scatter
 from ..._validation import as_points, coordinates, shape_hint
 from .congruent import TargetIndex, trial_motions
 from .congruent_kernels import polish_icp
@@ -57,6 +58,13 @@ def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | 
     ``need`` completes the message ("All points of `source` are identical;
     <need>."); ``need_off_line`` the collinear one (default ``need``).
     """
+    scale = max(1.0, float(np.abs(points).max()))
+    # The centred points' squared singular values from their scatter, in one kernel: far above both
+    # thresholds (rounding moves them by about n·eps of the largest) the points are spread, and the SVD of
+    # the whole centred copy decides only near them.
+    lam = np.linalg.eigvalsh(centred_scatter(np.ascontiguousarray(points, dtype=np.float64)))
+    if lam[-1] > (1e-6 * scale) ** 2 and lam[-2] > 1e-6 * lam[-1]:
+        return
     c = points - points.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
     if s[0] <= 1e-12 * max(1.0, float(np.abs(points).max())):

@@ -7,7 +7,9 @@
   (:class:`gatv.models.rigid.congruent.TargetGrid`); :func:`screened_supports`
   their supports for a list of motions.
 * :class:`KDTree`: nearest and k-nearest points within a bound, as
-  ``cKDTree.query`` answers, in parallel kernels.
+  ``cKDTree.query`` answers, in parallel kernels; :func:`nearest_heights`:
+  heights over the nearest point's tangent plane (the output's surface rows,
+  :func:`gatv.scans.surface_rows`).
 * :func:`occupied_cells`: the cells of a voxel grid that hold a point.
 * :func:`plane_icp`, :func:`plane_icp_parallel`, :func:`plane_icp_many`:
   the point-to-plane polish (:func:`gatv.scans.refine_point_to_plane`) of
@@ -659,6 +661,29 @@ def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, 
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             out[i] = kdtree_nearest(queries[i], points, order, lo, hi, axis, split, left, right, box, radius, stack,
                                     offsets, bounds, keep)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def nearest_heights(points, rows, normals, tree_points, order, lo, hi, axis, split, left, right, box, radius):
+    """For each of ``rows`` (rows of ``points``): the height ``|(p - y) · n|`` of its point ``p`` over the
+    tangent plane of its nearest tree point ``y`` within ``radius`` (:func:`kdtree_nearest`; ``n`` that
+    point's row of ``normals``), ``inf`` where none is that close (:func:`gatv.scans.surface_rows`' test, in
+    one pass: no gathered copies of the rows, their neighbours and normals)."""
+    n = rows.shape[0]
+    out = np.full(n, np.inf)
+    chunk = 256
+    for c in prange((n + chunk - 1) // chunk):
+        stack = np.empty(STACK, np.int64)
+        offsets = np.empty((STACK, 3))
+        bounds = np.empty(STACK)
+        for i in range(c * chunk, min(n, (c + 1) * chunk)):
+            p = points[rows[i]]
+            j = kdtree_nearest(p, tree_points, order, lo, hi, axis, split, left, right, box, radius, stack,
+                               offsets, bounds, EVERY_POINT)
+            if j >= 0:
+                out[i] = abs((p[0] - tree_points[j, 0]) * normals[j, 0] + (p[1] - tree_points[j, 1]) * normals[j, 1]
+                             + (p[2] - tree_points[j, 2]) * normals[j, 2])
     return out
 
 

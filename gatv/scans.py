@@ -49,6 +49,7 @@ from ._fit_kernels import kabsch3
 from ._icp_kernels import (
     KDTree,
     local_heights,
+    nearest_heights,
     neighbourhood_axes,
     neighbourhood_noise,
     neighbourhood_normals,
@@ -1074,13 +1075,12 @@ def surface_rows(tokens: SurfaceTokens, *, clutter: bool = True) -> np.ndarray:
         return tokens.rows
     tree = KDTree(tokens.points[tokens.rows])
     s = median_spacing(tree.points, tree=tree)
-    p = tokens.points[rest]
-    j = tree.nearest(p, SURFACE_REACH * s)
-    near = np.flatnonzero(j >= 0)
-    height = np.abs(np.einsum("ij,ij->i", p[near] - tree.points[j[near]], tokens.normals[j[near]]))
+    height = nearest_heights(np.ascontiguousarray(tokens.points, dtype=np.float64), rest,
+                             np.ascontiguousarray(tokens.normals, dtype=np.float64), tree.points, *tree.nodes,
+                             SURFACE_REACH * s)
     on = np.zeros(n, dtype=bool)
     on[tokens.rows] = True
-    on[rest[near[height <= s + 3.0 * tokens.noise.sigma]]] = True
+    on[rest[height <= s + 3.0 * tokens.noise.sigma]] = True
     return np.flatnonzero(on)
 
 

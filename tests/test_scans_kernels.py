@@ -25,6 +25,7 @@ from gatv._icp_kernels import (
     neighbourhood_axes,
     neighbourhood_noise,
     neighbourhood_normals,
+    nearest_heights,
     nearest_kept,
     occupied_cells,
     pairing_state,
@@ -111,6 +112,29 @@ def test_kdtree_finds_the_nearest_point_within_the_bound_as_scipy(seed, n, radiu
     np.testing.assert_allclose(d[hit], d_ref[hit], rtol=0, atol=1e-12)
     assert np.all(j[~hit] == pts.shape[0])
     assert np.allclose(np.linalg.norm(queries[hit] - pts[j[hit]], axis=1), d_ref[hit], atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), radius=st.floats(0.01, 3.0), leaf=st.integers(1, 20))
+def test_nearest_heights_are_heights_over_the_nearest_points_plane(seed, n, radius, leaf):
+    """Each queried row's height over its nearest tree point's plane, as cKDTree and numpy give it; inf with
+    no tree point within the radius."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3))
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    points = rng.normal(scale=1.5, size=(500, 3))
+    rows = np.sort(rng.choice(500, 300, replace=False))
+    tree = KDTree(pts, leafsize=leaf)
+    h = nearest_heights(points, rows, normals, tree.points, *tree.nodes, radius)
+    d, j = cKDTree(pts).query(points[rows], k=1, distance_upper_bound=radius)
+    hit = np.isfinite(d)
+    assert np.array_equal(np.isfinite(h), hit)
+    # The nearest point may be another of several as near (a tie): its plane is then checked by distance.
+    k = tree.nearest(points[rows], radius)
+    assert np.allclose(np.linalg.norm(points[rows][hit] - pts[k[hit]], axis=1), d[hit], atol=1e-12)
+    ref = np.abs(np.einsum("ij,ij->i", points[rows][hit] - pts[k[hit]], normals[k[hit]]))
+    np.testing.assert_allclose(h[hit], ref, rtol=0, atol=1e-12)
 
 
 @settings(max_examples=25, deadline=None)

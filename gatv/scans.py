@@ -1852,19 +1852,10 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         return R, t, g, int(np.count_nonzero(tree.nearest(Xs @ R.T + t, g) >= 0))
 
     def polish_all(motions, count=True) -> list:
-        """``polish(R, t, count=count)`` of each ``(R, t)`` of ``motions``, the motions in parallel (one
-        numba kernel for the coarse gates' sample and one for the fine gate's)."""
-        if not refine or len(motions) < 2:
-            return [polish(R, t, count=count) for R, t in motions]
-        Rs = np.array([R for R, _ in motions], np.float64).reshape(-1, 3, 3)
-        ts = np.array([t for _, t in motions], np.float64).reshape(-1, 3)
-        for moving, gates, tol in ((coarse, [g for g in levels if g > fine], COARSE_STEP),
-                                   (sub, [g for g in levels if g <= fine], 1e-9)):
-            if gates:
-                Rs, ts = plane_icp_many(moving, tree.points, normals_c, *tree.nodes, Rs, ts,
-                                        np.array(gates, np.float64), 30, np.full(len(gates), tol),
-                                        np.full(len(gates), COARSE_STEP))
-        return [counted(R, t, levels[-1], count) for R, t in zip(Rs, ts)]
+        """``polish(R, t, count=count)`` of each ``(R, t)`` of ``motions``, one after the other, each with its
+        queries in parallel: a wrong rival polishes on for every iteration where the best stops in a few,
+        so motions polished side by side (one a thread) would leave a thread idle."""
+        return [polish(R, t, count=count) for R, t in motions]
 
     centroid = Xs.mean(axis=0)
 

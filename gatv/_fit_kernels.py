@@ -34,35 +34,6 @@ def _centred_cov(src, dst):
 
 
 @njit(cache=True)
-def centred_scatter(points):
-    """``(d, d)`` scatter ``Σ (p - c)(p - c)ᵀ`` of the ``(N, d)`` ``points`` (``d`` 2 or 3) about their mean
-    ``c`` (the squared singular values of the centred points are its eigenvalues), in one pass without a
-    centred copy: sums of the points less the first one, whose offsets are at most the set's diameter, so
-    that ``Σ qqᵀ - (Σ q)(Σ q)ᵀ / N`` loses no more than rounding of the diameter's square."""
-    n, d = points.shape
-    f0, f1 = points[0, 0], points[0, 1]
-    f2 = points[0, 2] if d == 3 else 0.0
-    m0 = m1 = m2 = s00 = s01 = s02 = s11 = s12 = s22 = 0.0
-    for i in range(n):
-        x = points[i, 0] - f0
-        y = points[i, 1] - f1
-        z = points[i, 2] - f2 if d == 3 else 0.0
-        m0 += x
-        m1 += y
-        m2 += z
-        s00 += x * x
-        s01 += x * y
-        s02 += x * z
-        s11 += y * y
-        s12 += y * z
-        s22 += z * z
-    S = np.array([[s00 - m0 * m0 / n, s01 - m0 * m1 / n, s02 - m0 * m2 / n],
-                  [s01 - m0 * m1 / n, s11 - m1 * m1 / n, s12 - m1 * m2 / n],
-                  [s02 - m0 * m2 / n, s12 - m1 * m2 / n, s22 - m2 * m2 / n]])
-    return np.ascontiguousarray(S[:d, :d])
-
-
-@njit(cache=True)
 def kabsch3(src, dst):
     """Least-squares rotation and translation with ``dst ≈ R src + t`` (equal weights)."""
     cs, cd, H, _ = _centred_cov(src, dst)

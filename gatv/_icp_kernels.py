@@ -667,23 +667,21 @@ def kdtree_query(queries, points, order, lo, hi, axis, split, left, right, box, 
 @njit(cache=True, parallel=True)
 def nearest_heights(points, rows, normals, tree_points, order, lo, hi, axis, split, left, right, box, radius):
     """For each of ``rows`` (rows of ``points``): the height ``|(p - y) · n|`` of its point ``p`` over the
-    tangent plane of its nearest tree point ``y`` within ``radius`` (:func:`kdtree_nearest`; ``n`` that
+    tangent plane of its nearest tree point ``y`` within ``radius`` (:func:`kdtree_query`; ``n`` that
     point's row of ``normals``), ``inf`` where none is that close (:func:`gatv.scans.surface_rows`' test, in
-    one pass: no gathered copies of the rows, their neighbours and normals)."""
+    one kernel: no numpy copies of the nearest points and their normals)."""
     n = rows.shape[0]
+    q = np.empty((n, 3))
+    for i in prange(n):
+        for a in range(3):
+            q[i, a] = points[rows[i], a]
+    near = kdtree_query(q, tree_points, order, lo, hi, axis, split, left, right, box, radius, EVERY_POINT)
     out = np.full(n, np.inf)
-    chunk = 256
-    for c in prange((n + chunk - 1) // chunk):
-        stack = np.empty(STACK, np.int64)
-        offsets = np.empty((STACK, 3))
-        bounds = np.empty(STACK)
-        for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            p = points[rows[i]]
-            j = kdtree_nearest(p, tree_points, order, lo, hi, axis, split, left, right, box, radius, stack,
-                               offsets, bounds, EVERY_POINT)
-            if j >= 0:
-                out[i] = abs((p[0] - tree_points[j, 0]) * normals[j, 0] + (p[1] - tree_points[j, 1]) * normals[j, 1]
-                             + (p[2] - tree_points[j, 2]) * normals[j, 2])
+    for i in prange(n):
+        j = near[i]
+        if j >= 0:
+            out[i] = abs((q[i, 0] - tree_points[j, 0]) * normals[j, 0] + (q[i, 1] - tree_points[j, 1]) * normals[j, 1]
+                         + (q[i, 2] - tree_points[j, 2]) * normals[j, 2])
     return out
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._fit_kernels import centred_scatter
+from ..._icp_kernels import neighbourhood_scatter
 from ..._validation import as_points, coordinates, shape_hint
 from .congruent import TargetIndex, trial_motions
 from .congruent_kernels import polish_icp
@@ -59,10 +59,14 @@ def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | 
     <need>."); ``need_off_line`` the collinear one (default ``need``).
     """
     scale = max(1.0, float(np.abs(points).max()))
-    # The centred points' squared singular values from their scatter, in one kernel: far above both
-    # thresholds (rounding moves them by about n·eps of the largest) the points are spread, and the SVD of
-    # the whole centred copy decides only near them.
-    lam = np.linalg.eigvalsh(centred_scatter(np.ascontiguousarray(points, dtype=np.float64)))
+    # The centred points' squared singular values are their scatter's eigenvalues, summed in one kernel
+    # (one neighbourhood of every point; 2D points on a zero third axis): far above both thresholds
+    # (rounding moves them by about n·eps of the largest) the points are spread, and the SVD of the whole
+    # centred copy decides only near them.
+    p = np.zeros((points.shape[0], 3))
+    p[:, :points.shape[1]] = points
+    xx, xy, xz, yy, yz, zz = neighbourhood_scatter(p, np.arange(p.shape[0])[None, :], p.shape[0])[1][0]
+    lam = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
     if lam[-1] > (1e-6 * scale) ** 2 and lam[-2] > 1e-6 * lam[-1]:
         return
     c = points - points.mean(axis=0)

@@ -1,13 +1,17 @@
-"""Numba twins of :mod:`gatv.fitting` for the hypothesis kernels.
+"""Numba twins of :mod:`gatv.fitting` for the hypothesis kernels, and the scatter of neighbourhoods.
 
 Pure functions over small contiguous float64 arrays; each is checked
-against its numpy reference in ``tests/test_fitting.py``.
+against its numpy reference in ``tests/test_fitting.py``
+(:func:`neighbourhood_scatter` through :func:`gatv._icp_kernels.neighbourhood_axes`
+in ``tests/test_scans_kernels.py``).  Nothing here imports gatv, so the
+models' input checks (:func:`gatv.models.rigid.check_spread`) and the scans
+kernels alike can use it.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True)
@@ -31,6 +35,42 @@ def _centred_cov(src, dst):
             for c in range(d):
                 H[r, c] += a * (dst[i, c] - cd[c])
     return cs, cd, H, var / n
+
+
+@njit(cache=True, parallel=True)
+def neighbourhood_scatter(points, neighbours, m):
+    """``(centroids, scatter)``: ``(N, 3)`` the mean of each row's first ``m`` ``neighbours`` (rows of
+    ``points``) and ``(N, 6)`` the upper triangle ``(xx, xy, xz, yy, yz, zz)`` of their scatter matrix
+    about it: :func:`gatv.scans.local_scatter`'s centroids and matrix, without gathering the neighbours (and the
+    input check's spread, :func:`gatv.models.rigid.check_spread`: one neighbourhood of every point)."""
+    n = neighbours.shape[0]
+    centroids = np.empty((n, 3))
+    out = np.empty((n, 6))
+    for i in prange(n):
+        cx = cy = cz = 0.0
+        for a in range(m):
+            q = neighbours[i, a]
+            cx += points[q, 0]
+            cy += points[q, 1]
+            cz += points[q, 2]
+        cx /= m
+        cy /= m
+        cz /= m
+        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+        for a in range(m):
+            q = neighbours[i, a]
+            x = points[q, 0] - cx
+            y = points[q, 1] - cy
+            z = points[q, 2] - cz
+            s0 += x * x
+            s1 += x * y
+            s2 += x * z
+            s3 += y * y
+            s4 += y * z
+            s5 += z * z
+        centroids[i, 0], centroids[i, 1], centroids[i, 2] = cx, cy, cz
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = s0, s1, s2, s3, s4, s5
+    return centroids, out
 
 
 @njit(cache=True)

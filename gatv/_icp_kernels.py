@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from ._fit_kernels import kabsch3
+from ._fit_kernels import kabsch3, neighbourhood_scatter
 from .models.rigid.congruent_kernels import build_grid, nearest_in_grid
 from .voting._eigen import eig3_batch
 
@@ -904,41 +904,6 @@ def plane_icp_many(X, Y, N, order, lo, hi, axis, split, left, right, box, rotati
 
 
 # ------------------------------------------------------------------ local planes
-@njit(cache=True, parallel=True)
-def neighbourhood_scatter(points, neighbours, m):
-    """``(centroids, scatter)``: ``(N, 3)`` the mean of each row's first ``m`` ``neighbours`` (rows of
-    ``points``) and ``(N, 6)`` the upper triangle ``(xx, xy, xz, yy, yz, zz)`` of their scatter matrix
-    about it: :func:`gatv.scans.local_scatter`'s centroids and matrix, without gathering the neighbours."""
-    n = neighbours.shape[0]
-    centroids = np.empty((n, 3))
-    out = np.empty((n, 6))
-    for i in prange(n):
-        cx = cy = cz = 0.0
-        for a in range(m):
-            q = neighbours[i, a]
-            cx += points[q, 0]
-            cy += points[q, 1]
-            cz += points[q, 2]
-        cx /= m
-        cy /= m
-        cz /= m
-        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
-        for a in range(m):
-            q = neighbours[i, a]
-            x = points[q, 0] - cx
-            y = points[q, 1] - cy
-            z = points[q, 2] - cz
-            s0 += x * x
-            s1 += x * y
-            s2 += x * z
-            s3 += y * y
-            s4 += y * z
-            s5 += z * z
-        centroids[i, 0], centroids[i, 1], centroids[i, 2] = cx, cy, cz
-        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = s0, s1, s2, s3, s4, s5
-    return centroids, out
-
-
 def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray, m: int):
     """``(centroids, values, axes)``: the mean of each row's first ``m`` ``neighbours`` (rows of ``points``),
     and the eigenvalues (descending) and unit eigenvectors (``axes[i, :, j]`` of ``values[i, j]``) of their

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._icp_kernels import neighbourhood_scatter
+from ..._fit_kernels import neighbourhood_scatter
 from ..._validation import as_points, coordinates, shape_hint
 from .congruent import TargetIndex, trial_motions
 from .congruent_kernels import polish_icp

@@ -71,7 +71,7 @@ def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | 
         return
     c = points - points.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
-    if s[0] <= 1e-12 * max(1.0, float(np.abs(points).max())):
+    if s[0] <= 1e-12 * scale:
         raise InputError(f"All points of `{name}` are identical; {need}.")
     if s[1] <= 1e-9 * s[0]:
         raise InputError(f"All points of `{name}` are collinear; {need_off_line or need}.")

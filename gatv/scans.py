@@ -1851,12 +1851,6 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
         # points (the one-to-one pairs do).
         return R, t, g, int(np.count_nonzero(tree.nearest(Xs @ R.T + t, g) >= 0))
 
-    def polish_all(motions, count=True) -> list:
-        """``polish(R, t, count=count)`` of each ``(R, t)`` of ``motions``, one after the other, each with its
-        queries in parallel: a wrong rival polishes on for every iteration where the best stops in a few,
-        so motions polished side by side (one a thread) would leave a thread idle."""
-        return [polish(R, t, count=count) for R, t in motions]
-
     centroid = Xs.mean(axis=0)
 
     def same_motion(Ra, ta, Rb, tb, g) -> bool:
@@ -1970,7 +1964,9 @@ def match_surfaces(Xs, Ys, target_normals, *, n_points: int = 600, voxel: float 
                         f"ambiguous: a rival {rotation_angle_deg(Rr @ Rq.T):.0f} deg away from the best trial "
                         "motion did not end on it when polished (not judged on this grid)")))
             rivals = []
-        polished = polish_all([(f.matrix[:3, :3], f.matrix[:3, 3]) for f in [best, *rivals]], count=count)
+        # One after the other, each with its queries in parallel: a wrong rival polishes on for every
+        # iteration where the best stops in a few, so the two side by side (one a thread) leave a thread idle.
+        polished = [polish(f.matrix[:3, :3], f.matrix[:3, 3], count=count) for f in [best, *rivals]]
         R, t, g, on = polished[0]
         start = best.matrix  # the trial the motion was polished from (the verdict polishes it as its draws)
         info["ambiguous"] = False

@@ -63,8 +63,9 @@ def check_spread(points: np.ndarray, name: str, need: str, need_off_line: str | 
     # (one neighbourhood of every point; 2D points on a zero third axis): far above both thresholds
     # (rounding moves them by about n·eps of the largest) the points are spread, and the SVD of the whole
     # centred copy decides only near them.
-    p = np.zeros((points.shape[0], 3))
-    p[:, :points.shape[1]] = points
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    if p.shape[1] < 3:
+        p = np.pad(p, ((0, 0), (0, 3 - p.shape[1])))
     xx, xy, xz, yy, yz, zz = neighbourhood_scatter(p, np.arange(p.shape[0])[None, :], p.shape[0])[1][0]
     lam = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
     if lam[-1] > (1e-6 * scale) ** 2 and lam[-2] > 1e-6 * lam[-1]:

@@ -137,6 +137,42 @@ def _greedy_unique(i_idx, j_idx, order, n_i, n_j):
     return keep[:m]
 
 
+@njit(cache=True)
+def _cheapest_rows(targets, cost, n_targets):
+    best = np.full(n_targets, -1, np.int64)
+    for k in range(targets.shape[0]):
+        b = best[targets[k]]
+        if b < 0 or cost[k] < cost[b]:  # strictly cheaper: a tie stays with the earlier row
+            best[targets[k]] = k
+    keep = np.empty(targets.shape[0], np.int64)
+    m = 0
+    for k in range(targets.shape[0]):
+        if best[targets[k]] == k:
+            keep[m] = k
+            m += 1
+    return keep[:m]
+
+
+def one_to_one_rows(targets: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """:func:`one_to_one` of the pairs ``(k, targets[k])``, one a source row, in row order.
+
+    With every source index used once, only targets can clash, and the
+    greedy rule keeps each target's cheapest row (ties to the earlier):
+    the same rows as ``sorted(one_to_one(...))``, in linear time, without
+    sorting by cost (each moved point's nearest target, made one to one).
+    Returns the kept rows' indices, ascending.
+    """
+    targets = np.asarray(targets, dtype=np.int64).reshape(-1)
+    cost = np.asarray(cost, dtype=np.float64).reshape(-1)
+    if targets.shape != cost.shape:
+        raise ValueError(f"Expected `targets` and `cost` of one length, got {targets.shape[0]} and {cost.shape[0]}.")
+    if targets.size == 0:
+        return np.zeros(0, np.int64)
+    if targets.min() < 0:
+        raise ValueError("Expected `targets` of indices >= 0.")
+    return _cheapest_rows(targets, cost, int(targets.max()) + 1)
+
+
 def one_to_one(pairs: np.ndarray, cost: np.ndarray) -> np.ndarray:
     """Greedy one-to-one subset of ``pairs``, cheapest first.
 

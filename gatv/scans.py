@@ -1006,8 +1006,10 @@ def register_surfaces(
         # The whole target's tree (the noise's, where it has one) searched among its surface rows.
         on = np.zeros(ty.points.shape[0], dtype=bool)
         on[sy] = True
+        # In the source rows' order, as the result sorts them (no sort by distance of every scan point).
         whole = stages.nearest_pairs(tx.points[sx] @ match.rotation.T + match.translation,
-                                     ty.tree if ty.tree is not None else KDTree(ty.points), match.gate, keep=on)
+                                     ty.tree if ty.tree is not None else KDTree(ty.points), match.gate, keep=on,
+                                     by_row=True)
         kept = np.stack([sx[whole[:, 0]], whole[:, 1]], axis=1)
         info["work"]["output"] = int(sx.shape[0] + sy.shape[0])
     info.update(noise=noise, thickness=flat,

@@ -26,7 +26,7 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 from scipy.stats import chi
 
-from .candidates import median_spacing, one_to_one
+from .candidates import median_spacing, one_to_one, one_to_one_rows
 from .models import Motion, MotionModel, apply_matrix, get_model, split_matrix
 from .models.base import MAX_MATCHES, NOISE_SCHEDULE, NOISY_SCHEDULE, homogeneous
 from .stats import ALPHA, ball_measure, chance_count, likelihood_level, pair_scores, peak_ratios, samples_needed
@@ -669,14 +669,17 @@ def likelihood_pose(problem: Problem, fit: Fit, sigma: float, rounds: int = 8) -
 
 
 def nearest_pairs(moved: np.ndarray, tree: cKDTree, gate_radius: float,
-                  keep: np.ndarray | None = None) -> np.ndarray:
+                  keep: np.ndarray | None = None, *, by_row: bool = False) -> np.ndarray:
     """One-to-one ``(row of moved, point of tree)`` pairs: each moved point's nearest within ``gate_radius``,
     cheapest first; ``keep``: a boolean mask of the tree's points, the nearest among those it marks (a
-    :class:`~gatv._icp_kernels.KDTree` alone)."""
+    :class:`~gatv._icp_kernels.KDTree` alone).  ``by_row``: the same pairs in the moved rows' order, without
+    the sort by distance (:func:`~gatv.candidates.one_to_one_rows`; for a caller that orders them itself)."""
     options = {} if keep is None else {"keep": keep}
     dist, j = tree.query(moved, k=1, distance_upper_bound=gate_radius, **options)
     ok = np.flatnonzero(np.isfinite(dist))
     pairs = np.stack([ok, j[ok]], axis=1)
+    if by_row:
+        return pairs[one_to_one_rows(j[ok], dist[ok])]
     return pairs[one_to_one(pairs, dist[ok])]
 
 

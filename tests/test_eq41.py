@@ -27,7 +27,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from gatv import stages
-from gatv.candidates import one_to_one
+from gatv.candidates import one_to_one, one_to_one_rows
 from gatv.ga import Rotor, eq41, eq41_length_residual, eq41_residual
 from gatv.models.rigid import eq41_consistent
 
@@ -422,6 +422,46 @@ def test_one_to_one_is_cheapest_first_ties_to_the_earlier_row(rows):
     for r in np.setdiff1d(np.arange(len(pairs)), keep):
         rivals = keep[(pairs[keep, 0] == pairs[r, 0]) | (pairs[keep, 1] == pairs[r, 1])]
         assert rivals.size and np.any((cost[rivals] < cost[r]) | ((cost[rivals] == cost[r]) & (rivals < r)))
+
+
+@settings(max_examples=80, deadline=None)
+@given(rows=st.lists(st.tuples(st.integers(0, 6), st.sampled_from([0.0, 0.5, 1.0, 2.0, 3.5])), min_size=1,
+                     max_size=60))
+def test_one_to_one_rows_keeps_the_greedy_rows_in_row_order(rows):
+    """One pair a source row (each moved point's nearest target): the rows the cheapest-first greedy keeps,
+    ascending, in linear time."""
+    targets = np.array([j for j, _ in rows], np.int64)
+    cost = np.array([c for _, c in rows])
+    pairs = np.stack([np.arange(len(rows)), targets], axis=1)
+    kept = one_to_one_rows(targets, cost)
+    assert kept.tolist() == sorted(_greedy_reference(pairs, cost))
+    assert np.all(np.diff(kept) > 0)
+
+
+def test_nearest_pairs_by_row_are_the_same_pairs_in_row_order():
+    """``by_row``: the pairs of the cheapest-first rule, sorted by the moved row (ties of distance included:
+    a lattice queried from its own points shifted half a step)."""
+    from scipy.spatial import cKDTree
+
+    from gatv._icp_kernels import KDTree
+
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    moved = np.concatenate([grid[rng.permutation(len(grid))[:900]] + [0.5, 0.0, 0.0],
+                            rng.uniform(-1.0, 12.0, (900, 3))])
+    for tree in (KDTree(grid), cKDTree(grid)):
+        for radius in (0.6, 1.5):
+            ranked = stages.nearest_pairs(moved, tree, radius)
+            by_row = stages.nearest_pairs(moved, tree, radius, by_row=True)
+            assert by_row.tolist() == ranked[np.argsort(ranked[:, 0])].tolist()
+            assert len(ranked) > 100 and len(set(by_row[:, 1])) == len(by_row)
+
+
+def test_one_to_one_rows_names_a_bad_argument():
+    with pytest.raises(ValueError, match="`targets` and `cost`"):
+        one_to_one_rows(np.array([0, 1]), np.array([1.0]))
+    with pytest.raises(ValueError, match="`targets`"):
+        one_to_one_rows(np.array([0, -1]), np.array([1.0, 2.0]))
 
 
 def test_one_to_one_ties_go_to_the_earlier_row_in_a_long_list():

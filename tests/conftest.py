@@ -64,6 +64,8 @@ plane_icp_many(x, tree.points, normals, *tree.nodes, np.eye(3)[None], np.zeros((
                np.array([1e-9]), np.array([0.0]))
 tree.query(x, k=1, distance_upper_bound=0.1)
 nearest_heights(x, np.flatnonzero(np.ones(40, bool)), normals, tree.points, *tree.nodes, 0.1)  # the output's rows
+from gatv.candidates import one_to_one_rows
+one_to_one_rows(np.array([0, 1, 0]), np.array([1.0, 0.5, 0.2]))  # the output's pairs
 tree.query(x, k=16)
 neighbourhood_normals(x, tree.query(x, k=12)[1], 12)
 plane_icp(x, tree.points, normals, *tree.nodes, np.eye(3), np.zeros(3), 0.3, 2, 1e-9, 0.0)

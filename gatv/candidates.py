@@ -139,6 +139,7 @@ def _greedy_unique(i_idx, j_idx, order, n_i, n_j):
 
 @njit(cache=True)
 def _cheapest_rows(targets, cost, n_targets):
+    """:func:`one_to_one_rows`' rows: each target's cheapest (the earlier on a tie), ascending."""
     best = np.full(n_targets, -1, np.int64)
     for k in range(targets.shape[0]):
         b = best[targets[k]]
@@ -165,11 +166,11 @@ def one_to_one_rows(targets: np.ndarray, cost: np.ndarray) -> np.ndarray:
     targets = np.asarray(targets, dtype=np.int64).reshape(-1)
     cost = np.asarray(cost, dtype=np.float64).reshape(-1)
     if targets.shape != cost.shape:
-        raise ValueError(f"Expected `targets` and `cost` of one length, got {targets.shape[0]} and {cost.shape[0]}.")
+        raise InputError(f"Expected `targets` and `cost` of one length, got {targets.shape[0]} and {cost.shape[0]}.")
     if targets.size == 0:
         return np.zeros(0, np.int64)
     if targets.min() < 0:
-        raise ValueError("Expected `targets` of indices >= 0.")
+        raise InputError(f"Expected `targets` of indices >= 0, got {int(targets.min())}.")
     return _cheapest_rows(targets, cost, int(targets.max()) + 1)
 
 

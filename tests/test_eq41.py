@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 
 from gatv import stages
 from gatv.candidates import one_to_one, one_to_one_rows
+from gatv.errors import InputError
 from gatv.ga import Rotor, eq41, eq41_length_residual, eq41_residual
 from gatv.models.rigid import eq41_consistent
 
@@ -458,9 +459,9 @@ def test_nearest_pairs_by_row_are_the_same_pairs_in_row_order():
 
 
 def test_one_to_one_rows_names_a_bad_argument():
-    with pytest.raises(ValueError, match="`targets` and `cost`"):
+    with pytest.raises(InputError, match="`targets` and `cost`"):
         one_to_one_rows(np.array([0, 1]), np.array([1.0]))
-    with pytest.raises(ValueError, match="`targets`"):
+    with pytest.raises(InputError, match="`targets` of indices >= 0, got -1"):
         one_to_one_rows(np.array([0, -1]), np.array([1.0, 2.0]))
 
 

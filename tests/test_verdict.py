@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -17,7 +17,7 @@ from gatv.errors import InputError
 from gatv.scans import (FLAT_NOISE, NOISE_RADIUS, NOISE_REACH, NORMAL_AGREEMENT, SYMMETRY_STEP, VERDICT_GATES,
                         ScanNoise, SourceFrame, flat_scan, local_scatter, scan_noise, surface_support,
                         surface_symmetries, surface_verdict, thickness)
-from gatv.stats import chance_support
+from gatv.stats import ALPHA, chance_alpha, chance_count, chance_support, poisson_isf
 from gatv.verdict import SEARCH_GAIN, Verdict, chance_verdict, poisson_verdict, wrong_motion_verdict
 
 
@@ -33,6 +33,75 @@ def test_poisson_level_is_the_exact_pipelines_chance_support(n_source, n_target,
     assert v.chance == level
     assert v.passed  # reaching the level beats chance, as in gatv.stages.search
     assert not poisson_verdict(level - 1, expected, n_tested).passed
+
+
+def _poisson_tail_reference(k: int, mu: float) -> float:
+    """``P(X > k)`` for Poisson(``mu``), summed term by term in logs (numpy only)."""
+    if k < 0:
+        return 1.0
+    if mu == 0.0:
+        return 0.0
+    j = np.arange(k + 1, k + 4000, dtype=np.float64)
+    logs = j * math.log(mu) - mu - np.array([math.lgamma(x + 1.0) for x in j])
+    top = logs.max()
+    return float(math.exp(top) * np.exp(logs - top).sum())
+
+
+@settings(max_examples=200, deadline=None)
+@given(mu=st.floats(0.0, 200.0), log_q=st.floats(-300.0, -1e-3))
+def test_poisson_isf_is_the_smallest_count_its_tail_allows(mu, log_q):
+    q = 10.0**log_q
+    k = poisson_isf(q, mu)
+    assert k >= -1
+    assert _poisson_tail_reference(k, mu) <= q * (1 + 1e-9)
+    assert k == -1 or _poisson_tail_reference(k - 1, mu) > q * (1 - 1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(mu=st.floats(0.0, 1000.0), log_q=st.floats(-12.0, -1e-3))
+def test_poisson_isf_is_scipys_where_scipys_is_exact(mu, log_q):
+    from scipy.stats import poisson
+
+    assert poisson_isf(10.0**log_q, mu) == int(poisson.isf(10.0**log_q, mu))
+
+
+@settings(max_examples=50, deadline=None)
+@given(n_source=st.integers(10, 5000), n_target=st.integers(10, 5000), gate=st.floats(1e-3, 1.0),
+       log_tests=st.floats(0.0, 30.0))
+def test_the_chance_level_grows_with_the_tests_without_bound(n_source, n_target, gate, log_tests):
+    # a search scoring 1e7-1e9 matches asks for the tail at 1e-13..1e-16, where scipy's isf
+    # went one count low or NaN; the level must stay an integer that never falls as tests grow
+    levels = [chance_count(n_source, n_target, 1000.0, gate, n_tests=10.0**x)
+              for x in (0.0, log_tests, log_tests + 0.5, log_tests + 3.0)]
+    assert all(isinstance(v, int) for v in levels)
+    assert levels == sorted(levels)
+
+
+@settings(max_examples=100, deadline=None)
+@given(expected=st.floats(0.0, 100.0), log_tests=st.floats(0.0, 14.0), support=st.integers(0, 300))
+def test_a_poisson_verdict_passes_exactly_when_its_p_value_is_within_alpha(expected, log_tests, support):
+    v = poisson_verdict(support, expected, 10.0**log_tests)
+    assert v.passed == (v.p_value <= ALPHA)
+
+
+@settings(max_examples=200, deadline=None)
+@given(support=st.integers(0, 200), n_source=st.integers(10, 5000), n_target=st.integers(10, 5000),
+       gate=st.floats(1e-3, 1.0), log_tests=st.floats(0.0, 12.0), sample_size=st.integers(1, 4),
+       factor=st.sampled_from([0.5, 2.0]))
+def test_chance_alpha_is_the_level_at_which_a_support_reaches_chance(support, n_source, n_target, gate,
+                                                                      log_tests, sample_size, factor):
+    a = chance_alpha(support, n_source, n_target, 1000.0, gate, 10.0**log_tests, sample_size=sample_size)
+    assume(math.isfinite(a) and 1e-300 < a * factor < 10.0**log_tests)
+    level = chance_support(n_source, n_target, 1000.0, gate, n_tests=10.0**log_tests, alpha=a * factor,
+                           sample_size=sample_size)
+    assert (level <= support) == (factor > 1.0)
+
+
+def test_poisson_isf_names_a_bad_argument():
+    with pytest.raises(ValueError, match="q must"):
+        poisson_isf(0.0, 1.0)
+    with pytest.raises(ValueError, match="mu must"):
+        poisson_isf(0.5, float("nan"))
 
 
 @settings(max_examples=50, deadline=None)

@@ -78,7 +78,7 @@ from .models import Motion, apply_matrix, get_model
 from .models.base import MAX_WORK, homogeneous
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
-from .stats import samples_needed
+from .stats import chance_alpha, samples_needed
 from .verdict import chance_verdict
 from .voting import default_sigma, extract_surfaces
 
@@ -560,6 +560,44 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
                 stages.likelihood_counts(P, matrix, g, levels[:k + 1], n_final, share)) is not None:
             return True
     return False
+
+
+def count_alpha(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: float = 0.04,
+                confidence: float = 0.999) -> float:
+    """The smallest family-wise level at which :func:`count_ceiling` keeps ``matrix`` on its count.
+
+    The same refinement at each level's gate and the same counts as
+    :func:`count_ceiling` (without ``likelihood``), each turned into the
+    level its count would need (:func:`gatv.stats.chance_alpha`, Bonferroni
+    over the budget's matches and the gates looked at); the smallest of
+    them.  So ``count_ceiling(P, matrix)`` is ``count_alpha(P, matrix) <=``
+    :data:`gatv.stats.ALPHA`.  Above 1 it bounds how many of the search's
+    wrong motions would reach the truth's count: how far a target set
+    against the maximum-likelihood estimate lies beyond a search that keeps
+    no wrong motion (design notes, section 1).  The rigid model's Poisson
+    level only.
+    """
+    if P.model.name != "rigid":
+        raise InputError(f"count_alpha takes the rigid model's problem, got model {P.model.name!r}; "
+                         "prepare the point sets with model='rigid'")
+    policy = P.model.search_policy()
+    _, budget = register_budget(P, min_inlier_share, confidence)
+    levels = stages.tolerance_levels(P, None, policy.schedule)
+    n_final = float(budget) * policy.max_matches
+    n_source, n_target = P.source.shape[0], P.target.shape[0]
+    best = np.inf
+    for k, tol in enumerate(levels):
+        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)),
+                            stages.gate(tol))
+        res = P.residuals(fit.matrix, fit.correspondences)
+        radii = P.landing_radii(fit.matrix)
+        n_all = n_final * float(k + 1)
+        for t in levels[:k + 1]:
+            g = stages.gate(t)
+            support = int(np.count_nonzero(res <= g))
+            best = min(best, chance_alpha(support, n_source, n_target, P.landing_measure(radii, g), g, n_all,
+                                          dim=P.dim, sample_size=P.model.sample_size))
+    return float(best)
 
 
 #: Source triples of the found inliers matched among themselves by

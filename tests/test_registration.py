@@ -538,6 +538,41 @@ def test_count_ceiling_keeps_the_true_pose_and_never_a_random_one(seed):
     assert not count_ceiling(P, homogeneous(R, trial.translation + rng.normal(0, 2.0, 3)))
 
 
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10**6), f=st.sampled_from([0.5, 0.75]), noise=st.sampled_from([0.01, 0.04]),
+       tilt=st.floats(0.0, 4.0))
+def test_count_alpha_is_the_level_at_which_count_ceiling_keeps_a_pose(seed, f, noise, tilt):
+    """``count_alpha`` is the family-wise level at which ``count_ceiling`` keeps a pose: the truth and
+    the truth turned by up to 4 degrees (about the inliers' centre) on Table-2 trials, some kept and some
+    not at ``ALPHA``; a pose far off needs a level far above it."""
+    from gatv import stages
+    from gatv.models.base import homogeneous
+    from gatv.registration import count_alpha, count_ceiling
+    from gatv.stats import ALPHA
+
+    trial = table2_trial(f, noise=noise, seed=seed)
+    P = stages.prepare(trial.source, trial.target)
+    rng = np.random.default_rng(seed)
+    turn = Rotor.from_axis_angle(rng.normal(size=3), np.radians(tilt)).as_matrix()
+    centre = trial.target[trial.true_pairs[:, 1]].mean(axis=0)
+    matrix = homogeneous(turn, centre - turn @ centre) @ homogeneous(trial.rotation, trial.translation)
+    a = count_alpha(P, matrix)
+    assert a > 0.0
+    assert count_ceiling(P, matrix) == (a <= ALPHA)
+    far = Rotor.from_axis_angle(rng.normal(size=3), np.radians(rng.uniform(30, 180))).as_matrix()
+    assert count_alpha(P, homogeneous(far @ trial.rotation, trial.translation + rng.normal(0, 2.0, 3))) > 1e3 * ALPHA
+
+
+def test_count_alpha_names_a_model_it_does_not_take():
+    from gatv import stages
+    from gatv.errors import InputError
+    from gatv.registration import count_alpha
+
+    trial = table2_trial(0.5, noise=0.01, seed=0)
+    with pytest.raises(InputError, match="rigid"):
+        count_alpha(stages.prepare(trial.source, trial.target, model="similarity"), np.eye(4))
+
+
 @settings(max_examples=3, deadline=None)
 @given(seed=st.integers(0, 10**6), low=st.floats(0.005, 0.05), factor=st.floats(1.5, 8.0))
 def test_registers_trial_counts_stay_bounded_as_the_noise_grows(seed, low, factor):

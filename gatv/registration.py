@@ -78,7 +78,7 @@ from .models import Motion, apply_matrix, get_model
 from .models.base import MAX_WORK, homogeneous
 from .scans import RIVAL_SHARE, local_scatter, register_surfaces, scan_noise
 from .stages import NOISE_SCHEDULE, NOISY_SCHEDULE, Problem, gate
-from .stats import chance_alpha, samples_needed
+from .stats import samples_needed
 from .verdict import chance_verdict
 from .voting import default_sigma, extract_surfaces
 
@@ -574,12 +574,14 @@ def count_alpha(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: floa
     :data:`gatv.stats.ALPHA`.  Above 1 it bounds how many of the search's
     wrong motions would reach the truth's count: how far a target set
     against the maximum-likelihood estimate lies beyond a search that keeps
-    no wrong motion (design notes, section 1).  The rigid model's Poisson
-    level only.
+    no wrong motion (design notes, section 1).  The model must say the
+    level its count needs (its ``chance_alpha`` hook, as the built-in
+    models do).
     """
-    if P.model.name != "rigid":
-        raise InputError(f"count_alpha takes the rigid model's problem, got model {P.model.name!r}; "
-                         "prepare the point sets with model='rigid'")
+    level_of = getattr(P.model, "chance_alpha", None)
+    if level_of is None:
+        raise InputError(f"count_alpha needs a model with a chance_alpha(support, n_source, n_target, measure, "
+                         f"gate, n_tests) method; {type(P.model).__name__} has none: add it beside its chance()")
     policy = P.model.search_policy()
     _, budget = register_budget(P, min_inlier_share, confidence)
     levels = stages.tolerance_levels(P, None, policy.schedule)
@@ -595,8 +597,7 @@ def count_alpha(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: floa
         for t in levels[:k + 1]:
             g = stages.gate(t)
             support = int(np.count_nonzero(res <= g))
-            best = min(best, chance_alpha(support, n_source, n_target, P.landing_measure(radii, g), g, n_all,
-                                          dim=P.dim, sample_size=P.model.sample_size))
+            best = min(best, level_of(support, n_source, n_target, P.landing_measure(radii, g), g, n_all))
     return float(best)
 
 

@@ -186,6 +186,23 @@ def test_each_model_returns_its_search_policy():
         rigid.trial_options["wide"] = 2  # frozen
 
 
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(["rigid", "similarity", "affine2d"]), n_source=st.integers(10, 3000),
+       n_target=st.integers(10, 3000), gate=st.floats(1e-3, 1.0), log_tests=st.floats(0.0, 12.0),
+       below=st.booleans())
+def test_a_models_chance_alpha_is_the_level_at_which_its_chance_is_reached(name, n_source, n_target, gate,
+                                                                            log_tests, below):
+    from gatv.models import get_model
+    from gatv.stats import ALPHA
+
+    model = get_model(name)
+    n_tests = 10.0**log_tests
+    level = model.chance(n_source, n_target, 1000.0, gate, n_tests)
+    support = level - 1 if below else level
+    a = model.chance_alpha(support, n_source, n_target, 1000.0, gate, n_tests)
+    assert (a <= ALPHA) == (not below)
+
+
 def test_no_module_outside_the_models_branches_on_a_model_name():
     import re
     from pathlib import Path

@@ -563,14 +563,28 @@ def test_count_alpha_is_the_level_at_which_count_ceiling_keeps_a_pose(seed, f, n
     assert count_alpha(P, homogeneous(far @ trial.rotation, trial.translation + rng.normal(0, 2.0, 3))) > 1e3 * ALPHA
 
 
-def test_count_alpha_names_a_model_it_does_not_take():
+def test_count_alpha_names_a_model_without_its_hook():
+    import dataclasses
+
     from gatv import stages
     from gatv.errors import InputError
     from gatv.registration import count_alpha
 
+    class WithoutHook:
+        """The rigid model without ``chance_alpha``."""
+
+        def __init__(self, model):
+            self._model = model
+
+        def __getattr__(self, name):
+            if name == "chance_alpha":
+                raise AttributeError(name)
+            return getattr(self._model, name)
+
     trial = table2_trial(0.5, noise=0.01, seed=0)
-    with pytest.raises(InputError, match="rigid"):
-        count_alpha(stages.prepare(trial.source, trial.target, model="similarity"), np.eye(4))
+    P = stages.prepare(trial.source, trial.target)
+    with pytest.raises(InputError, match="chance_alpha"):
+        count_alpha(dataclasses.replace(P, model=WithoutHook(P.model)), np.eye(4))
 
 
 @settings(max_examples=3, deadline=None)

@@ -39,7 +39,7 @@ from .._validation import as_points, check_int
 from .rigid.congruent import TargetIndex, TrialPool, accept_level, kernel_array, sample_triples
 from ..errors import InputError
 from ..fitting import umeyama
-from ..stats import chance_support
+from ..stats import chance_alpha, chance_support
 from .base import Motion, Rotational, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
 from .rigid import check_dimension, check_spread, eq41_consistent
 
@@ -427,6 +427,12 @@ class Similarity:
         """
         return chance_support(n_source, n_target, measure, gate, n_tests=n_tests, dim=3,
                               sample_size=self.sample_size)
+
+    def chance_alpha(self, support: int, n_source: int, n_target: int, measure: float, gate: float,
+                     n_tests: float = 1.0) -> float:
+        """The smallest family-wise level at which ``support`` reaches :meth:`chance`."""
+        return chance_alpha(support, n_source, n_target, measure, gate, n_tests, dim=3,
+                            sample_size=self.sample_size)
 
     # ----------------------------------------------------------- result
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,

@@ -45,7 +45,7 @@ from . import kernels as _k
 from ..._validation import as_points, check_memory
 from ..rigid.congruent import TrialPool, accept_level
 from ...errors import InputError
-from ...stats import chance_support
+from ...stats import chance_alpha, chance_support
 from ..base import Motion, SearchPolicy, freeze_fields, homogeneous, matrix_residuals
 from ..rigid import check_dimension, check_spread
 
@@ -341,6 +341,12 @@ class Affine2D:
                n_tests: float = 1.0) -> int:
         return chance_support(n_source, n_target, measure, gate, n_tests=n_tests, dim=2,
                               sample_size=self.trial_sample_size)
+
+    def chance_alpha(self, support: int, n_source: int, n_target: int, measure: float, gate: float,
+                     n_tests: float = 1.0) -> float:
+        """The smallest family-wise level at which ``support`` reaches :meth:`chance`."""
+        return chance_alpha(support, n_source, n_target, measure, gate, n_tests, dim=2,
+                            sample_size=self.trial_sample_size)
 
     # ----------------------------------------------------------- result
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,

@@ -20,7 +20,7 @@ from ...errors import InputError
 from ...fitting import kabsch
 from ...ga import eq41_length_residual, eq41_residual
 from ...motion import RigidMotion
-from ...stats import chance_support
+from ...stats import chance_alpha, chance_support
 from ..base import MAX_WORK, NOISY_SCHEDULE, Motion, SearchPolicy, homogeneous, matrix_residuals
 
 __all__ = ["MAX_ENUMERATED", "MODEL", "NOISY_MAX_MATCHES", "RIGID_TRIALS", "WIDE", "Rigid", "check_spread",
@@ -228,6 +228,12 @@ class Rigid:
                n_tests: float = 1.0) -> int:
         return chance_support(n_source, n_target, measure, gate, n_tests=n_tests, dim=3,
                               sample_size=self.sample_size)
+
+    def chance_alpha(self, support: int, n_source: int, n_target: int, measure: float, gate: float,
+                     n_tests: float = 1.0) -> float:
+        """The smallest family-wise level at which ``support`` reaches :meth:`chance`."""
+        return chance_alpha(support, n_source, n_target, measure, gate, n_tests, dim=3,
+                            sample_size=self.sample_size)
 
     # ----------------------------------------------------------- result
     def result(self, matrix: np.ndarray, correspondences: np.ndarray, *, score: float,

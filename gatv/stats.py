@@ -16,6 +16,8 @@ import math
 import numpy as np
 from scipy.special import gammaln, pdtrc
 
+from .errors import InputError
+
 __all__ = ["ALPHA", "ball_measure", "chance_alpha", "chance_count", "chance_mean", "chance_support",
            "likelihood_level", "pair_scores", "peak_ratios", "poisson_isf", "samples_needed", "score_cumulants"]
 
@@ -53,9 +55,10 @@ def poisson_isf(q: float, mu: float) -> int:
     """
     q, mu = float(q), float(mu)
     if not q > 0.0:
-        raise ValueError(f"q must be a positive probability, got {q!r}")
+        raise InputError(f"q must be a positive probability (alpha / n_tests of a chance level), got {q!r}; "
+                         "pass alpha > 0")
     if not (mu >= 0.0 and math.isfinite(mu)):
-        raise ValueError(f"mu must be a finite mean of at least 0, got {mu!r}")
+        raise InputError(f"mu must be a finite mean of at least 0, got {mu!r}; check the counts and the measure")
     if q >= 1.0:
         return -1
     lo, hi = -1, max(0, int(math.ceil(mu)))  # P(X > -1) = 1 > q

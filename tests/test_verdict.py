@@ -98,10 +98,12 @@ def test_chance_alpha_is_the_level_at_which_a_support_reaches_chance(support, n_
 
 
 def test_poisson_isf_names_a_bad_argument():
-    with pytest.raises(ValueError, match="q must"):
+    with pytest.raises(InputError, match="q must"):
         poisson_isf(0.0, 1.0)
-    with pytest.raises(ValueError, match="mu must"):
+    with pytest.raises(InputError, match="mu must"):
         poisson_isf(0.5, float("nan"))
+    with pytest.raises(InputError, match="alpha > 0"):
+        chance_count(100, 100, 1000.0, 0.5, alpha=0.0)
 
 
 @settings(max_examples=50, deadline=None)

@@ -19,7 +19,8 @@ from scipy.special import gammaln, pdtrc
 from .errors import InputError
 
 __all__ = ["ALPHA", "ball_measure", "chance_alpha", "chance_count", "chance_mean", "chance_support",
-           "likelihood_level", "pair_scores", "peak_ratios", "poisson_isf", "samples_needed", "score_cumulants"]
+           "likelihood_level", "pair_scores", "peak_ratios", "poisson_isf", "samples_needed", "score_cumulants",
+           "support_alpha", "support_level"]
 
 #: Family-wise level of the chance tests: a wrong motion beats the chance
 #: level with at most this probability over all the tests counted.
@@ -108,21 +109,19 @@ def chance_support(n_source: int, n_target: int, measure: float, radius: float,
     >>> chance_support(100, 100, 1000.0, 1.0) > chance_support(100, 100, 1000.0, 0.5)
     True
     """
-    return chance_count(n_source, n_target, measure, radius, dim=dim, alpha=alpha,
-                        n_tests=n_tests) + 1 + int(sample_size)
+    return support_level(chance_mean(n_source, n_target, measure, radius, dim=dim), n_tests, alpha,
+                         sample_size=sample_size)
 
 
 def chance_alpha(support: int, n_source: int, n_target: int, measure: float, radius: float,
                  n_tests: float = 1.0, *, dim: int = 3, sample_size: int = 3) -> float:
     """The smallest family-wise level at which ``support`` reaches :func:`chance_support`.
 
-    ``n_tests · P(X ≥ support − sample_size)`` for the chance count ``X``
-    (:func:`chance_mean`): ``chance_support(..., alpha=a) <= support``
-    exactly when ``a`` is at least this.  Not capped at 1: above 1 it is
-    the Bonferroni bound on how many of the ``n_tests`` wrong motions reach
-    ``support`` (what a benchmark reports for a motion no level at
-    :data:`ALPHA` can keep).  ``inf`` when ``support`` does not even hold
-    the sample.
+    :func:`support_alpha` at the chance count's mean (:func:`chance_mean`):
+    ``chance_support(..., alpha=a) <= support`` exactly when ``a`` is at
+    least this.  Above 1 it is the Bonferroni bound on how many of the
+    ``n_tests`` wrong motions reach ``support`` (what a benchmark reports
+    for a motion no level at :data:`ALPHA` can keep).
 
     Examples
     --------
@@ -131,10 +130,32 @@ def chance_alpha(support: int, n_source: int, n_target: int, measure: float, rad
     >>> chance_alpha(2, 100, 100, 1000.0, 1e-3)
     inf
     """
+    return support_alpha(support, chance_mean(n_source, n_target, measure, radius, dim=dim), n_tests,
+                         sample_size=sample_size)
+
+
+def support_level(expected: float, n_tests: float = 1.0, alpha: float = ALPHA, *, sample_size: int = 3) -> int:
+    """Support a wrong motion with Poisson(``expected``) chance pairs reaches only with probability ``alpha``.
+
+    Family-wise over ``n_tests``: one above the Poisson quantile at
+    ``alpha / n_tests`` (:func:`poisson_isf`; reaching the quantile is not
+    enough), plus the ``sample_size`` points that generated the trial
+    motion, which always match.
+    """
+    return poisson_isf(alpha / max(float(n_tests), 1.0), expected) + 1 + int(sample_size)
+
+
+def support_alpha(support: int, expected: float, n_tests: float = 1.0, *, sample_size: int = 3) -> float:
+    """The smallest family-wise level at which ``support`` reaches :func:`support_level`.
+
+    ``n_tests · P(X ≥ support − sample_size)`` for ``X`` ~ Poisson(``expected``),
+    the Bonferroni p-value, not capped at 1; ``inf`` when ``support`` does
+    not even hold the sample.
+    """
     k = int(support) - 1 - int(sample_size)
     if k < -1:
         return math.inf
-    tail = 1.0 if k == -1 else float(pdtrc(k, chance_mean(n_source, n_target, measure, radius, dim=dim)))
+    tail = 1.0 if k == -1 else float(pdtrc(k, expected))
     return max(float(n_tests), 1.0) * tail
 
 

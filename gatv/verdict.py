@@ -35,9 +35,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import poisson
 
-from .stats import ALPHA, poisson_isf
+from .stats import ALPHA, support_alpha, support_level
 
 __all__ = ["Verdict", "chance_verdict", "poisson_verdict", "wrong_motion_verdict"]
 
@@ -115,9 +114,8 @@ def poisson_verdict(support: int, expected: float, n_tested: float, *, sample_si
     ``n_tested · P(count ≥ support − sample_size)``, capped at 1.
     """
     n = max(1.0, float(n_tested))
-    level = float(poisson_isf(alpha / n, expected)) + 1 + sample_size
-    k = int(support) - int(sample_size)
-    p = 1.0 if k <= 0 else min(1.0, n * float(poisson.sf(k - 1, expected)))
+    level = float(support_level(expected, n, alpha, sample_size=sample_size))
+    p = min(1.0, support_alpha(support, expected, n, sample_size=sample_size))
     return Verdict(int(support), level, n, p, "poisson", alpha)
 
 

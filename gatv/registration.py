@@ -547,17 +547,12 @@ def count_ceiling(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: fl
     ``min_inlier_share``): what a final test that weighs each pair by its
     likelihood ratio would keep (the search does not use it, design notes).
     """
-    policy = P.model.search_policy()
-    share, budget = register_budget(P, min_inlier_share, confidence)
-    levels = stages.tolerance_levels(P, None, policy.schedule)
-    n_final = float(budget) * policy.max_matches
-    for k, tol in enumerate(levels):
-        g = stages.gate(tol)
-        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)), g)
-        if stages.passing_level(P, fit, levels[:k + 1], n_final) is not None:
+    share, n_final, refined = _refined_at_each_level(P, matrix, min_inlier_share, confidence)
+    for g, levels, fit in refined:
+        if stages.passing_level(P, fit, levels, n_final) is not None:
             return True
         if likelihood and stages.likelihood_passes(
-                stages.likelihood_counts(P, matrix, g, levels[:k + 1], n_final, share)) is not None:
+                stages.likelihood_counts(P, matrix, g, levels, n_final, share)) is not None:
             return True
     return False
 
@@ -568,7 +563,7 @@ def count_alpha(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: floa
 
     The same refinement at each level's gate and the same counts as
     :func:`count_ceiling` (without ``likelihood``), each turned into the
-    level its count would need (:func:`gatv.stats.chance_alpha`, Bonferroni
+    level its count would need (:func:`gatv.stages.level_alphas`, Bonferroni
     over the budget's matches and the gates looked at); the smallest of
     them.  So ``count_ceiling(P, matrix)`` is ``count_alpha(P, matrix) <=``
     :data:`gatv.stats.ALPHA`.  Above 1 it bounds how many of the search's
@@ -578,27 +573,27 @@ def count_alpha(P: stages.Problem, matrix: np.ndarray, *, min_inlier_share: floa
     level its count needs (its ``chance_alpha`` hook, as the built-in
     models do).
     """
-    level_of = getattr(P.model, "chance_alpha", None)
-    if level_of is None:
+    if getattr(P.model, "chance_alpha", None) is None:
         raise InputError(f"count_alpha needs a model with a chance_alpha(support, n_source, n_target, measure, "
                          f"gate, n_tests) method; {type(P.model).__name__} has none: add it beside its chance()")
+    _, n_final, refined = _refined_at_each_level(P, matrix, min_inlier_share, confidence)
+    return float(min(min(stages.level_alphas(P, fit, levels, n_final)) for _, levels, fit in refined))
+
+
+def _refined_at_each_level(P: stages.Problem, matrix: np.ndarray, min_inlier_share: float, confidence: float):
+    """:func:`count_ceiling`'s budget and refinements: ``(share, n_final, refined)``.
+
+    ``share`` and ``n_final``: the smallest inlier share the search looks
+    for and the matches its budget scores; ``refined`` yields, coarser level
+    by level, ``(gate, levels up to it, matrix refined at that gate)``.
+    """
     policy = P.model.search_policy()
-    _, budget = register_budget(P, min_inlier_share, confidence)
+    share, budget = register_budget(P, min_inlier_share, confidence)
     levels = stages.tolerance_levels(P, None, policy.schedule)
-    n_final = float(budget) * policy.max_matches
-    n_source, n_target = P.source.shape[0], P.target.shape[0]
-    best = np.inf
-    for k, tol in enumerate(levels):
-        fit = stages.refine(P, stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64)),
-                            stages.gate(tol))
-        res = P.residuals(fit.matrix, fit.correspondences)
-        radii = P.landing_radii(fit.matrix)
-        n_all = n_final * float(k + 1)
-        for t in levels[:k + 1]:
-            g = stages.gate(t)
-            support = int(np.count_nonzero(res <= g))
-            best = min(best, level_of(support, n_source, n_target, P.landing_measure(radii, g), g, n_all))
-    return float(best)
+    start = stages.Fit(np.asarray(matrix, float), np.empty((0, 2), np.int64))
+    refined = ((stages.gate(tol), levels[:k + 1], stages.refine(P, start, stages.gate(tol)))
+               for k, tol in enumerate(levels))
+    return share, float(budget) * policy.max_matches, refined
 
 
 #: Source triples of the found inliers matched among themselves by

@@ -60,6 +60,7 @@ __all__ = [
     "judge",
     "judged_alike",
     "landing_level",
+    "level_alphas",
     "level_counts",
     "likelihood_counts",
     "likelihood_passes",
@@ -869,18 +870,39 @@ def level_counts(problem: Problem, fit: Fit, levels, n_tests: float) -> list[Lev
     All of them when none passes: a refused motion's closest count
     (:func:`closest_count`) is then the one a search's verdict reports.
     """
-    res = problem.residuals(fit.matrix, fit.correspondences)
-    radii = problem.landing_radii(fit.matrix)
     n_all = n_tests * float(len(levels))
+    n_source, n_target = problem.source.shape[0], problem.target.shape[0]
     counts = []
-    for tol in levels:
-        g = gate(tol)
-        count = int(np.count_nonzero(res <= g))
-        level = problem.chance_under(fit.matrix, g, n_all, radii)
+    for g, count, measure in _gate_counts(problem, fit, levels):
+        level = problem.model.chance(n_source, n_target, measure, g, n_all)
         counts.append(LevelCount(float(g), count, float(level), float(n_all)))
         if count >= level:
             break
     return counts
+
+
+def level_alphas(problem: Problem, fit: Fit, levels, n_tests: float) -> list[float]:
+    """The family-wise level at which each of :func:`level_counts`' counts would pass, every level's.
+
+    The model's ``chance_alpha`` hook at the same gate, count, landing
+    density and tests as :func:`level_counts`, so that count passes at
+    level ``i`` exactly when ``level_alphas(...)[i] <=`` :data:`ALPHA`.
+    """
+    n_all = n_tests * float(len(levels))
+    n_source, n_target = problem.source.shape[0], problem.target.shape[0]
+    return [problem.model.chance_alpha(count, n_source, n_target, measure, g, n_all)
+            for g, count, measure in _gate_counts(problem, fit, levels)]
+
+
+def _gate_counts(problem: Problem, fit: Fit, levels):
+    """``(gate, count, measure)`` at each level, finest first: ``fit``'s pairs within the level's gate,
+    and the measure the target's density gives there where ``fit`` puts the source
+    (:meth:`Problem.landing_measure`)."""
+    res = problem.residuals(fit.matrix, fit.correspondences)
+    radii = problem.landing_radii(fit.matrix)
+    for tol in levels:
+        g = gate(tol)
+        yield g, int(np.count_nonzero(res <= g)), problem.landing_measure(radii, g)
 
 
 #: Reach of :func:`likelihood_counts`' pairs, in noise deviations ``σ``: a pair's

@@ -563,6 +563,29 @@ def test_count_alpha_is_the_level_at_which_count_ceiling_keeps_a_pose(seed, f, n
     assert count_alpha(P, homogeneous(far @ trial.rotation, trial.translation + rng.normal(0, 2.0, 3))) > 1e3 * ALPHA
 
 
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10**6), tilt=st.floats(0.0, 8.0))
+def test_level_alphas_pass_exactly_where_level_counts_do(seed, tilt):
+    """Gate by gate, a level's count reaches its level exactly when its ``level_alphas`` entry is within
+    ``ALPHA`` (f = 0.5, 4%, the truth turned by up to 8 degrees over 1e5 tests: it fails the finer gates
+    and passes a coarser one)."""
+    from gatv import stages
+    from gatv.models.base import homogeneous
+    from gatv.stats import ALPHA
+
+    trial = table2_trial(0.5, noise=0.04, seed=seed)
+    P = stages.prepare(trial.source, trial.target)
+    rng = np.random.default_rng(seed)
+    turn = Rotor.from_axis_angle(rng.normal(size=3), np.radians(tilt)).as_matrix()
+    levels = stages.tolerance_levels(P, None, P.model.search_policy().schedule)
+    fit = stages.refine(P, stages.Fit(homogeneous(turn @ trial.rotation, trial.translation),
+                                      np.empty((0, 2), np.int64)), stages.gate(levels[-1]))
+    counts = stages.level_counts(P, fit, levels, 1e5)
+    alphas = stages.level_alphas(P, fit, levels, 1e5)
+    assert len(alphas) == len(levels) >= len(counts)
+    assert [c.support >= c.level for c in counts] == [a <= ALPHA for a in alphas[:len(counts)]]
+
+
 def test_count_alpha_names_a_model_without_its_hook():
     import dataclasses
 
